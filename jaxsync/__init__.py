@@ -1,0 +1,50 @@
+"""jaxsync: differentiable dual-arm contact-force synchronous control with MJX.
+
+The public face; everything else lives in private modules.
+"""
+
+import contextlib as _contextlib
+import io as _io
+
+# MJX prints "Failed to import warp" to stdout when the optional warp backend is
+# absent (harmless: jaxsync uses impl="jax"). Keep it out of users' output.
+with _contextlib.redirect_stdout(_io.StringIO()):
+    from mujoco import mjx as _mjx  # noqa: F401
+
+from jaxsync._errors import (
+    ConfigError,
+    JaxsyncError,
+    ModelError,
+    ModelFileError,
+    ModelStructureError,
+)
+from jaxsync._model import (
+    SOLVERS,
+    DualArmModel,
+    ModelIndex,
+    default_model_path,
+    load_model,
+)
+from jaxsync._physics import after_control, before_control
+from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "SOLVERS",
+    "ArmState",
+    "ConfigError",
+    "DualArmModel",
+    "JaxsyncError",
+    "ModelError",
+    "ModelFileError",
+    "ModelIndex",
+    "ModelStructureError",
+    "ObjectState",
+    "Sensed",
+    "after_control",
+    "before_control",
+    "default_model_path",
+    "load_model",
+    "sense",
+]

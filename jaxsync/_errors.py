@@ -1,0 +1,25 @@
+"""The exceptions jaxsync raises for bad input.
+
+Everything jaxsync raises on purpose is a ``JaxsyncError``; the CLI turns
+these into a one-line message and a non-zero exit.
+"""
+
+
+class JaxsyncError(Exception):
+    """Base class of every error jaxsync raises on purpose."""
+
+
+class ModelError(JaxsyncError):
+    """An MJCF model that cannot be used."""
+
+
+class ModelFileError(ModelError):
+    """The MJCF file is missing, unreadable or does not compile."""
+
+
+class ModelStructureError(ModelError):
+    """The model compiles but lacks names that jaxsync needs."""
+
+
+class ConfigError(JaxsyncError):
+    """A gain, scenario or option value outside what is allowed."""

@@ -1,0 +1,248 @@
+"""Loading the dual-arm MJCF model and resolving its names to ids, once.
+
+Everything here runs eagerly in Python, before anything is traced: ``jit``-ed
+code only ever sees the integer ids gathered in :class:`ModelIndex`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.resources
+import os
+from typing import Literal
+
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from jaxsync import _physics
+from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
+
+ARMS = ("r", "l")
+JOINTS_PER_ARM = 7
+
+SolverName = Literal["differentiable", "accurate"]
+
+# Solver settings, both Newton. ``differentiable``: one outer iteration, so
+# MJX runs the solver body once instead of a ``while_loop`` and reverse-mode
+# ``jax.grad`` can pass through ``mjx.step``. ``accurate``: the iterations the
+# model file asks for (reference runs, MuJoCo C comparisons).
+SOLVERS: dict[str, dict[str, int]] = {
+    "differentiable": {"iterations": 1, "ls_iterations": 4},
+    "accurate": {"iterations": 20, "ls_iterations": 10},
+}
+
+
+def default_model_path() -> str:
+    """Path of the packaged paper model (works from a wheel or a checkout)."""
+    return str(importlib.resources.files("jaxsync.mjcf").joinpath("dual_arm.xml"))
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmIndex:
+    """Static ids of one arm. Tuples of ints: hashable, never traced."""
+
+    prefix: str
+    qpos_adr: tuple[int, ...]
+    dof_adr: tuple[int, ...]
+    actuator_ids: tuple[int, ...]
+    ee_body: int
+    root_body: int  # body_rootid of the end effector (origin of its com-based vectors)
+    pad_site: int
+    ft_site: int
+    pad_geom: int
+    force_adr: int
+    torque_adr: int
+    contact_id: int  # index of the pad-object contact in MJX's static list
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelIndex:
+    """Static ids of the whole model."""
+
+    right: ArmIndex
+    left: ArmIndex
+    object_body: int
+    object_geom: int
+    object_qpos_adr: int
+    object_dof_adr: int
+    stand_contact_id: int
+    ncon: int
+
+    @property
+    def arms(self) -> tuple[ArmIndex, ArmIndex]:
+        return (self.right, self.left)
+
+
+def required_names() -> dict[str, list[str]]:
+    """Every MJCF name jaxsync relies on, by kind."""
+    names: dict[str, list[str]] = {
+        "body": ["object"],
+        "joint": ["object_free"],
+        "site": [],
+        "geom": ["object", "stand"],
+        "actuator": [],
+        "sensor": [],
+    }
+    for a in ARMS:
+        names["body"].append(f"{a}_ee")
+        names["joint"] += [f"{a}_joint{k}" for k in range(1, JOINTS_PER_ARM + 1)]
+        names["actuator"] += [f"{a}_motor{k}" for k in range(1, JOINTS_PER_ARM + 1)]
+        names["site"] += [f"{a}_pad", f"{a}_ft", f"{a}_flange"]
+        names["geom"].append(f"{a}_pad")
+        names["sensor"] += [f"{a}_ft_force", f"{a}_ft_torque"]
+    return names
+
+
+_OBJ = {
+    "body": mujoco.mjtObj.mjOBJ_BODY,
+    "joint": mujoco.mjtObj.mjOBJ_JOINT,
+    "site": mujoco.mjtObj.mjOBJ_SITE,
+    "geom": mujoco.mjtObj.mjOBJ_GEOM,
+    "actuator": mujoco.mjtObj.mjOBJ_ACTUATOR,
+    "sensor": mujoco.mjtObj.mjOBJ_SENSOR,
+}
+
+
+def _id(m: mujoco.MjModel, kind: str, name: str) -> int:
+    return mujoco.mj_name2id(m, _OBJ[kind], name)
+
+
+def _check_structure(m: mujoco.MjModel, path: str) -> None:
+    missing = [
+        f"{kind} '{name}'"
+        for kind, names in required_names().items()
+        for name in names
+        if _id(m, kind, name) < 0
+    ]
+    problems = []
+    if missing:
+        problems.append("missing " + ", ".join(missing))
+    for a in ARMS:
+        for k in range(1, JOINTS_PER_ARM + 1):
+            j = _id(m, "joint", f"{a}_joint{k}")
+            if j >= 0 and m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+                problems.append(f"joint '{a}_joint{k}' is not a hinge")
+            act = _id(m, "actuator", f"{a}_motor{k}")
+            if act >= 0 and j >= 0 and m.actuator_trnid[act, 0] != j:
+                problems.append(f"actuator '{a}_motor{k}' does not drive '{a}_joint{k}'")
+        for s, typ in (("force", mujoco.mjtSensor.mjSENS_FORCE), ("torque", mujoco.mjtSensor.mjSENS_TORQUE)):
+            sid = _id(m, "sensor", f"{a}_ft_{s}")
+            if sid >= 0 and m.sensor_type[sid] != typ:
+                problems.append(f"sensor '{a}_ft_{s}' is not a {s} sensor")
+        ft, pad, ee = _id(m, "site", f"{a}_ft"), _id(m, "site", f"{a}_pad"), _id(m, "body", f"{a}_ee")
+        if ee >= 0 and ft >= 0 and m.site_bodyid[ft] != ee:
+            problems.append(f"site '{a}_ft' is not on body '{a}_ee'")
+        if ee >= 0 and pad >= 0 and m.site_bodyid[pad] != ee:
+            problems.append(f"site '{a}_pad' is not on body '{a}_ee'")
+        if ee >= 0 and np.any(m.body_parentid == ee):
+            problems.append(f"body '{a}_ee' must be a leaf (its wrench compensation assumes it)")
+    fj = _id(m, "joint", "object_free")
+    if fj >= 0 and m.jnt_type[fj] != mujoco.mjtJoint.mjJNT_FREE:
+        problems.append("joint 'object_free' is not a free joint")
+    if problems:
+        raise ModelStructureError(f"{path}: " + "; ".join(problems))
+
+
+def _contact_index(geoms: np.ndarray, g1: int, g2: int, path: str) -> int:
+    hits = [i for i, (a, b) in enumerate(geoms) if {int(a), int(b)} == {g1, g2}]
+    if len(hits) != 1:
+        raise ModelStructureError(
+            f"{path}: expected exactly one contact between geoms {g1} and {g2} "
+            f"(an explicit <pair>), found {len(hits)}"
+        )
+    return hits[0]
+
+
+def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
+    geoms = _physics.static_contact_geoms(mx)
+    obj_geom = _id(m, "geom", "object")
+
+    def arm(a: str) -> ArmIndex:
+        joints = [_id(m, "joint", f"{a}_joint{k}") for k in range(1, JOINTS_PER_ARM + 1)]
+        pad_geom = _id(m, "geom", f"{a}_pad")
+        return ArmIndex(
+            prefix=a,
+            qpos_adr=tuple(int(m.jnt_qposadr[j]) for j in joints),
+            dof_adr=tuple(int(m.jnt_dofadr[j]) for j in joints),
+            actuator_ids=tuple(
+                _id(m, "actuator", f"{a}_motor{k}") for k in range(1, JOINTS_PER_ARM + 1)
+            ),
+            ee_body=_id(m, "body", f"{a}_ee"),
+            root_body=int(m.body_rootid[_id(m, "body", f"{a}_ee")]),
+            pad_site=_id(m, "site", f"{a}_pad"),
+            ft_site=_id(m, "site", f"{a}_ft"),
+            pad_geom=pad_geom,
+            force_adr=int(m.sensor_adr[_id(m, "sensor", f"{a}_ft_force")]),
+            torque_adr=int(m.sensor_adr[_id(m, "sensor", f"{a}_ft_torque")]),
+            contact_id=_contact_index(geoms, obj_geom, pad_geom, path),
+        )
+
+    fj = _id(m, "joint", "object_free")
+    return ModelIndex(
+        right=arm("r"),
+        left=arm("l"),
+        object_body=_id(m, "body", "object"),
+        object_geom=obj_geom,
+        object_qpos_adr=int(m.jnt_qposadr[fj]),
+        object_dof_adr=int(m.jnt_dofadr[fj]),
+        stand_contact_id=_contact_index(geoms, obj_geom, _id(m, "geom", "stand"), path),
+        ncon=len(geoms),
+    )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class DualArmModel:
+    """The compiled model: MuJoCo C, its MJX copy and the static ids."""
+
+    path: str
+    solver: str
+    mj_model: mujoco.MjModel
+    mjx_model: mjx.Model
+    index: ModelIndex
+
+    def keyframe_qpos(self, name: str) -> np.ndarray:
+        k = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_KEY, name)
+        if k < 0:
+            raise ModelStructureError(f"{self.path}: no keyframe '{name}'")
+        return self.mj_model.key_qpos[k].copy()
+
+
+def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate") -> mujoco.MjModel:
+    """Compile the MJCF file to a MuJoCo C model with the chosen solver settings."""
+    path = str(path) if path is not None else default_model_path()
+    if solver not in SOLVERS:
+        raise ConfigError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
+    if not os.path.isfile(path):
+        raise ModelFileError(f"{path}: no such MJCF file")
+    if not os.access(path, os.R_OK):
+        raise ModelFileError(f"{path}: MJCF file is not readable")
+    try:
+        m = mujoco.MjModel.from_xml_path(path)
+    except (ValueError, OSError) as err:  # mujoco reports XML and compile errors as ValueError
+        raise ModelFileError(f"{path}: cannot compile MJCF: {err}") from None
+    _check_structure(m, path)
+    m.opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    for key, value in SOLVERS[solver].items():
+        setattr(m.opt, key, value)
+    return m
+
+
+def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") -> DualArmModel:
+    """Load the dual-arm MJCF model for MuJoCo C and MJX.
+
+    Args:
+      path: an MJCF file; the packaged paper model when ``None``.
+      solver: ``"differentiable"`` (Newton, 1 iteration: reverse-mode
+        ``jax.grad`` through ``mjx.step`` works) or ``"accurate"`` (Newton,
+        20 iterations).
+
+    Raises:
+      ModelFileError: the file is missing, unreadable or does not compile.
+      ModelStructureError: bodies, joints, sites, sensors, actuators or
+        contact pairs that jaxsync needs are missing (all are named).
+    """
+    m = load_mj_model(path, solver)
+    path = str(path) if path is not None else default_model_path()
+    mx = mjx.put_model(m, impl="jax")
+    return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=_build_index(m, mx, path))

@@ -1,0 +1,116 @@
+"""One physics step split around the controller, and MJX's private helpers.
+
+``mjx.step`` is ``forward`` then ``integrate``. A controller needs the
+kinematics and dynamics of the *current* state, but the wrist sensors and
+contact forces come out of the constraint solve, which needs the torques: an
+algebraic loop that a real robot breaks with a one-sample delay. So, like
+MuJoCo C's ``mj_step1``/``mj_step2``:
+
+  ``before_control``: position and velocity stages at the current state
+     (kinematics, mass matrix, bias forces, Jacobians);
+  the controller reads them, plus the force/torque sensors and body
+     accelerations of the previous step's solve;
+  ``after_control``: actuation, acceleration, constraint solve, acceleration
+     sensors, Euler integration.
+
+The pair costs exactly one ``mjx.forward``. MJX's private API is used in this
+module only.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from mujoco import mjx
+from mujoco.mjx._src import collision_driver as _collision_driver
+from mujoco.mjx._src import math as _math
+from mujoco.mjx._src import support as _support
+from mujoco.mjx._src.types import IntegratorType
+
+
+def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1)."""
+    d = mjx.fwd_position(m, d)
+    d = mjx.sensor_pos(m, d)
+    d = mjx.fwd_velocity(m, d)
+    return mjx.sensor_vel(m, d)
+
+
+def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
+    """Actuation, constraint solve, acceleration sensors and integration (mj_step2)."""
+    d = d.replace(ctrl=ctrl)
+    d = mjx.fwd_actuation(m, d)
+    d = mjx.fwd_acceleration(m, d)
+    if d._impl.efc_J.size == 0:
+        d = d.replace(qacc=d.qacc_smooth)
+    else:
+        d = mjx.solve(m, d)
+        d = mjx.sensor_acc(m, d)
+    if m.opt.integrator != IntegratorType.EULER:
+        raise NotImplementedError("jaxsync steps the Euler integrator only")
+    return mjx.euler(m, d)
+
+
+def static_contact_geoms(m: mjx.Model) -> np.ndarray:
+    """(ncon, 2) geom ids of MJX's contact list, in MJX's order, without tracing.
+
+    MJX fixes its contact list at trace time: one group per collision
+    function, each repeated by the function's contact count, then ordered by
+    condim (``collision_driver.collision``). This replays that ordering.
+    """
+    by_condim: dict[int, list[np.ndarray]] = {}
+    for key, geom_ids in _collision_driver._geom_groups(m).items():
+        geom = np.array(geom_ids)[:, :2]
+        ncon = _collision_driver._COLLISION_FUNC[key.types].ncon
+        by_condim.setdefault(key.condim, []).append(np.repeat(geom, ncon, axis=0))
+    groups = [g for c in sorted(by_condim) for g in by_condim[c]]
+    return np.concatenate(groups) if groups else np.zeros((0, 2), int)
+
+
+def contact_force_world(m: mjx.Model, d: mjx.Data, contact_id: int) -> jax.Array:
+    """Force (3,) that geom2 of contact ``contact_id`` exerts on geom1, world frame.
+
+    MuJoCo's contact normal points from geom1 to geom2 and a positive normal
+    force pushes the two apart, so the force on geom1 is minus the force in
+    the contact frame rotated to the world.
+    """
+    f = _support.contact_force(m, d, contact_id, to_world_frame=True)
+    return -f[:3]
+
+
+def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
+    """Signed distance of a contact (negative: penetration)."""
+    return d._impl.contact.dist[contact_id]
+
+
+def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
+    """(nv, 3) time derivatives of the translational and rotational Jacobians."""
+    return _support.jac_dot(m, d, point, body_id)
+
+
+def body_inertial_wrench(d: mjx.Data, body_id: int) -> jax.Array:
+    """cinert*cacc + cvel x* (cinert*cvel) of one body (6,), com-based, [torque, force].
+
+    This is the net wrench the body needs for its acceleration (gravity
+    included, MuJoCo's ``cacc`` carries -g); MuJoCo's ``cfrc_int`` of a leaf
+    body equals it minus the external (contact) wrench.
+    """
+    cinert = d._impl.cinert[body_id]
+    cvel = d.cvel[body_id]
+    cacc = d._impl.cacc[body_id]
+    return _math.inert_mul(cinert, cacc) + _math.motion_cross_force(cvel, _math.inert_mul(cinert, cvel))
+
+
+def full_mass_matrix(m: mjx.Model, d: mjx.Data) -> jax.Array:
+    return mjx.full_m(m, d)
+
+
+__all__ = [
+    "after_control",
+    "before_control",
+    "body_inertial_wrench",
+    "contact_distance",
+    "contact_force_world",
+    "full_mass_matrix",
+    "jac_dot",
+]

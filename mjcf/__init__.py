@@ -1,0 +1,1 @@
+"""The packaged MJCF models (installed as ``jaxsync.mjcf``)."""

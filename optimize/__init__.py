@@ -1,0 +1,1 @@
+"""Gain optimisation (installed as ``jaxsync.optimize``)."""
