@@ -25,7 +25,7 @@ from jaxsync._model import (
     default_model_path,
     load_model,
 )
-from jaxsync._physics import after_control, before_control
+from jaxsync._physics import after_control, before_control, put_data
 from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
 
 __version__ = "0.1.0"
@@ -46,5 +46,6 @@ __all__ = [
     "before_control",
     "default_model_path",
     "load_model",
+    "put_data",
     "sense",
 ]

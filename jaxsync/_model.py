@@ -54,6 +54,7 @@ class ArmIndex:
     force_adr: int
     torque_adr: int
     contact_id: int  # index of the pad-object contact in MJX's static list
+    object_is_geom1: bool  # the object is geom1 of that contact (force sign)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -176,6 +177,7 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
             force_adr=int(m.sensor_adr[_id(m, "sensor", f"{a}_ft_force")]),
             torque_adr=int(m.sensor_adr[_id(m, "sensor", f"{a}_ft_torque")]),
             contact_id=_contact_index(geoms, obj_geom, pad_geom, path),
+            object_is_geom1=bool(geoms[_contact_index(geoms, obj_geom, pad_geom, path), 0] == obj_geom),
         )
 
     fj = _id(m, "joint", "object_free")

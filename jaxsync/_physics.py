@@ -20,6 +20,7 @@ module only.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
@@ -51,6 +52,16 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
     return mjx.euler(m, d)
 
 
+def put_data(mj_model, mj_data) -> mjx.Data:
+    """``mjx.put_data`` with the contact geom ids in the integer dtype that
+    MJX's collision step produces (int64 under x64), so the data can be the
+    carry of a ``lax.scan`` over steps."""
+    d = mjx.put_data(mj_model, mj_data, impl="jax")
+    c = d._impl.contact
+    c = c.replace(**{k: jnp.asarray(np.asarray(getattr(c, k), np.int64)) for k in ("geom", "geom1", "geom2")})
+    return d.tree_replace({"_impl.contact": c})
+
+
 def static_contact_geoms(m: mjx.Model) -> np.ndarray:
     """(ncon, 2) geom ids of MJX's contact list, in MJX's order, without tracing.
 
@@ -67,15 +78,16 @@ def static_contact_geoms(m: mjx.Model) -> np.ndarray:
     return np.concatenate(groups) if groups else np.zeros((0, 2), int)
 
 
-def contact_force_world(m: mjx.Model, d: mjx.Data, contact_id: int) -> jax.Array:
-    """Force (3,) that geom2 of contact ``contact_id`` exerts on geom1, world frame.
+def contact_force_on(m: mjx.Model, d: mjx.Data, contact_id: int, on_geom1: bool) -> jax.Array:
+    """World-frame force (3,) on one geom of contact ``contact_id``.
 
     MuJoCo's contact normal points from geom1 to geom2 and a positive normal
-    force pushes the two apart, so the force on geom1 is minus the force in
-    the contact frame rotated to the world.
+    force pushes them apart: the contact-frame force acts on geom2 as it is
+    and on geom1 with the opposite sign. Which geom is which is static
+    (:func:`static_contact_geoms`).
     """
-    f = _support.contact_force(m, d, contact_id, to_world_frame=True)
-    return -f[:3]
+    f = _support.contact_force(m, d, contact_id, to_world_frame=True)[:3]
+    return -f if on_geom1 else f
 
 
 def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
@@ -110,7 +122,7 @@ __all__ = [
     "before_control",
     "body_inertial_wrench",
     "contact_distance",
-    "contact_force_world",
+    "contact_force_on",
     "full_mass_matrix",
     "jac_dot",
 ]
