@@ -110,6 +110,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxsync {args.command}: interrupted", file=sys.stderr)
         return 130
+    except Exception as err:  # an unexpected failure: say what, keep the traceback opt-in
+        if os.environ.get("JAXSYNC_DEBUG"):
+            raise
+        print(
+            f"jaxsync {args.command}: internal error: {type(err).__name__}: {err}\n"
+            "(set JAXSYNC_DEBUG=1 for the traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return 3
 
 
 if __name__ == "__main__":

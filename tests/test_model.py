@@ -170,25 +170,24 @@ def test_missing_names_are_all_listed(tmp_path):
         assert name in msg
 
 
+def _cli(*args, tmp_path, **env):
+    """Run the installed ``jaxsync`` console script, away from the source tree."""
+    exe = os.path.join(os.path.dirname(sys.executable), "jaxsync")
+    return subprocess.run(
+        [exe, *args], capture_output=True, text=True, cwd=tmp_path, env=dict(os.environ, **env), timeout=300
+    )
+
+
 def test_cli_info_on_bad_model_exits_nonzero_without_traceback(tmp_path):
     f = _stripped_model(tmp_path)
-    env = dict(os.environ, JAXSYNC_CACHE_DIR="off")
-    out = subprocess.run(
-        [sys.executable, "-m", "jaxsync.cli", "info", "--model", str(f)],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    out = _cli("info", "--model", str(f), tmp_path=tmp_path, JAXSYNC_CACHE_DIR="off")
     assert out.returncode == 2
     assert "Traceback" not in out.stderr + out.stdout
     assert "l_ft_force" in out.stderr and str(f) in out.stderr
 
 
-def test_cli_info_prints_versions_and_model():
-    out = subprocess.run(
-        [sys.executable, "-m", "jaxsync.cli", "info"], capture_output=True, text=True, timeout=300
-    )
+def test_cli_info_prints_versions_and_model(tmp_path):
+    out = _cli("info", tmp_path=tmp_path)
     assert out.returncode == 0, out.stderr
     for word in ("jax", "mujoco-mjx", "devices", "joints_per_arm", "r: 7, l: 7", "contact_pairs", "timestep_s"):
         assert word in out.stdout
