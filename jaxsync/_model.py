@@ -68,6 +68,7 @@ class ModelIndex:
     object_qpos_adr: int
     object_dof_adr: int
     stand_contact_id: int
+    pad_pair_ids: tuple[int, int]  # rows of the <pair> arrays for the right and left pad
     ncon: int
 
     @property
@@ -155,6 +156,13 @@ def _contact_index(geoms: np.ndarray, g1: int, g2: int, path: str) -> int:
     return hits[0]
 
 
+def _pair_row(m: mujoco.MjModel, g1: int, g2: int, path: str) -> int:
+    rows = [i for i in range(m.npair) if {int(m.pair_geom1[i]), int(m.pair_geom2[i])} == {g1, g2}]
+    if len(rows) != 1:
+        raise ModelStructureError(f"{path}: expected one <pair> of geoms {g1} and {g2}, found {len(rows)}")
+    return rows[0]
+
+
 def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
     geoms = _physics.static_contact_geoms(mx)
     obj_geom = _id(m, "geom", "object")
@@ -189,6 +197,7 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
         object_qpos_adr=int(m.jnt_qposadr[fj]),
         object_dof_adr=int(m.jnt_dofadr[fj]),
         stand_contact_id=_contact_index(geoms, obj_geom, _id(m, "geom", "stand"), path),
+        pad_pair_ids=tuple(_pair_row(m, obj_geom, _id(m, "geom", f"{a}_pad"), path) for a in ARMS),
         ncon=len(geoms),
     )
 

@@ -100,16 +100,13 @@ def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
     return _support.jac_dot(m, d, point, body_id)
 
 
-def body_inertial_wrench(d: mjx.Data, body_id: int) -> jax.Array:
+def inertial_wrench(cinert: jax.Array, cvel: jax.Array, cacc: jax.Array) -> jax.Array:
     """cinert*cacc + cvel x* (cinert*cvel) of one body (6,), com-based, [torque, force].
 
-    This is the net wrench the body needs for its acceleration (gravity
-    included, MuJoCo's ``cacc`` carries -g); MuJoCo's ``cfrc_int`` of a leaf
-    body equals it minus the external (contact) wrench.
+    The net wrench the body needs for its acceleration (gravity included:
+    MuJoCo's ``cacc`` carries -g). MuJoCo's ``cfrc_int`` of a leaf body equals
+    it minus the external (contact) wrench.
     """
-    cinert = d._impl.cinert[body_id]
-    cvel = d.cvel[body_id]
-    cacc = d._impl.cacc[body_id]
     return _math.inert_mul(cinert, cacc) + _math.motion_cross_force(cvel, _math.inert_mul(cinert, cvel))
 
 
@@ -117,12 +114,3 @@ def full_mass_matrix(m: mjx.Model, d: mjx.Data) -> jax.Array:
     return mjx.full_m(m, d)
 
 
-__all__ = [
-    "after_control",
-    "before_control",
-    "body_inertial_wrench",
-    "contact_distance",
-    "contact_force_on",
-    "full_mass_matrix",
-    "jac_dot",
-]

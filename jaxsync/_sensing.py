@@ -58,7 +58,14 @@ class Sensed(NamedTuple):
 
 
 def compensate_wrist_wrench(
-    d: mjx.Data, arm: ArmIndex, raw: jax.Array, pad_pos: jax.Array
+    raw: jax.Array,
+    ft_rot: jax.Array,
+    ft_pos: jax.Array,
+    origin: jax.Array,
+    cinert: jax.Array,
+    cvel: jax.Array,
+    cacc: jax.Array,
+    pad_pos: jax.Array,
 ) -> jax.Array:
     """Wrist sensor reading (6,) -> wrench of the object on the arm about the pad (6,).
 
@@ -68,13 +75,19 @@ def compensate_wrist_wrench(
     (I a + v x* I v, gravity included via ``cacc``). So the contact wrench is
     the inertial wrench minus the sensed one; this removes the end effector's
     weight and its inertia at the current acceleration.
+
+    Args:
+      raw: (6,) sensor force and torque, sensor frame.
+      ft_rot, ft_pos: (3, 3), (3,) sensor site pose.
+      origin: (3,) where MuJoCo's com-based spatial vectors act
+        (``subtree_com`` of the end effector's root body).
+      cinert, cvel, cacc: (10,), (6,), (6,) the end effector's com-based
+        inertia, velocity and acceleration.
+      pad_pos: (3,) the pad-frame origin, where the result's torque is taken.
     """
-    rot = d.site_xmat[arm.ft_site]
-    p_ft = d.site_xpos[arm.ft_site]
-    origin = d.subtree_com[arm.root_body]  # where MuJoCo's com-based spatial vectors act
-    f_int = rot @ raw[:3]
-    t_int = rot @ raw[3:] + jnp.cross(p_ft - origin, f_int)
-    ext = _physics.body_inertial_wrench(d, arm.ee_body) - jnp.concatenate([t_int, f_int])
+    f_int = ft_rot @ raw[:3]
+    t_int = ft_rot @ raw[3:] + jnp.cross(ft_pos - origin, f_int)
+    ext = _physics.inertial_wrench(cinert, cvel, cacc) - jnp.concatenate([t_int, f_int])
     force = ext[3:]
     torque = ext[:3] + jnp.cross(origin - pad_pos, force)
     return jnp.concatenate([force, torque])
@@ -102,7 +115,16 @@ def sense_arm(m: mjx.Model, d: mjx.Data, arm: ArmIndex, mass_full: jax.Array) ->
         mass=mass_full[dofs][:, dofs],
         bias=d.qfrc_bias[dofs],
         wrist_raw=raw,
-        wrench=compensate_wrist_wrench(d, arm, raw, pad_pos),
+        wrench=compensate_wrist_wrench(
+            raw,
+            d.site_xmat[arm.ft_site],
+            d.site_xpos[arm.ft_site],
+            d.subtree_com[arm.root_body],
+            d._impl.cinert[arm.ee_body],
+            d.cvel[arm.ee_body],
+            d._impl.cacc[arm.ee_body],
+            pad_pos,
+        ),
     )
 
 

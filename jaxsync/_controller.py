@@ -1,0 +1,115 @@
+"""The two controllers of the paper, as pure functions over explicit state.
+
+``classical``: impedance only (eqs. 8-11, 15): x_ic = x_id + e_i.
+``synchronous``: impedance plus absolute/relative errors (eqs. 12-17):
+x_ik = x_id + delta_ik + k_il (e_i + T_ij e_j).
+Both end in the same joint-space law (eqs. 18, 19).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxsync import _impedance, _joint_space, _so3, _sync
+from jaxsync._gains import Gains
+from jaxsync._sensing import ArmState
+
+CONTROLLERS = ("classical", "synchronous")
+
+
+@dataclasses.dataclass(frozen=True)
+class ControllerOptions:
+    """Static choices (changing them recompiles; they are never traced)."""
+
+    kind: str = "synchronous"  # "classical" or "synchronous"
+    cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync._sync.CROSS_TERMS
+
+    def __post_init__(self):
+        from jaxsync._errors import ConfigError
+
+        if self.kind not in CONTROLLERS:
+            raise ConfigError(f"controller must be one of {CONTROLLERS}, got {self.kind!r}")
+        if self.cross_term not in _sync.CROSS_TERMS:
+            raise ConfigError(f"cross_term must be one of {_sync.CROSS_TERMS}, got {self.cross_term!r}")
+
+
+class Reference(NamedTuple):
+    """The planned pad poses x_id and what the arms should feel, at one instant."""
+
+    pad_pos: jax.Array  # (2, 3)
+    pad_rot: jax.Array  # (2, 3, 3)
+    pad_vel: jax.Array  # (2, 6) (the planned orientation is constant: angular part 0)
+    pad_acc: jax.Array  # (2, 6)
+    wrench: jax.Array  # (2, 6) f_id
+    q_rest: jax.Array  # (2, 7) posture for the null-space term
+
+
+class ControllerState(NamedTuple):
+    impedance: _impedance.ImpedanceState
+
+
+class ControlInfo(NamedTuple):
+    """Internals recorded for metrics and plots."""
+
+    offset: jax.Array  # (2, 6) x_ik - x_id (the classical: e_i)
+    delta: jax.Array  # (2, 6) absolute errors delta_i = x_id - x_i (eq. 12)
+    force_error: jax.Array  # (2, 6) f_i - f_id
+
+
+def init() -> ControllerState:
+    return ControllerState(impedance=_impedance.init())
+
+
+def step(
+    options: ControllerOptions,
+    gains: Gains,
+    state: ControllerState,
+    arms: tuple[ArmState, ArmState],
+    ref: Reference,
+    dt: float,
+) -> tuple[jax.Array, ControllerState, ControlInfo]:
+    """One control period of either controller.
+
+    Args:
+      options: static controller choice.
+      gains: the gain pytree.
+      state: the admittance filters.
+      arms: sensed (right, left) arm states; ``wrench`` is the wrist reading.
+      ref: planned poses and desired wrenches.
+      dt: control period, s.
+    Returns:
+      (14,) joint torques (right arm's 7, then left's), the new state, info.
+    """
+    wrench = jnp.stack([a.wrench for a in arms])
+    force_error = wrench - ref.wrench
+    imp, dde = _impedance.step(
+        state.impedance, gains.imp_mass, gains.imp_damping, gains.imp_stiffness, ref.pad_rot, force_error, dt
+    )
+    e, de = imp.offset, imp.rate
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
+    )
+    if options.kind == "classical":
+        off, off_vel, off_acc = e, de, dde  # x_ic = x_id + e_i (eq. 11)
+    else:
+        k_il = jnp.stack([gains.k_rl, gains.k_ll])
+        delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
+        cross = lambda v: _sync.cross_mapped(v, ref.pad_pos, options.cross_term)  # noqa: E731
+        off = _sync.synchronous_offset(delta_k, k_il, cross(e))
+        off_vel = k_il[:, None] * cross(de)
+        off_acc = k_il[:, None] * cross(dde)
+
+    taus = []
+    for i in range(2):
+        pos_ref = ref.pad_pos[i] + off[i, :3]
+        rot_ref = _so3.exp(off[i, 3:]) @ ref.pad_rot[i]
+        ddx = _joint_space.reference_acceleration(
+            arms[i], pos_ref, rot_ref, ref.pad_vel[i] + off_vel[i], ref.pad_acc[i] + off_acc[i], gains.kp_pos, gains.kd_pos
+        )
+        taus.append(_joint_space.torques(arms[i], ddx, ref.q_rest[i], gains.kp_null, gains.kd_null, ref.wrench[i]))
+    info = ControlInfo(offset=off, delta=delta, force_error=force_error)
+    return jnp.concatenate(taus), ControllerState(impedance=imp), info

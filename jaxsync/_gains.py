@@ -1,0 +1,149 @@
+"""The controller gains: one pytree whose leaves are what jax.grad and optax see."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync._errors import ConfigError
+
+
+class Gains(NamedTuple):
+    """All controller parameters. Per-arm arrays are (2, 6): rows right, left;
+    columns the pad frame's x, y, z (z: the pad normal) then rotations about
+    them. Scalars are () arrays.
+
+    imp_mass, imp_damping, imp_stiffness: M_d, B_d, K_d of eqs. 8-10, 15.
+    k_rk, k_lk: relative-error factors of eq. 13 (|k| <= 1).
+    k_rl, k_ll: factors of the compliant offsets in eq. 17.
+    kp_pos, kd_pos: inner position loop on x_ik - x_i (eq. 18), 1/s^2 and 1/s,
+      translation and rotation.
+    kp_null, kd_null: null-space posture term of eq. 18.
+    """
+
+    imp_mass: jax.Array
+    imp_damping: jax.Array
+    imp_stiffness: jax.Array
+    k_rk: jax.Array
+    k_lk: jax.Array
+    k_rl: jax.Array
+    k_ll: jax.Array
+    kp_pos: jax.Array
+    kd_pos: jax.Array
+    kp_null: jax.Array
+    kd_null: jax.Array
+
+
+def default_gains() -> Gains:
+    """The gains of the paper comparison (docs/controller.md says why these)."""
+    # Pad frame: x, y tangential, z along the normal. Soft along the normal
+    # (the grip force is regulated through it), stiff tangentially and in
+    # rotation so the grasp keeps its geometry while the object is carried.
+    mass = np.array([2.0, 2.0, 2.0, 0.05, 0.05, 0.05])
+    stiffness = np.array([1500.0, 1500.0, 50.0, 40.0, 40.0, 40.0])
+    zeta = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
+    damping = 2 * zeta * np.sqrt(mass * stiffness)
+    damping[2] = 2000.0  # normal: dominated by damping, an integrating force loop
+    two = lambda v: jnp.asarray(np.stack([v, v]))  # noqa: E731
+    return Gains(
+        imp_mass=two(mass),
+        imp_damping=two(damping),
+        imp_stiffness=two(stiffness),
+        k_rk=jnp.asarray(0.5),
+        k_lk=jnp.asarray(-0.5),
+        k_rl=jnp.asarray(0.5),
+        k_ll=jnp.asarray(0.5),
+        kp_pos=jnp.asarray(1600.0),
+        kd_pos=jnp.asarray(80.0),
+        kp_null=jnp.asarray(100.0),
+        kd_null=jnp.asarray(20.0),
+    )
+
+
+def classical_equivalent(g: Gains) -> Gains:
+    """The synchronous gains that reduce it to the classical controller
+    (k_rk = k_lk = 0, k_rl = k_ll = 1; the cross term is switched off
+    separately, see ``SyncOptions``)."""
+    z, o = jnp.zeros_like(g.k_rk), jnp.ones_like(g.k_rl)
+    return g._replace(k_rk=z, k_lk=z, k_rl=o, k_ll=o)
+
+
+# ----------------------------------------------------------------- validation
+
+_BOUNDS = {
+    "imp_mass": (0.0, math.inf, False),
+    "imp_damping": (0.0, math.inf, False),
+    "imp_stiffness": (0.0, math.inf, True),
+    "k_rk": (-1.0, 1.0, True),
+    "k_lk": (-1.0, 1.0, True),
+    "k_rl": (-1.0, 1.0, True),
+    "k_ll": (-1.0, 1.0, True),
+    "kp_pos": (0.0, math.inf, False),
+    "kd_pos": (0.0, math.inf, False),
+    "kp_null": (0.0, math.inf, True),
+    "kd_null": (0.0, math.inf, True),
+}
+
+
+def validate(g: Gains) -> Gains:
+    """Check shapes and ranges eagerly (outside jit); raise ConfigError naming the field."""
+    ref = default_gains()
+    for name in Gains._fields:
+        value = np.asarray(getattr(g, name), dtype=float)
+        want = np.shape(getattr(ref, name))
+        if value.shape != want:
+            raise ConfigError(f"gain '{name}' must have shape {want}, got {value.shape}")
+        if not np.all(np.isfinite(value)):
+            raise ConfigError(f"gain '{name}' must be finite, got {value.tolist()}")
+        lo, hi, closed = _BOUNDS[name]
+        ok = (value >= lo) & (value <= hi) if closed else (value > lo) & (value <= hi)
+        if not np.all(ok):
+            rng = f"[{lo}, {hi}]" if closed else f"({lo}, {hi}]"
+            raise ConfigError(f"gain '{name}' must lie in {rng}, got {value.tolist()}")
+    return g
+
+
+def to_dict(g: Gains) -> dict:
+    return {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
+
+
+def from_dict(d: dict, base: Gains | None = None) -> Gains:
+    """Gains from a (possibly partial) dict; missing keys keep ``base`` (defaults)."""
+    base = base if base is not None else default_gains()
+    unknown = sorted(set(d) - set(Gains._fields))
+    if unknown:
+        raise ConfigError(f"unknown gain(s) {unknown}; known: {list(Gains._fields)}")
+    fields = base._asdict()
+    for k, v in d.items():
+        ref = np.asarray(fields[k])
+        arr = np.asarray(v, dtype=float)
+        if arr.shape == () and ref.shape != ():
+            arr = np.full(ref.shape, float(arr))  # a scalar for every arm and axis
+        elif arr.shape == (6,) and ref.shape == (2, 6):
+            arr = np.stack([arr, arr])  # the same per-axis values for both arms
+        fields[k] = jnp.asarray(arr)
+    return validate(Gains(**fields))
+
+
+def load(path: str | os.PathLike) -> Gains:
+    """Read a gains JSON (written by :func:`save` or ``jaxsync tune``)."""
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"gains file {path}: no such file") from None
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"gains file {path}: cannot read JSON: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"gains file {path}: expected a JSON object of gains")
+    data = data.get("gains", data)
+    try:
+        return from_dict(data)
+    except ConfigError as err:
+        raise ConfigError(f"gains file {path}: {err}") from None

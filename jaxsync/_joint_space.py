@@ -1,0 +1,62 @@
+"""The joint-space law: Cartesian reference acceleration to joint torques (eqs. 18, 19)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxsync import _so3
+from jaxsync._sensing import ArmState
+
+# Damping of the pseudo-inverse J^T (J J^T + lambda^2 I)^-1: negligible where
+# the arm is well conditioned (sigma_min ~ 0.3 at the grasp), bounded joint
+# accelerations near a singularity.
+PINV_DAMPING = 1e-3
+
+
+def damped_pinv(jac: jax.Array, damping: float = PINV_DAMPING) -> jax.Array:
+    """(6, 7) -> (7, 6) damped least-squares pseudo-inverse."""
+    return jac.T @ jnp.linalg.solve(jac @ jac.T + damping**2 * jnp.eye(jac.shape[0]), jnp.eye(jac.shape[0]))
+
+
+def reference_acceleration(
+    arm: ArmState,
+    pos_ref: jax.Array,
+    rot_ref: jax.Array,
+    vel_ref: jax.Array,
+    acc_ref: jax.Array,
+    kp: jax.Array,
+    kd: jax.Array,
+) -> jax.Array:
+    """ddx_k = ddx_ref + K_p (x_k - x) + K_d (dx_ref - dx), (6,), the inner
+    position loop that makes the scheme position based. The pose error's
+    rotation part is the SO(3) log of R_ref R^T."""
+    err = jnp.concatenate([pos_ref - arm.pad_pos, _so3.rotation_error(rot_ref, arm.pad_rot)])
+    return acc_ref + kp * err + kd * (vel_ref - arm.pad_vel)
+
+
+def torques(
+    arm: ArmState,
+    ddx: jax.Array,
+    q_rest: jax.Array,
+    kp_null: jax.Array,
+    kd_null: jax.Array,
+    wrench: jax.Array,
+) -> jax.Array:
+    """tau = M ddq_d + c + g - J^T f with ddq_d = J^+ (ddx - dJ dq) + N lambda   (eqs. 18, 19).
+
+    N = I - J^+ J projects the posture term lambda = K (q_rest - q) - D dq into
+    the null space of the pad task (the redundant 7th degree of freedom).
+    ``wrench`` is the object's wrench on the arm that -J^T f cancels (arm
+    dynamics M ddq + c + g = tau + J^T f). The controllers pass the desired
+    wrench f_id here, not the measured one (docs/controller.md: the measured
+    wrench, one sample late and noisy, fed back at full gain made the stiff
+    pad contact unstable).
+
+    Args: ddx (6,); q_rest (7,); wrench (6,). Returns (7,).
+    """
+    pinv = damped_pinv(arm.jac)
+    null = jnp.eye(arm.jac.shape[1]) - pinv @ arm.jac
+    posture = kp_null * (q_rest - arm.q) - kd_null * arm.qd
+    ddq = pinv @ (ddx - arm.jac_dot_qd) + null @ posture
+    return arm.mass @ ddq + arm.bias - arm.jac.T @ wrench

@@ -1,0 +1,137 @@
+"""Metrics of a rollout, defined once (docs/metrics.md). Pure JAX, differentiable.
+
+Forces are those of the pads on the object (world frame). The settled window
+is the hold phase after ``scenario.settle_time``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxsync._scenario import GRAVITY, Scenario, phase_times
+
+# A rollout counts as a drop when, during carry or hold, the object is this
+# far from its planned position (it fell, or slipped out of the grasp).
+DROP_DISTANCE = 0.03
+
+
+def normal_forces(pad_forces: jax.Array, pad_normal: jax.Array) -> jax.Array:
+    """(T, 2) each pad's force on the object along the pad normal (pushing: positive).
+
+    Args: pad_forces (T, 2, 3); pad_normal (T, 2, 3) unit normals pointing into the object.
+    """
+    return jnp.einsum("tij,tij->ti", pad_forces, pad_normal)
+
+
+def _unit(v: jax.Array) -> jax.Array:
+    n2 = jnp.sum(v * v, axis=-1, keepdims=True)
+    return v / jnp.sqrt(jnp.where(n2 > 1e-24, n2, 1.0))
+
+
+def grip_force(pad_forces: jax.Array, pad_pos: jax.Array) -> jax.Array:
+    """(T,) internal (squeeze) force: the part of the pad forces in the null
+    space of the grasp matrix. For two opposing contacts it is the squeeze
+    along the line between them, u = (p_l - p_r)/|p_l - p_r|:
+    grip = (f_r . u - f_l . u) / 2.
+
+    Args: pad_forces (T, 2, 3) rows right, left; pad_pos (T, 2, 3).
+    """
+    u = _unit(pad_pos[:, 1] - pad_pos[:, 0])
+    return 0.5 * (jnp.sum(pad_forces[:, 0] * u, -1) - jnp.sum(pad_forces[:, 1] * u, -1))
+
+
+def resultant_force(pad_forces: jax.Array, plan_obj_acc: jax.Array, object_mass: jax.Array) -> jax.Array:
+    """(T, 3) f_z = J_o^T f (eq. 7), the vector sum of the pad forces, minus
+    the force the planned motion of the object needs, m (z''_d - g)."""
+    return pad_forces.sum(axis=1) - object_mass * (plan_obj_acc - jnp.asarray(GRAVITY))
+
+
+def sync_error(delta: jax.Array) -> jax.Array:
+    """(T,) |delta_r - delta_l| of the position part (eq. 13), m. delta (T, 2, 6)."""
+    d = delta[:, 0, :3] - delta[:, 1, :3]
+    return jnp.sqrt(jnp.sum(d * d, -1) + 1e-30)
+
+
+def settled_mask(time: jax.Array, s: Scenario) -> jax.Array:
+    """(T,) 1.0 inside the settled hold window."""
+    _, _, t_hold = phase_times(s)
+    return (time >= t_hold + s.settle_time).astype(time.dtype)
+
+
+def smooth_max(x: jax.Array, mask: jax.Array, temperature: jax.Array) -> jax.Array:
+    """A log-sum-exp peak of x over the mask (for costs): -> max as temperature -> 0."""
+    z = jnp.where(mask > 0, x / temperature, -jnp.inf)
+    return temperature * (jax.nn.logsumexp(z) - jnp.log(jnp.maximum(mask.sum(), 1.0)))
+
+
+class Metrics(NamedTuple):
+    """Scalars of one rollout (vmap gives a batch)."""
+
+    settled_peak_resultant_N: jax.Array
+    rms_resultant_N: jax.Array
+    mean_grip_force_N: jax.Array
+    grip_force_error_rel: jax.Array  # |mean grip - f_d| / f_d, settled window
+    grip_force_error_rel_max: jax.Array  # max |grip - f_d| / f_d, settled window
+    sync_error_rms_m: jax.Array
+    object_error_rms_m: jax.Array
+    torque_effort: jax.Array  # mean |tau|^2 over the rollout, N^2 m^2
+    dropped: jax.Array  # bool
+    drop_time_s: jax.Array  # first time the object was lost, nan if never
+    nonfinite: jax.Array  # bool
+    nonfinite_time_s: jax.Array
+
+
+def _masked_mean(x, mask):
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def _first_time(flag, time):
+    return jnp.where(flag.any(), time[jnp.argmax(flag)], jnp.nan)
+
+
+def summarize(traj, s: Scenario) -> Metrics:
+    """All metrics of one trajectory (a ``jaxsync.Trajectory``)."""
+    mask = settled_mask(traj.time, s)
+    res = jnp.linalg.norm(resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass) + 1e-30, axis=-1)
+    grip = grip_force(traj.pad_forces, traj.pad_pos)
+    grip_err = jnp.abs(grip - s.grip_force) / s.grip_force
+    mean_grip = _masked_mean(grip, mask)
+    obj_err = jnp.linalg.norm(traj.obj_pos - traj.plan_obj_pos + 1e-30, axis=-1)
+    finite = jnp.isfinite(traj.qpos).all(-1) & jnp.isfinite(traj.pad_forces).reshape(len(traj.time), -1).all(-1)
+    lost = (traj.phase >= 2) & ((obj_err > DROP_DISTANCE) | ~finite)
+    return Metrics(
+        settled_peak_resultant_N=jnp.max(jnp.where(mask > 0, res, 0.0)),
+        rms_resultant_N=jnp.sqrt(_masked_mean(res**2, mask)),
+        mean_grip_force_N=mean_grip,
+        grip_force_error_rel=jnp.abs(mean_grip - s.grip_force) / s.grip_force,
+        grip_force_error_rel_max=jnp.max(jnp.where(mask > 0, grip_err, 0.0)),
+        sync_error_rms_m=jnp.sqrt(_masked_mean(sync_error(traj.delta) ** 2, mask)),
+        object_error_rms_m=jnp.sqrt(_masked_mean(obj_err**2, mask)),
+        torque_effort=jnp.mean(jnp.sum(traj.torque**2, -1)),
+        dropped=lost.any(),
+        drop_time_s=_first_time(lost, traj.time),
+        nonfinite=~finite.all(),
+        nonfinite_time_s=_first_time(~finite, traj.time),
+    )
+
+
+def series(traj, s: Scenario) -> dict[str, jax.Array]:
+    """The curves that plots and CSVs show, keyed by column name."""
+    fn = normal_forces(traj.pad_forces, traj.pad_normal)
+    res = resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
+    return {
+        "time_s": traj.time,
+        "right_normal_force_N": fn[:, 0],
+        "left_normal_force_N": fn[:, 1],
+        "grip_force_N": grip_force(traj.pad_forces, traj.pad_pos),
+        "resultant_force_N": jnp.linalg.norm(res, axis=-1),
+        "resultant_x_N": res[:, 0],
+        "resultant_y_N": res[:, 1],
+        "resultant_z_N": res[:, 2],
+        "sync_error_m": sync_error(traj.delta),
+        "object_error_m": jnp.linalg.norm(traj.obj_pos - traj.plan_obj_pos, axis=-1),
+        "phase": traj.phase,
+    }

@@ -1,0 +1,206 @@
+"""The task as data: a scenario pytree (batchable with vmap) and its plan.
+
+Default task (paper section 5): the pads start 30 mm from the object (the
+``approach`` keyframe), close until they press into it, squeeze up to the grip
+force f_d, lift and carry the object along a smooth path, and hold it.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from jaxsync._errors import ConfigError
+
+GRAVITY = np.array([0.0, 0.0, -9.81])
+STAND_TOP_Z = 0.8  # the stand's plane, mjcf/dual_arm.xml
+NOMINAL_XY = np.array([0.65, 0.0])
+
+
+class Scenario(NamedTuple):
+    """One task. Every field is an array, so scenarios batch with vmap.
+
+    object_mass: kg (true, simulated). mass_estimate: kg, what the controller
+      assumes when it shares the object's weight between the arms.
+    object_radius: m. object_offset: (3,) m, where the object really starts
+      relative to the nominal grasp centre the plan assumes.
+    grip_force: f_d, N. intrusion: m, how far the planned pad poses press into
+      the (nominal) surface.
+    lift: (3,) m, the planned displacement of the object from its start.
+    t_close, t_squeeze, t_carry: phase durations, s (approach and close; ramp
+      of the grip force; lift and carry). The hold lasts the rest.
+    settle_time: s after the start of the hold before metrics are taken.
+    contact_timeconst: s, MuJoCo solref time constant of the pad contacts.
+    friction: pad-object sliding friction coefficient.
+    force_noise, torque_noise: N, N m; std of white noise on each wrist-sensor axis.
+    noise_key: a jax PRNG key (raw uint32 (2,)) for the sensor noise.
+    """
+
+    object_mass: jax.Array
+    mass_estimate: jax.Array
+    object_radius: jax.Array
+    object_offset: jax.Array
+    grip_force: jax.Array
+    intrusion: jax.Array
+    lift: jax.Array
+    t_close: jax.Array
+    t_squeeze: jax.Array
+    t_carry: jax.Array
+    settle_time: jax.Array
+    contact_timeconst: jax.Array
+    friction: jax.Array
+    force_noise: jax.Array
+    torque_noise: jax.Array
+    noise_key: jax.Array
+
+
+def default_scenario(**overrides) -> Scenario:
+    """The paper comparison's task (docs/scenario.md explains each choice)."""
+    values = dict(
+        object_mass=0.5,
+        mass_estimate=None,
+        object_radius=0.1,
+        object_offset=[0.0, 0.003, 0.0],  # 3 mm towards the left arm: the arms do not act alike
+        grip_force=10.0,
+        intrusion=0.001,
+        lift=[0.05, 0.0, 0.10],
+        t_close=0.6,
+        t_squeeze=0.4,
+        t_carry=1.2,
+        settle_time=0.3,
+        contact_timeconst=0.02,
+        friction=1.0,
+        force_noise=0.1,
+        torque_noise=0.005,
+        noise_key=np.asarray(jax.random.key_data(jax.random.key(0))),
+    )
+    unknown = set(overrides) - set(values)
+    if unknown:
+        raise ConfigError(f"unknown scenario field(s) {sorted(unknown)}; known: {list(Scenario._fields)}")
+    values.update(overrides)
+    if values["mass_estimate"] is None:
+        values["mass_estimate"] = values["object_mass"]
+    return validate(Scenario(**{k: jnp.asarray(v) for k, v in values.items()}))
+
+
+def validate(s: Scenario) -> Scenario:
+    """Eager range checks with messages that name the field."""
+    checks = {
+        "object_mass": (0.01, 20.0),
+        "mass_estimate": (0.0, 20.0),
+        "object_radius": (0.03, 0.2),
+        "grip_force": (0.5, 100.0),
+        "intrusion": (0.0, 0.02),
+        "t_close": (0.05, 10.0),
+        "t_squeeze": (0.05, 10.0),
+        "t_carry": (0.05, 20.0),
+        "settle_time": (0.0, 20.0),
+        "contact_timeconst": (0.004, 0.2),
+        "friction": (0.05, 3.0),
+        "force_noise": (0.0, 10.0),
+        "torque_noise": (0.0, 1.0),
+    }
+    for name, (lo, hi) in checks.items():
+        v = np.asarray(getattr(s, name))
+        if not np.all((v >= lo) & (v <= hi)):
+            raise ConfigError(f"scenario '{name}' must lie in [{lo}, {hi}], got {v.tolist()}")
+    off = np.asarray(s.object_offset)
+    if off.shape[-1:] != (3,) or not np.all(np.abs(off) <= 0.03):
+        raise ConfigError(f"scenario 'object_offset' must be (3,) metres within +-0.03, got {off.tolist()}")
+    return s
+
+
+def phase_times(s: Scenario):
+    """Start of squeeze, carry and hold (s)."""
+    t_squeeze0 = s.t_close
+    t_carry0 = t_squeeze0 + s.t_squeeze
+    t_hold0 = t_carry0 + s.t_carry
+    return t_squeeze0, t_carry0, t_hold0
+
+
+def nominal_centre(s: Scenario) -> jax.Array:
+    """Where the plan assumes the object's centre is at the start."""
+    return jnp.concatenate([jnp.asarray(NOMINAL_XY), jnp.atleast_1d(STAND_TOP_Z + s.object_radius)])
+
+
+def _min_jerk(tau: jax.Array):
+    """Position, velocity, acceleration of the 0 -> 1 minimum-jerk blend at tau in [0, 1] (per unit time)."""
+    tau = jnp.clip(tau, 0.0, 1.0)
+    p = tau**3 * (10 - 15 * tau + 6 * tau**2)
+    v = 30 * tau**2 * (1 - tau) ** 2
+    a = 60 * tau * (1 - 3 * tau + 2 * tau**2)
+    return p, v, a
+
+
+class Plan(NamedTuple):
+    """Planned object and pad motion at one instant (all world frame)."""
+
+    obj_pos: jax.Array  # (3,) z_d
+    obj_vel: jax.Array  # (3,)
+    obj_acc: jax.Array  # (3,)
+    pad_pos: jax.Array  # (2, 3) x_id position part
+    pad_vel: jax.Array  # (2, 3)
+    pad_acc: jax.Array  # (2, 3)
+    grip_force: jax.Array  # () current f_d (ramped)
+    weight_share: jax.Array  # () 0 before the lift, 1 once the arms carry the object
+    phase: jax.Array  # () 0 close, 1 squeeze, 2 carry, 3 hold
+
+
+def plan(s: Scenario, t: jax.Array, pad_start: jax.Array, pad_normal: jax.Array) -> Plan:
+    """The planned object path z_d(t) and pad positions x_id(t) (paper section 2.2).
+
+    Args:
+      s: the scenario.
+      t: time, s.
+      pad_start: (2, 3) pad positions at t = 0.
+      pad_normal: (2, 3) unit pad normals (pointing into the object) of the grasp.
+    """
+    t_sq, t_ca, t_ho = phase_times(s)
+    centre0 = nominal_centre(s)
+    # lift and carry: a minimum-jerk blend of the lift vector
+    p, v, a = _min_jerk((t - t_ca) / s.t_carry)
+    obj_pos = centre0 + p * s.lift
+    obj_vel = v / s.t_carry * s.lift
+    obj_acc = a / s.t_carry**2 * s.lift
+    # close: from the start pose to the surface pressed in by the intrusion
+    contact = centre0[None, :] - pad_normal * (s.object_radius - s.intrusion)
+    pc, vc, ac = _min_jerk(t / s.t_close)
+    pad_pos = pad_start + pc * (contact - pad_start) + (obj_pos - centre0)[None, :]
+    pad_vel = vc / s.t_close * (contact - pad_start) + obj_vel[None, :]
+    pad_acc = ac / s.t_close**2 * (contact - pad_start) + obj_acc[None, :]
+    grip, _, _ = _min_jerk((t - t_sq) / s.t_squeeze)
+    share, _, _ = _min_jerk((t - t_ca) / jnp.minimum(0.2, s.t_carry))
+    phase = (t >= t_sq).astype(jnp.int32) + (t >= t_ca) + (t >= t_ho)
+    return Plan(obj_pos, obj_vel, obj_acc, pad_pos, pad_vel, pad_acc, grip * s.grip_force, share, phase)
+
+
+def desired_wrench(s: Scenario, pl: Plan, pad_normal: jax.Array) -> jax.Array:
+    """f_id (2, 6): the wrench the object should exert on each arm.
+
+    The grip force f_d pushes each pad back along its normal, and each arm
+    carries half of what the planned motion needs, m_est (z''_d - g), once the
+    arms carry the object (the object on arm i: minus that half).
+    """
+    carry = -0.5 * pl.weight_share * s.mass_estimate * (pl.obj_acc - jnp.asarray(GRAVITY))
+    force = -pl.grip_force * pad_normal + carry[None, :]
+    return jnp.concatenate([force, jnp.zeros((2, 3))], axis=1)
+
+
+def apply_to_model(mx: mjx.Model, s: Scenario, index) -> mjx.Model:
+    """The scenario's physical parameters written into the MJX model (traceable)."""
+    b, g = index.object_body, index.object_geom
+    inertia = 2.0 / 3.0 * s.object_mass * s.object_radius**2  # thin spherical shell
+    pair_ids = np.array(index.pad_pair_ids)
+    solref = mx.pair_solref.at[pair_ids, 0].set(s.contact_timeconst)
+    friction = mx.pair_friction.at[pair_ids, 0].set(s.friction).at[pair_ids, 1].set(s.friction)
+    return mx.replace(
+        body_mass=mx.body_mass.at[b].set(s.object_mass),
+        body_inertia=mx.body_inertia.at[b].set(jnp.full(3, inertia)),
+        geom_size=mx.geom_size.at[g, 0].set(s.object_radius),
+        pair_solref=solref,
+        pair_friction=friction,
+    )
