@@ -36,13 +36,16 @@ def rigid_transport(r_ij: jax.Array) -> jax.Array:
 
 
 # How eq. 16's cross term T_ij e_j is read (docs/controller.md):
-#   "squeeze" (jaxsync's default): T_ij = -transport. e_i + T_ij e_j keeps the
-#       part of the two compliant offsets that changes the squeeze (the grip
-#       force stays under force control) and cancels the part that would move
-#       the object as one rigid body (which sensor noise and force imbalances
-#       would otherwise shake).
-#   "rigid": T_ij = +transport, the reading of shared/design/controller.md:
-#       keeps the rigid-body part, cancels the squeeze part.
+#   "squeeze" (jaxsync's default): T_ij = -I. e_i - e_j keeps the part of the
+#       two compliant offsets that changes the squeeze (the grip force stays
+#       under force control) and cancels their common part, the one that
+#       would move the object as one body (which sensor noise and force
+#       imbalances would otherwise shake). No lever-arm term: with it
+#       (T_ij = -transport), differential pad rotations leaked into a common
+#       translation of both pads and the tangential resultant grew.
+#   "rigid": T_ij = +transport (rigid_transport), the reading of
+#       shared/design/controller.md: keeps the rigid-body part, cancels the
+#       squeeze part. Measured: it does not hold the grip force.
 #   "none": no cross term.
 CROSS_TERMS = ("squeeze", "rigid", "none")
 
@@ -50,13 +53,14 @@ CROSS_TERMS = ("squeeze", "rigid", "none")
 def cross_mapped(values: jax.Array, pads: jax.Array, cross_term: str) -> jax.Array:
     """x_ild = e_i + T_ij e_j for both arms (eq. 16), applied to (2, 6) offsets
     (or their rates and accelerations: the map is linear). ``pads``: (2, 3)
-    planned pad positions, which fix the lever arm r_ij."""
+    planned pad positions, which fix the lever arm r_ij of the rigid reading."""
     if cross_term == "none":
         return values
-    sign = {"squeeze": -1.0, "rigid": 1.0}[cross_term]
+    if cross_term == "squeeze":
+        return jnp.stack([values[0] - values[1], values[1] - values[0]])
     t_rl = rigid_transport(pads[0] - pads[1])
     t_lr = rigid_transport(pads[1] - pads[0])
-    return jnp.stack([values[0] + sign * t_rl @ values[1], values[1] + sign * t_lr @ values[0]])
+    return jnp.stack([values[0] + t_rl @ values[1], values[1] + t_lr @ values[0]])
 
 
 def synchronous_offset(
