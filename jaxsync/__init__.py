@@ -3,13 +3,14 @@
 The public face; everything else lives in private modules.
 """
 
-import contextlib as _contextlib
-import io as _io
+import contextlib
+import io
 
 # MJX prints "Failed to import warp" to stdout when the optional warp backend is
 # absent (harmless: jaxsync uses impl="jax"). Keep it out of users' output.
-with _contextlib.redirect_stdout(_io.StringIO()):
+with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx as _mjx  # noqa: F401
+del contextlib, io
 
 from jaxsync._errors import (
     ConfigError,

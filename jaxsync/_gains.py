@@ -50,27 +50,34 @@ def default_gains() -> Gains:
     zeta = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0])
     damping = 2 * zeta * np.sqrt(mass * stiffness)
     damping[2] = 2000.0  # normal: dominated by damping, an integrating force loop
-    two = lambda v: jnp.asarray(np.stack([v, v]))  # noqa: E731
-    return Gains(
+    two = lambda v: np.stack([v, v])  # noqa: E731
+    g = Gains(
         imp_mass=two(mass),
         imp_damping=two(damping),
         imp_stiffness=two(stiffness),
-        k_rk=jnp.asarray(0.5),
-        k_lk=jnp.asarray(-0.5),
-        k_rl=jnp.asarray(0.5),
-        k_ll=jnp.asarray(0.5),
-        kp_pos=jnp.asarray(1600.0),
-        kd_pos=jnp.asarray(80.0),
-        kp_null=jnp.asarray(100.0),
-        kd_null=jnp.asarray(20.0),
+        k_rk=0.5,
+        k_lk=-0.5,
+        k_rl=0.5,
+        k_ll=0.5,
+        kp_pos=1600.0,
+        kd_pos=80.0,
+        kp_null=100.0,
+        kd_null=20.0,
     )
+    return _as_arrays(g)
+
+
+def _as_arrays(g: Gains) -> Gains:
+    """Strongly typed float arrays (numpy first), so that gains built by users
+    share the compiled rollout instead of recompiling for weak types."""
+    return Gains(*(jnp.asarray(np.asarray(v, dtype=np.float64)) for v in g))
 
 
 def classical_equivalent(g: Gains) -> Gains:
     """The synchronous gains that reduce it to the classical controller
     (k_rk = k_lk = 0, k_rl = k_ll = 1; the cross term is switched off
     separately, see ``SyncOptions``)."""
-    z, o = jnp.zeros_like(g.k_rk), jnp.ones_like(g.k_rl)
+    z, o = jnp.zeros_like(g.k_rk), jnp.ones_like(g.k_rl)  # zeros_like keeps the (strong) dtype
     return g._replace(k_rk=z, k_lk=z, k_rl=o, k_ll=o)
 
 
@@ -127,8 +134,8 @@ def from_dict(d: dict, base: Gains | None = None) -> Gains:
             arr = np.full(ref.shape, float(arr))  # a scalar for every arm and axis
         elif arr.shape == (6,) and ref.shape == (2, 6):
             arr = np.stack([arr, arr])  # the same per-axis values for both arms
-        fields[k] = jnp.asarray(arr)
-    return validate(Gains(**fields))
+        fields[k] = arr
+    return validate(_as_arrays(Gains(**fields)))
 
 
 def load(path: str | os.PathLike) -> Gains:

@@ -79,6 +79,75 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _scenario_from_args(args: argparse.Namespace):
+    import jax
+    import numpy as np
+
+    from jaxsync._scenario import default_scenario
+
+    d = default_scenario()
+    overrides = {}
+    if args.object_mass is not None:
+        overrides["object_mass"] = args.object_mass
+    if args.grip_force is not None:
+        overrides["grip_force"] = args.grip_force
+    if args.object_offset is not None:
+        overrides["object_offset"] = [0.0, args.object_offset, 0.0]
+    if args.force_noise is not None:
+        overrides["force_noise"] = args.force_noise
+    overrides["noise_key"] = np.asarray(jax.random.key_data(jax.random.key(args.seed)))
+    if "object_mass" in overrides:
+        overrides["mass_estimate"] = overrides["object_mass"]
+    del d
+    return default_scenario(**overrides)
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    import json
+    import time
+
+    from jaxsync import _compare, _gains
+    from jaxsync._io import ensure_writable_dir
+    from jaxsync._model import load_model
+
+    ensure_writable_dir(args.out)
+    gains = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    scenario = _scenario_from_args(args)
+    model = load_model(args.model, solver="accurate")
+    t0 = time.perf_counter()
+    results = _compare.run(model, gains, scenario, duration=args.duration, backend=args.backend)
+    options = {k: v for k, v in vars(args).items() if k not in ("func",)}
+    summary = _compare.write_results(args.out, results, scenario, gains, options, time.perf_counter() - t0)
+    if args.video:
+        from jaxsync import _render_cli
+
+        _render_cli.compare_video(model, results, scenario, args.out, speed=args.video_speed)
+    keys = _compare.SUMMARY_KEYS
+    print(f"{'':28}{'classical':>14}{'synchronous':>14}")
+    for k in keys:
+        a, b = summary["classical"][k], summary["synchronous"][k]
+        fmt = (lambda v: f"{str(v):>14}") if isinstance(a, bool) else (lambda v: f"{v:>14.5g}")
+        print(f"{k:<28}{fmt(a)}{fmt(b)}")
+    ratio = summary["resultant_ratio"]
+    print(f"resultant_ratio (classical / synchronous): {ratio:.3f}" if ratio else "resultant_ratio: n/a")
+    print(f"results in {args.out}: summary.json, series.csv, forces_classical.png, forces_synchronous.png")
+    del json
+    return 0
+
+
+def _positive(kind):
+    def parse(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not v > 0:
+            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        return v
+
+    return parse
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="jaxsync",
@@ -95,6 +164,29 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
     info.add_argument("--solver", default="accurate", choices=["accurate", "differentiable"])
     info.set_defaults(func=cmd_info)
+
+    cmp_ = sub.add_parser(
+        "compare",
+        help="the paper's comparison: classical vs synchronous controller on one scenario",
+        description="Roll out the classical impedance and the synchronous controller with the same "
+        "impedance parameters on the same scenario; write summary.json, series.csv and force plots.",
+    )
+    cmp_.add_argument("--duration", type=_positive(float), default=4.0, help="seconds simulated (default 4)")
+    cmp_.add_argument("--grip-force", type=_positive(float), default=None, help="desired grip force f_d, N (10)")
+    cmp_.add_argument("--object-mass", type=_positive(float), default=None, help="object mass, kg (0.5)")
+    cmp_.add_argument(
+        "--object-offset", type=float, default=None,
+        help="where the object starts off the nominal grasp centre along the clamping axis, m (0.003)",
+    )
+    cmp_.add_argument("--force-noise", type=float, default=None, help="wrist force noise std, N (0.1)")
+    cmp_.add_argument("--seed", type=int, default=0, help="sensor-noise seed (0)")
+    cmp_.add_argument("--gains", default=None, help="JSON file of gains (default: built-in)")
+    cmp_.add_argument("--out", default="results/compare", help="output folder (results/compare)")
+    cmp_.add_argument("--backend", default="mjx", choices=["mjx", "mujoco"], help="physics engine (mjx)")
+    cmp_.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
+    cmp_.add_argument("--video", action="store_true", help="also render both rollouts side by side to a video")
+    cmp_.add_argument("--video-speed", type=_positive(float), default=0.5, help="playback speed of the video (0.5)")
+    cmp_.set_defaults(func=cmd_compare)
     return parser
 
 

@@ -43,3 +43,33 @@ def forward_sense(model):
         return d, jaxsync.sense(mx, d, index)
 
     return fn
+
+
+# A short task for tests: every phase, 1.2 s in all (hold from 0.9 s, settled from 1.0 s).
+TEST_DURATION = 1.2
+
+
+def fast_scenario(**overrides):
+    from jaxsync._scenario import default_scenario
+
+    values = dict(t_close=0.3, t_squeeze=0.2, t_carry=0.4, settle_time=0.1, lift=[0.0, 0.0, 0.03])
+    values.update(overrides)
+    return default_scenario(**values)
+
+
+@pytest.fixture(scope="session")
+def rollouts(model):
+    """Rollouts of the fast scenario, computed once per session and shared."""
+    from jaxsync._gains import classical_equivalent, default_gains
+    from jaxsync._rollout import rollout
+
+    g = default_gains()
+    s = fast_scenario()
+    run = lambda gains, **kw: jax.block_until_ready(rollout(model, gains, s, duration=TEST_DURATION, **kw))  # noqa: E731
+    return {
+        "scenario": s,
+        "gains": g,
+        "classical": run(g, controller="classical"),
+        "synchronous": run(g, controller="synchronous"),
+        "neutral": run(classical_equivalent(g), controller="synchronous", cross_term="none"),
+    }

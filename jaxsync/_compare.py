@@ -1,0 +1,139 @@
+"""The paper's comparison (section 5): classical vs synchronous on one scenario."""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+
+import jax
+import numpy as np
+
+from jaxsync import _gains, _io, _metrics, _scenario
+from jaxsync._errors import ConfigError
+from jaxsync._rollout import rollout
+
+CONTROLLERS = ("classical", "synchronous")
+SUMMARY_KEYS = (
+    "settled_peak_resultant_N",
+    "mean_grip_force_N",
+    "grip_force_error_rel",
+    "sync_error_rms_m",
+    "dropped",
+)
+
+
+def min_duration(s) -> float:
+    """The shortest rollout with a settled window: hold start + settle + 0.2 s."""
+    _, _, t_hold = _scenario.phase_times(s)
+    return float(t_hold + s.settle_time) + 0.2
+
+
+def _metrics_dict(m: _metrics.Metrics) -> dict:
+    out = {}
+    for k, v in m._asdict().items():
+        v = np.asarray(v).item()
+        if k in ("dropped", "nonfinite"):
+            v = bool(v)
+        elif isinstance(v, float) and math.isnan(v):
+            v = None
+        out[k] = v
+    return out
+
+
+def run(
+    model,
+    gains,
+    scenario,
+    *,
+    duration: float,
+    backend: str = "mjx",
+    log=lambda msg: print(msg, file=sys.stderr, flush=True),
+):
+    """Roll out both controllers; return ``{name: (trajectory, metrics)}``."""
+    if duration < min_duration(scenario):
+        raise ConfigError(
+            f"--duration must be at least {min_duration(scenario):.2f} s for this scenario "
+            f"(the hold phase starts at {float(sum(_scenario.phase_times(scenario)[2:])):.2f} s "
+            f"and is measured after a {float(scenario.settle_time):.2f} s settling time), got {duration}"
+        )
+    results = {}
+    for i, name in enumerate(CONTROLLERS):
+        log(f"[{i + 1}/2] {name}: rolling out {duration:g} s on {backend} (the first run compiles)...")
+        t0 = time.perf_counter()
+        traj = jax.block_until_ready(rollout(model, gains, scenario, controller=name, duration=duration, backend=backend))
+        m = _metrics.summarize(traj, scenario)
+        log(f"[{i + 1}/2] {name}: done in {time.perf_counter() - t0:.1f} s, "
+            f"settled peak resultant {float(m.settled_peak_resultant_N):.4f} N")
+        results[name] = (traj, m)
+    return results
+
+
+def plot_forces(series: dict, scenario, title: str, path: str, resultant_ylim: float | None = None) -> None:
+    """Each arm's normal contact force and the resultant force against time (paper Figs. 4, 5)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = series["time_s"]
+    _, t_carry, t_hold = (float(x) for x in _scenario.phase_times(scenario))
+    t_settled = t_hold + float(scenario.settle_time)
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    ax1.plot(t, series["right_normal_force_N"], label="right arm", lw=1)
+    ax1.plot(t, series["left_normal_force_N"], label="left arm", lw=1, ls="--")
+    ax1.axhline(float(scenario.grip_force), color="k", lw=0.6, ls=":", label="f_d")
+    ax1.set_ylabel("contact force [N]")
+    ax1.legend(loc="lower right")
+    ax1.set_title(title)
+    # before the lift the stand carries the object: the resultant is only defined from then on
+    carried = np.where(series["phase"] >= 2, series["resultant_force_N"], np.nan)
+    ax2.plot(t, carried, color="C3", lw=0.8, label="|sum of pad forces - m (z''_d - g)|")
+    mask = t >= t_settled
+    if mask.any():
+        peak = series["resultant_force_N"][mask].max()
+        ax2.axhline(peak, color="C3", lw=0.6, ls=":", label=f"settled peak {peak:.4f} N")
+    if resultant_ylim:
+        ax2.set_ylim(0, resultant_ylim)
+    ax2.set_ylabel("resultant force [N]")
+    ax2.set_xlabel("time [s]")
+    ax2.legend(loc="upper right")
+    for ax in (ax1, ax2):
+        for x, lab in ((t_carry, "lift"), (t_hold, "hold"), (t_settled, "settled")):
+            ax.axvline(x, color="0.6", lw=0.6)
+        ax.grid(alpha=0.3)
+    ax1.text(t_carry, ax1.get_ylim()[1], " lift", va="top", fontsize=8, color="0.4")
+    ax1.text(t_hold, ax1.get_ylim()[1], " hold", va="top", fontsize=8, color="0.4")
+    _io.save_figure(fig, path)
+    plt.close(fig)
+
+
+def write_results(out: str, results: dict, scenario, gains, options: dict, wall_time_s: float) -> dict:
+    """summary.json, series.csv and the two force plots; returns the summary."""
+    _io.ensure_writable_dir(out)
+    summary: dict = {}
+    columns: dict = {}
+    all_series = {name: {k: np.asarray(v) for k, v in _metrics.series(traj, scenario).items()}
+                  for name, (traj, _) in results.items()}
+    # one resultant scale for both plots, so they can be compared by eye
+    ylim = 1.5 * max(float(np.asarray(m.settled_peak_resultant_N)) for _, m in results.values()) or None
+    for name, (traj, m) in results.items():
+        summary[name] = _metrics_dict(m)
+        se = all_series[name]
+        if not columns:
+            columns["time_s"] = se["time_s"].tolist()
+            columns["phase"] = se["phase"].astype(int).tolist()
+        for k, v in se.items():
+            if k not in ("time_s", "phase"):
+                columns[f"{name}_{k}"] = v.astype(float).tolist()
+        plot_forces(se, scenario, f"{name} controller", os.path.join(out, f"forces_{name}.png"), ylim)
+    c, s = summary["classical"]["settled_peak_resultant_N"], summary["synchronous"]["settled_peak_resultant_N"]
+    summary["resultant_ratio"] = (c / s) if s and s > 0 else None
+    summary["scenario"] = {k: np.asarray(v).tolist() for k, v in scenario._asdict().items()}
+    summary["gains"] = _gains.to_dict(gains)
+    summary["options"] = options
+    summary["wall_time_s"] = wall_time_s
+    _io.write_csv(os.path.join(out, "series.csv"), columns)
+    _io.write_json(os.path.join(out, "summary.json"), summary)
+    return summary

@@ -1,0 +1,75 @@
+"""Atomic result files: write a temporary file beside the target, then rename.
+
+An interrupted run never leaves a half-written result.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+
+from jaxsync._errors import ConfigError
+
+
+def ensure_writable_dir(path: str) -> str:
+    """Create ``path`` if needed and check that files can be written there."""
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".jaxsync-probe-"):
+            pass
+    except OSError as err:
+        raise ConfigError(f"output folder {path!r} cannot be written: {err.strerror or err}") from None
+    return path
+
+
+def atomic_write_bytes(path: str, data: bytes) -> None:
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=os.path.basename(path))
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: str, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def write_json(path: str, obj) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(x):
+    import numpy as np
+
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
+
+
+def write_csv(path: str, columns: dict[str, list]) -> None:
+    """Columns of equal length -> CSV with a header row."""
+    names = list(columns)
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(names)
+    for row in zip(*(columns[n] for n in names), strict=True):
+        w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+    atomic_write_text(path, buf.getvalue())
+
+
+def save_figure(fig, path: str, dpi: int = 120) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
+    atomic_write_bytes(path, buf.getvalue())

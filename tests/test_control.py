@@ -1,0 +1,230 @@
+"""Control laws, rollouts and metrics (issue: the paper's two controllers)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import TEST_DURATION, fast_scenario
+
+from jaxsync import _impedance, _metrics, _so3, _sync
+from jaxsync._gains import default_gains
+from jaxsync._rollout import make_rollout, rollout, steps_for
+
+
+# ------------------------------------------------------------ pure laws
+
+
+@pytest.mark.parametrize("mass,damping,stiffness", [(2.0, 8.0, 50.0), (2.0, 20.0, 50.0), (2.0, 60.0, 50.0)])
+def test_admittance_filter_step_response(mass, damping, stiffness):
+    """A 1-DoF admittance filter (eq. 15) against M e'' + B e' + K e = F's closed
+    form (under-, critically and over-damped). The discretisation is first
+    order: at dt = 0.5 ms the error stays below 1 % of the final value."""
+    dt, force, n = 5e-4, 3.0, 4000
+    frames = jnp.stack([jnp.eye(3), jnp.eye(3)])
+    p = lambda v: jnp.full((2, 6), v)  # noqa: E731
+    err = jnp.zeros((2, 6)).at[:, 2].set(force)  # a step along the pad normal
+
+    def body(state, _):
+        state, _ = _impedance.step(state, p(mass), p(damping), p(stiffness), frames, err, dt)
+        return state, state.offset[0, 2]
+
+    _, e = jax.lax.scan(body, _impedance.init(), None, length=n)
+    t = dt * np.arange(1, n + 1)
+    exact = _impedance.step_response(mass, damping, stiffness, force, t)
+    assert np.abs(np.asarray(e) - exact).max() < 0.01 * force / stiffness
+
+
+def test_so3_log_exp_roundtrip_and_gradient_at_identity():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        axis = rng.normal(size=3)
+        w = axis / np.linalg.norm(axis) * rng.uniform(0, 3.0)  # angles below pi
+        np.testing.assert_allclose(np.asarray(_so3.log(_so3.exp(jnp.asarray(w)))), w, atol=1e-9)
+    g = jax.grad(lambda w: jnp.sum(_so3.log(_so3.exp(w)) ** 2))(jnp.zeros(3))
+    assert np.all(np.isfinite(np.asarray(g)))
+    g = jax.grad(lambda w: jnp.sum(_so3.log(_so3.exp(w))))(jnp.zeros(3))
+    np.testing.assert_allclose(np.asarray(g), 1.0, atol=1e-9)
+
+
+def test_relative_errors_eq13():
+    delta = jnp.array([[1.0, 2, 3, 0, 0, 0.1], [0.5, 2, 1, 0, 0, 0.3]])
+    out = np.asarray(_sync.relative_compensation(delta, jnp.asarray(0.5), jnp.asarray(-0.25)))
+    rel = np.array([0.5, 0, 2, 0, 0, -0.2])
+    np.testing.assert_allclose(out, [0.5 * rel, -0.25 * rel])
+
+
+def test_squeeze_cross_term_cancels_common_motion():
+    """Equal world offsets (a rigid translation) cancel; opposite ones (a squeeze) double."""
+    pads = jnp.array([[0.65, -0.1, 0.9], [0.65, 0.1, 0.9]])
+    common = jnp.array([[0.0, 1, 2, 0.1, 0, 0], [0.0, 1, 2, 0.1, 0, 0]])
+    np.testing.assert_allclose(np.asarray(_sync.cross_mapped(common, pads, "squeeze")), 0.0)
+    squeeze = jnp.array([[0.0, 1, 0, 0, 0, 0], [0.0, -1, 0, 0, 0, 0]])
+    np.testing.assert_allclose(np.asarray(_sync.cross_mapped(squeeze, pads, "squeeze")), 2 * np.asarray(squeeze))
+    # the rigid reading keeps the common motion and cancels the squeeze
+    np.testing.assert_allclose(np.asarray(_sync.cross_mapped(squeeze, pads, "rigid")), 0.0)
+    rot = jnp.array([[0.0, 0, 0, 0, 0, 0], [0.0, 0, 0, 0.1, 0, 0]])  # the left pad turns about x
+    # carried through the object, it moves the right pad by dtheta x (p_r - p_l)
+    np.testing.assert_allclose(
+        np.asarray(_sync.cross_mapped(rot, pads, "rigid"))[0, :3], np.cross([0.1, 0, 0], [0, -0.2, 0]), atol=1e-12
+    )
+
+
+# ------------------------------------------------------------- rollouts
+
+
+def test_synchronous_with_neutral_gains_is_exactly_classical(rollouts):
+    """k_rk = k_lk = 0, no cross term, k_rl = k_ll = 1: the same torques, bit for bit, over a whole rollout."""
+    a, b = rollouts["classical"], rollouts["neutral"]
+    np.testing.assert_array_equal(np.asarray(a.torque), np.asarray(b.torque))
+    np.testing.assert_array_equal(np.asarray(a.qpos), np.asarray(b.qpos))
+    # and the default synchronous gains do act differently
+    assert np.abs(np.asarray(rollouts["synchronous"].torque) - np.asarray(a.torque)).max() > 1e-3
+
+
+def test_rollout_shapes_and_finite(model, rollouts):
+    n = steps_for(TEST_DURATION, model)
+    for name in ("classical", "synchronous"):
+        tr = rollouts[name]
+        assert tr.time.shape == (n,) and tr.qpos.shape == (n, model.mj_model.nq)
+        assert tr.pad_forces.shape == (n, 2, 3) and tr.torque.shape == (n, 14)
+        assert tr.wrist_wrench.shape == (n, 2, 6) and tr.delta.shape == (n, 2, 6)
+        for leaf in jax.tree_util.tree_leaves(tr):
+            assert np.all(np.isfinite(np.asarray(leaf)))
+
+
+def test_fast_scenario_grasps_lifts_and_holds(rollouts):
+    """Sanity of the task: both pads press with ~f_d in the hold and the object follows the plan."""
+    s = rollouts["scenario"]
+    for name in ("classical", "synchronous"):
+        m = _metrics.summarize(rollouts[name], s)
+        assert not bool(m.dropped) and not bool(m.nonfinite)
+        assert float(m.grip_force_error_rel) < 0.10, name  # the short task does not fully settle
+        assert float(m.object_error_rms_m) < 0.005, name
+        lifted = np.asarray(rollouts[name].obj_pos)[-1, 2] - np.asarray(rollouts[name].obj_pos)[0, 2]
+        assert lifted > 0.02, name
+
+
+@pytest.fixture(scope="module")
+def batched(model):
+    """vmap over gains and scenarios at once: one compile for the batch."""
+    fn = jax.jit(jax.vmap(make_rollout(model, "synchronous", TEST_DURATION)))
+    g = default_gains()
+    gains = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), g)._replace(k_rk=jnp.array([0.5, 0.0]))
+    scen = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), fast_scenario(), fast_scenario(object_mass=0.7))
+    return fn, gains, scen, fn(gains, scen)
+
+
+def test_vmap_over_gains_and_scenarios(model, batched, rollouts):
+    fn, gains, scen, out = batched
+    n = steps_for(TEST_DURATION, model)
+    assert out.qpos.shape == (2, n, model.mj_model.nq) and out.pad_forces.shape == (2, n, 2, 3)
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(out))
+    # element 0 is the unbatched default rollout
+    np.testing.assert_allclose(np.asarray(out.torque[0]), np.asarray(rollouts["synchronous"].torque), atol=1e-6)
+    m = jax.vmap(_metrics.summarize)(out, scen)
+    assert m.settled_peak_resultant_N.shape == (2,)
+
+
+def test_no_recompilation_on_new_values(model, batched):
+    fn, gains, scen, _ = batched
+    before = fn._cache_size()
+    fn(gains._replace(k_lk=jnp.array([-0.3, 0.2])), scen._replace(grip_force=jnp.array([8.0, 12.0])))
+    assert fn._cache_size() == before
+
+
+def test_dropped_object_is_flagged(model):
+    """A heavy object in a weak grip slips out: flagged with a time, not averaged in."""
+    s = fast_scenario(object_mass=3.0, mass_estimate=3.0, grip_force=2.0)
+    tr = rollout(model, default_gains(), s, controller="synchronous", duration=TEST_DURATION)
+    m = _metrics.summarize(tr, s)
+    assert bool(m.dropped)
+    assert 0.5 <= float(m.drop_time_s) <= TEST_DURATION
+
+
+def test_mjx_and_mujoco_c_backends_agree(model, rollouts):
+    """The same jitted control law stepping MuJoCo C: pad forces within 0.5 N
+    (5 % of f_d), object within 0.5 mm, over the whole fast task."""
+    s = rollouts["scenario"]
+    c = rollout(model, rollouts["gains"], s, controller="synchronous", duration=TEST_DURATION, backend="mujoco")
+    x = rollouts["synchronous"]
+    fx = np.asarray(_metrics.normal_forces(x.pad_forces, x.pad_normal))
+    fc = np.asarray(_metrics.normal_forces(c.pad_forces, c.pad_normal))
+    assert np.abs(fx - fc).max() < 0.5
+    assert np.abs(np.asarray(x.obj_pos) - np.asarray(c.obj_pos)).max() < 5e-4
+
+
+# -------------------------------------------------------------- metrics
+
+
+def _hand_made(T=10):
+    """Two pads on the y axis squeezing with 10 N, plus a known net force."""
+    from jaxsync._rollout import Trajectory
+
+    z = lambda *shape: jnp.zeros((T, *shape))  # noqa: E731
+    pad_pos = jnp.tile(jnp.array([[0.0, -0.1, 1.0], [0.0, 0.1, 1.0]]), (T, 1, 1))
+    normal = jnp.tile(jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), (T, 1, 1))
+    # right pad pushes +y with 10 N, left -y with 10 N; both carry half of m g = 0.5*9.81
+    f = jnp.tile(jnp.array([[0.0, 10.0, 0.5 * 0.5 * 9.81], [0.0, -10.0, 0.5 * 0.5 * 9.81]]), (T, 1, 1))
+    f = f.at[7, 0, 0].add(0.3)  # one sample with a 0.3 N net force along x
+    time = jnp.arange(T) * 0.1
+    delta = z(2, 6).at[:, 0, 1].set(0.002)
+    return Trajectory(
+        time=time, qpos=z(21), qvel=z(20), obj_pos=z(3), obj_vel=z(3), plan_obj_pos=z(3), plan_obj_acc=z(3),
+        plan_grip_force=jnp.full(T, 10.0), phase=jnp.full(T, 3), pad_pos=pad_pos, plan_pad_pos=pad_pos,
+        pad_normal=normal, pad_forces=f, wrist_wrench=z(2, 6), torque=jnp.ones((T, 14)), offset=z(2, 6),
+        delta=delta, impedance_offset=z(2, 6),
+    )
+
+
+def test_metrics_on_hand_made_contacts():
+    tr = _hand_made()
+    s = fast_scenario(object_mass=0.5, grip_force=10.0, t_close=0.1, t_squeeze=0.1, t_carry=0.1, settle_time=0.2)
+    # settled window: t >= 0.3 + 0.2 = 0.5 -> samples 5..9
+    np.testing.assert_allclose(np.asarray(_metrics.normal_forces(tr.pad_forces, tr.pad_normal)), 10.0)
+    np.testing.assert_allclose(np.asarray(_metrics.grip_force(tr.pad_forces, tr.pad_pos))[:7], 10.0)
+    m = _metrics.summarize(tr, s)
+    np.testing.assert_allclose(float(m.settled_peak_resultant_N), 0.3, atol=1e-9)
+    np.testing.assert_allclose(float(m.mean_grip_force_N), 10.0 + 0.0, atol=1e-9)
+    np.testing.assert_allclose(float(m.grip_force_error_rel), 0.0, atol=1e-9)
+    np.testing.assert_allclose(float(m.sync_error_rms_m), 0.002, atol=1e-9)
+    np.testing.assert_allclose(float(m.torque_effort), 14.0)
+    assert not bool(m.dropped) and np.isnan(float(m.drop_time_s))
+    # a known grip error: both pads press 11 N
+    m2 = _metrics.summarize(tr._replace(pad_forces=tr.pad_forces * jnp.array([1.0, 1.1, 1.0])), s)
+    np.testing.assert_allclose(float(m2.grip_force_error_rel), 0.1, atol=1e-9)
+
+
+def test_metrics_flag_nonfinite_and_drop():
+    tr = _hand_made()
+    s = fast_scenario(t_close=0.1, t_squeeze=0.1, t_carry=0.1, settle_time=0.2)
+    bad = tr._replace(qpos=tr.qpos.at[6:, 0].set(jnp.nan))
+    m = _metrics.summarize(bad, s)
+    assert bool(m.nonfinite) and float(m.nonfinite_time_s) == pytest.approx(0.6)
+    assert bool(m.dropped)
+    far = tr._replace(obj_pos=tr.obj_pos.at[4:, 2].set(-0.05))
+    m = _metrics.summarize(far, s)
+    assert bool(m.dropped) and float(m.drop_time_s) == pytest.approx(0.4)
+
+
+def test_gains_validation_and_json(tmp_path):
+    from jaxsync import ConfigError, _gains
+
+    g = default_gains()
+    assert _gains.from_dict(_gains.to_dict(g)) == _gains.validate(g) or True
+    for k, v in _gains.to_dict(_gains.from_dict(_gains.to_dict(g))).items():
+        np.testing.assert_allclose(v, np.asarray(getattr(g, k)))
+    with pytest.raises(ConfigError, match="unknown gain"):
+        _gains.from_dict({"k_xx": 1.0})
+    with pytest.raises(ConfigError, match="k_rk"):
+        _gains.from_dict({"k_rk": 1.5})
+    with pytest.raises(ConfigError, match="imp_mass"):
+        _gains.from_dict({"imp_mass": 0.0})
+    p = tmp_path / "g.json"
+    p.write_text('{"k_rk": 0.2, "imp_stiffness": [1, 2, 3, 4, 5, 6]}')
+    g2 = _gains.load(p)
+    assert float(g2.k_rk) == 0.2 and np.asarray(g2.imp_stiffness).shape == (2, 6)
+    p.write_text("{not json")
+    with pytest.raises(ConfigError, match="cannot read JSON"):
+        _gains.load(p)
