@@ -25,10 +25,12 @@ SolverName = Literal["differentiable", "accurate"]
 
 # Solver settings, both Newton. ``differentiable``: one outer iteration, so
 # MJX runs the solver body once instead of a ``while_loop`` and reverse-mode
-# ``jax.grad`` can pass through ``mjx.step``. ``accurate``: the iterations the
-# model file asks for (reference runs, MuJoCo C comparisons).
+# ``jax.grad`` can pass through ``mjx.step``; and the pyramidal friction cone,
+# because MJX's elliptic cone gave NaN gradients through the solver (measured,
+# tests/test_sensing.py). ``accurate``: 20 iterations and the model file's
+# elliptic cone (reference runs, MuJoCo C comparisons).
 SOLVERS: dict[str, dict[str, int]] = {
-    "differentiable": {"iterations": 1, "ls_iterations": 4},
+    "differentiable": {"iterations": 1, "ls_iterations": 4, "cone": int(mujoco.mjtCone.mjCONE_PYRAMIDAL)},
     "accurate": {"iterations": 20, "ls_iterations": 10},
 }
 

@@ -312,7 +312,7 @@ def rollout_mujoco(
     consts = _consts(model)
     m = mujoco.MjModel.from_xml_path(model.path)  # a private copy we can change
     m.opt.iterations, m.opt.ls_iterations = model.mj_model.opt.iterations, model.mj_model.opt.ls_iterations
-    m.opt.solver = model.mj_model.opt.solver
+    m.opt.solver, m.opt.cone = model.mj_model.opt.solver, model.mj_model.opt.cone
     idx = model.index
     s = jax.tree_util.tree_map(np.asarray, scenario)
     b, g = idx.object_body, idx.object_geom

@@ -113,6 +113,8 @@ def test_only_explicit_pairs_collide(model):
 
 def test_solver_settings(model, diff_model):
     assert diff_model.mj_model.opt.iterations == 1
+    assert diff_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL  # elliptic: NaN gradients in MJX
+    assert model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.iterations > 1
     for mdl in (model, diff_model):
         assert mdl.mj_model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON

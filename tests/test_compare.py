@@ -1,0 +1,87 @@
+"""The paper's comparison: summary files, the claims on three scenarios, and CLI input errors."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from jaxsync import _compare, _metrics
+from jaxsync._gains import default_gains
+from jaxsync._scenario import default_scenario
+
+
+def _cli(*args, cwd):
+    exe = os.path.join(os.path.dirname(sys.executable), "jaxsync")
+    return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_compare_writes_a_well_formed_summary(tmp_path, rollouts):
+    s = rollouts["scenario"]
+    results = {
+        name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")
+    }
+    summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0)
+    for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
+        assert (tmp_path / f).stat().st_size > 0, f
+    on_disk = json.loads((tmp_path / "summary.json").read_text())
+    assert on_disk == json.loads(json.dumps(summary))
+    for name in ("classical", "synchronous"):
+        for key in _compare.SUMMARY_KEYS:
+            assert key in on_disk[name]
+        assert isinstance(on_disk[name]["dropped"], bool)
+    ratio = on_disk["classical"]["settled_peak_resultant_N"] / on_disk["synchronous"]["settled_peak_resultant_N"]
+    assert on_disk["resultant_ratio"] == pytest.approx(ratio)
+    with open(tmp_path / "series.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(rollouts["classical"].time)
+    assert {"time_s", "classical_resultant_force_N", "synchronous_right_normal_force_N"} <= set(rows[0])
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".tmp")]  # atomic writes left nothing behind
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "overrides",
+    [{}, {"object_mass": 0.8, "mass_estimate": 0.8}, {"object_offset": [0.0, 0.008, 0.0]}],
+    ids=["default", "mass-0.8kg", "offset-8mm"],
+)
+def test_paper_claims(model, overrides):
+    """The paper's result on the default task and two others: the synchronous
+    controller's settled peak resultant force is at least 4 times smaller,
+    both hold the grip force within 2 % of f_d, and the object is not dropped."""
+    s = default_scenario(**overrides)
+    res = _compare.run(model, default_gains(), s, duration=4.0, log=lambda m: None)
+    m = {k: jax.tree_util.tree_map(np.asarray, v[1]) for k, v in res.items()}
+    for name in ("classical", "synchronous"):
+        assert not m[name].dropped and not m[name].nonfinite, name
+        assert m[name].grip_force_error_rel < 0.02, name
+    # both show a real effect, not numerical noise
+    assert m["synchronous"].settled_peak_resultant_N > 1e-3
+    assert m["classical"].settled_peak_resultant_N >= 4 * m["synchronous"].settled_peak_resultant_N
+
+
+def test_compare_rejects_bad_input(tmp_path):
+    blocker = tmp_path / "afile"
+    blocker.write_text("x")
+    bad_gains = tmp_path / "g.json"
+    bad_gains.write_text('{"k_rk": 3}')
+    cases = [
+        (["--duration", "1.0"], "--duration must be at least"),
+        (["--duration", "-2"], "must be positive"),
+        (["--object-mass", "0"], "must be positive"),
+        (["--object-offset", "0.5"], "object_offset"),
+        (["--gains", str(bad_gains)], "k_rk"),
+        (["--gains", str(tmp_path / "missing.json")], "no such file"),
+        (["--out", str(blocker / "sub")], "cannot be written"),
+    ]
+    for args, message in cases:
+        out = _cli("compare", "--out", str(tmp_path / "o"), *args, cwd=tmp_path)
+        assert out.returncode != 0, args
+        assert message in out.stderr, (args, out.stderr)
+        assert "Traceback" not in out.stderr, args
