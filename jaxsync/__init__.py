@@ -26,7 +26,11 @@ from jaxsync._model import (
     default_model_path,
     load_model,
 )
+from jaxsync._gains import Gains, classical_equivalent, default_gains
+from jaxsync._metrics import Metrics, summarize
 from jaxsync._physics import after_control, before_control, put_data
+from jaxsync._rollout import Trajectory, make_rollout, rollout
+from jaxsync._scenario import Scenario, default_scenario
 from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
 
 __version__ = "0.1.0"
@@ -34,6 +38,16 @@ __version__ = "0.1.0"
 __all__ = [
     "SOLVERS",
     "ArmState",
+    "Gains",
+    "Metrics",
+    "Scenario",
+    "Trajectory",
+    "classical_equivalent",
+    "default_gains",
+    "default_scenario",
+    "make_rollout",
+    "rollout",
+    "summarize",
     "ConfigError",
     "DualArmModel",
     "JaxsyncError",
