@@ -23,16 +23,20 @@ JOINTS_PER_ARM = 7
 
 SolverName = Literal["differentiable", "accurate"]
 
-# Solver settings, both Newton. ``differentiable``: one outer iteration, so
-# MJX runs the solver body once instead of a ``while_loop`` and reverse-mode
-# ``jax.grad`` can pass through ``mjx.step``; and the pyramidal friction cone,
-# because MJX's elliptic cone gave NaN gradients through the solver (measured,
-# tests/test_sensing.py). ``accurate``: 20 iterations and the model file's
-# elliptic cone (reference runs, MuJoCo C comparisons).
+# Solver settings, both Newton. ``differentiable``: one outer iteration per
+# ``mjx.solve`` call, so MJX runs the solver body instead of a ``while_loop``
+# and reverse-mode ``jax.grad`` can pass through; the call is unrolled
+# ``SOLVER_UNROLL`` times per step, each warm-started from the last (a single
+# iteration launched the clamped ball off the pads; three matched the
+# 20-iteration solve: docs/tuning.md); and the pyramidal friction cone,
+# because MJX's elliptic cone gave NaN gradients through the solver.
+# ``accurate``: 20 iterations and the model file's elliptic cone (reference
+# runs, MuJoCo C comparisons).
 SOLVERS: dict[str, dict[str, int]] = {
     "differentiable": {"iterations": 1, "ls_iterations": 4, "cone": int(mujoco.mjtCone.mjCONE_PYRAMIDAL)},
     "accurate": {"iterations": 20, "ls_iterations": 10},
 }
+SOLVER_UNROLL = {"differentiable": 3, "accurate": 1}
 
 
 def default_model_path() -> str:
@@ -213,6 +217,11 @@ class DualArmModel:
     mj_model: mujoco.MjModel
     mjx_model: mjx.Model
     index: ModelIndex
+
+    @property
+    def solver_unroll(self) -> int:
+        """One-iteration solves per physics step (see SOLVERS)."""
+        return SOLVER_UNROLL[self.solver]
 
     def keyframe_qpos(self, name: str) -> np.ndarray:
         k = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_KEY, name)

@@ -37,8 +37,14 @@ def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.sensor_vel(m, d)
 
 
-def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
-    """Actuation, constraint solve, acceleration sensors and integration (mj_step2)."""
+def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int = 1) -> mjx.Data:
+    """Actuation, constraint solve, acceleration sensors and integration (mj_step2).
+
+    ``solver_unroll`` > 1 (with ``m.opt.iterations == 1``) runs the one-iteration
+    Newton solve that many times, each warm-started from the last: a fixed
+    number of iterations without MJX's ``while_loop``, so reverse-mode
+    ``jax.grad`` still passes (one iteration alone did not hold the clamp).
+    """
     d = d.replace(ctrl=ctrl)
     d = mjx.fwd_actuation(m, d)
     d = mjx.fwd_acceleration(m, d)
@@ -46,6 +52,8 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array) -> mjx.Data:
         d = d.replace(qacc=d.qacc_smooth)
     else:
         d = mjx.solve(m, d)
+        for _ in range(solver_unroll - 1):
+            d = mjx.solve(m, d.replace(qacc_warmstart=d.qacc))
         d = mjx.sensor_acc(m, d)
     if m.opt.integrator != IntegratorType.EULER:
         raise NotImplementedError("jaxsync steps the Euler integrator only")

@@ -135,6 +135,8 @@ def make_rollout(
     control_substeps: int = 1,
     cross_term: str = "squeeze",
     remat: bool = False,
+    truncate_every: int | None = None,
+    start: str = START_KEY,
 ):
     """Build ``fn(gains, scenario) -> Trajectory`` for one static configuration.
 
@@ -146,7 +148,16 @@ def make_rollout(
         simulation rate, 500 Hz for the paper model).
       cross_term: reading of eq. 16's cross term (see jaxsync._sync).
       remat: ``jax.checkpoint`` the scan body (for long reverse-mode gradients).
+      truncate_every: if set, stop gradients through the simulator and
+        controller state every this many control steps (truncated
+        backpropagation in windows; the forward values are unchanged).
+      start: keyframe the arms start from: "approach" (pads 30 mm off, the
+        paper's task) or "grasp" (pads touching: short horizons in contact).
     """
+    if start not in (START_KEY, REST_KEY):
+        raise ConfigError(f"start must be {START_KEY!r} or {REST_KEY!r}, got {start!r}")
+    if truncate_every is not None and truncate_every < 1:
+        raise ConfigError(f"truncate_every must be a positive number of steps, got {truncate_every}")
     options = ControllerOptions(kind=controller, cross_term=cross_term)
     if control_substeps < 1 or int(control_substeps) != control_substeps:
         raise ConfigError(f"control_substeps must be a positive integer, got {control_substeps}")
@@ -155,8 +166,9 @@ def make_rollout(
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ConfigError(f"duration must be at least one control period ({dt} s), got {duration}")
-    consts = _consts(model)
+    consts = _consts(model)._replace(qpos0=model.keyframe_qpos(start))
     index = model.index
+    unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
 
     def fn(gains: Gains, s: Scenario) -> Trajectory:
@@ -166,6 +178,12 @@ def make_rollout(
         pad_start = jnp.stack([d0.site_xpos[a.pad_site] for a in index.arms])
 
         def body(carry, k):
+            if truncate_every is not None:
+                cut = (k % truncate_every == 0) & (k > 0)
+                carry = jax.tree_util.tree_map(
+                    lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x) if jnp.issubdtype(x.dtype, jnp.inexact) else x,
+                    carry,
+                )
             d, cstate = carry
             t = k * dt
             d = _physics.before_control(mx, d)
@@ -174,9 +192,9 @@ def make_rollout(
             arms = (sensed.right, sensed.left)
             tau, cstate, info, pl = _control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
             ctrl = tau[consts.act_order]
-            d = _physics.after_control(mx, d, ctrl)
+            d = _physics.after_control(mx, d, ctrl, unroll)
             for _ in range(control_substeps - 1):
-                d = _physics.after_control(mx, _physics.before_control(mx, d), ctrl)
+                d = _physics.after_control(mx, _physics.before_control(mx, d), ctrl, unroll)
             forces = jnp.stack(
                 [_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms]
             )

@@ -187,6 +187,10 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--video", action="store_true", help="also render both rollouts side by side to a video")
     cmp_.add_argument("--video-speed", type=_positive(float), default=0.5, help="playback speed of the video (0.5)")
     cmp_.set_defaults(func=cmd_compare)
+
+    from jaxsync.optimize.tune import add_tune_parser
+
+    add_tune_parser(sub)
     return parser
 
 

@@ -1,0 +1,47 @@
+"""The tuning cost over one rollout (docs/tuning.md). Built from the metric
+definitions of ``jaxsync._metrics``: nothing is defined twice."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxsync import _metrics
+
+
+class CostWeights(NamedTuple):
+    resultant_ms: float = 1.0  # mean square resultant force over the settled window, per (0.01 N)^2
+    resultant_peak: float = 1.0  # smooth (log-sum-exp) peak of the resultant, per 0.01 N
+    grip: float = 0.1  # mean square relative grip-force error, per (1 %)^2
+    sync: float = 0.1  # mean square synchronisation error, per (1 mm)^2
+    effort: float = 1e-4  # mean |tau|^2, per (10 N m)^2
+    peak_temperature: float = 0.002  # N, of the smooth peak
+
+
+RESULTANT_SCALE = 0.01  # N
+GRIP_SCALE = 0.01  # relative
+SYNC_SCALE = 1e-3  # m
+EFFORT_SCALE = 10.0  # N m
+
+
+def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
+    """Each weighted term (scalars). ``traj`` a Trajectory, ``s`` its Scenario."""
+    mask = _metrics.settled_mask(traj.time, s)
+    n = jnp.maximum(mask.sum(), 1.0)
+    res = _metrics.resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
+    res_norm = jnp.sqrt(jnp.sum(res * res, -1) + 1e-12)
+    grip_err = (_metrics.grip_force(traj.pad_forces, traj.pad_pos) - s.grip_force) / s.grip_force
+    sync = _metrics.sync_error(traj.delta)
+    return {
+        "resultant_ms": w.resultant_ms * jnp.sum(mask * res_norm**2) / n / RESULTANT_SCALE**2,
+        "resultant_peak": w.resultant_peak * _metrics.smooth_max(res_norm, mask, w.peak_temperature) / RESULTANT_SCALE,
+        "grip": w.grip * jnp.sum(mask * grip_err**2) / n / GRIP_SCALE**2,
+        "sync": w.sync * jnp.sum(mask * sync**2) / n / SYNC_SCALE**2,
+        "effort": w.effort * jnp.mean(jnp.sum(traj.torque**2, -1)) / EFFORT_SCALE**2,
+    }
+
+
+def cost(traj, s, w: CostWeights) -> jax.Array:
+    return sum(cost_terms(traj, s, w).values())

@@ -1,0 +1,108 @@
+"""What tuning may change, constrained by construction.
+
+The optimiser sees an unconstrained pytree ``theta`` (only the tuned
+parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
+
+- k_rk, k_lk, k_rl, k_ll = tanh(theta): |k| < 1, the paper's range;
+- M_d = exp(theta), K_d = exp(theta): positive;
+- B_d = 2 zeta sqrt(M_d K_d) with the damping ratio
+  zeta = ZETA_MIN + (ZETA_MAX - ZETA_MIN) sigmoid(theta): inside the band, so
+  every tuned admittance filter is a stable, passive mass-spring-damper.
+
+Impedance parameters are shared by both arms or per arm (``per_arm``), and
+per axis (6 values: the pad frame's x, y, z and rotations about them) or
+isotropic (``isotropic``: one value for translations, one for rotations).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync._errors import ConfigError
+from jaxsync._gains import Gains
+
+ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
+SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
+IMPEDANCE = ("imp_mass", "imp_stiffness", "imp_damping_ratio")
+TUNABLE = SYNC + IMPEDANCE
+DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
+
+
+def damping_ratio(g: Gains) -> jax.Array:
+    return g.imp_damping / (2.0 * jnp.sqrt(g.imp_mass * g.imp_stiffness))
+
+
+def _logit(p):
+    p = np.clip(p, 1e-9, 1 - 1e-9)
+    return np.log(p / (1 - p))
+
+
+@dataclasses.dataclass(frozen=True)
+class TuneSpec:
+    """Which parameters are tuned (the rest are frozen at ``base``'s values)."""
+
+    tuned: tuple[str, ...] = DEFAULT_TUNED
+    per_arm: bool = False
+    isotropic: bool = False
+
+    def __post_init__(self):
+        unknown = sorted(set(self.tuned) - set(TUNABLE))
+        if unknown:
+            raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}")
+        if not self.tuned:
+            raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE))
+
+    # --- the shape of one impedance parameter in theta
+    def _reduce(self, v: np.ndarray) -> np.ndarray:
+        """(2, 6) -> the tuned shape (mean over what is shared)."""
+        v = np.asarray(v, dtype=float)
+        if not self.per_arm:
+            v = v.mean(axis=0, keepdims=True)
+        if self.isotropic:
+            v = np.stack([v[:, :3].mean(-1), v[:, 3:].mean(-1)], axis=-1)
+        return v
+
+    def _expand(self, v: jax.Array) -> jax.Array:
+        """The tuned shape -> (2, 6)."""
+        if self.isotropic:
+            v = jnp.concatenate([jnp.repeat(v[:, :1], 3, axis=1), jnp.repeat(v[:, 1:], 3, axis=1)], axis=1)
+        return jnp.broadcast_to(v, (2, 6))
+
+    def init(self, base: Gains) -> dict:
+        """theta such that ``to_gains(theta, base)`` reproduces ``base`` (up to sharing)."""
+        theta = {}
+        for name in self.tuned:
+            if name in SYNC:
+                theta[name] = jnp.asarray(np.arctanh(np.clip(float(getattr(base, name)), -0.999, 0.999)))
+            elif name == "imp_mass":
+                theta[name] = jnp.asarray(np.log(self._reduce(base.imp_mass)))
+            elif name == "imp_stiffness":
+                theta[name] = jnp.asarray(np.log(self._reduce(base.imp_stiffness)))
+            else:
+                zeta = np.asarray(damping_ratio(base))
+                theta[name] = jnp.asarray(_logit((self._reduce(zeta) - ZETA_MIN) / (ZETA_MAX - ZETA_MIN)))
+        return theta
+
+    def to_gains(self, theta: dict, base: Gains) -> Gains:
+        """Valid gains from theta (differentiable)."""
+        g = base._asdict()
+        for name in SYNC:
+            if name in theta:
+                g[name] = jnp.tanh(theta[name])
+        zeta = damping_ratio(base)
+        if "imp_mass" in theta:
+            g["imp_mass"] = self._expand(jnp.exp(theta["imp_mass"]))
+        if "imp_stiffness" in theta:
+            g["imp_stiffness"] = self._expand(jnp.exp(theta["imp_stiffness"]))
+        if "imp_damping_ratio" in theta:
+            zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
+        g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
+        return Gains(**g)
+
+    def describe(self) -> dict:
+        return {"tuned": list(self.tuned), "per_arm": self.per_arm, "isotropic": self.isotropic,
+                "damping_ratio_band": [ZETA_MIN, ZETA_MAX], "k_range": [-1, 1]}
