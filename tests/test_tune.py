@@ -108,10 +108,15 @@ def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
     cfg = TuneConfig(**SHORT)
     spec, base = TuneSpec(), _gains.default_gains()
     full, hist_full, _ = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), progress=False)
-    os.makedirs(tmp_path / "b")
-    # stop after 2 iterations (a checkpoint), then resume to the end
-    _, hist_half, _ = tune(diff_model, spec, base, TuneConfig(**{**SHORT, "iterations": 2}),
-                           out=str(tmp_path / "b"), progress=False)
+    # Ctrl-C during the second iteration's callback: a checkpoint is written, then resume to the end
+
+    def interrupt(i, theta, row):
+        if i == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), progress=False, on_iteration=interrupt)
+    assert (tmp_path / "b" / "checkpoint.pkl").exists()
     resumed, hist_res, _ = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, progress=False)
     assert len(hist_res) == len(hist_full) == cfg.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
