@@ -188,9 +188,11 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--video-speed", type=_positive(float), default=0.5, help="playback speed of the video (0.5)")
     cmp_.set_defaults(func=cmd_compare)
 
+    from jaxsync._render_cli import add_render_parser
     from jaxsync.optimize.tune import add_tune_parser
 
     add_tune_parser(sub)
+    add_render_parser(sub)
     return parser
 
 

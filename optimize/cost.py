@@ -14,7 +14,7 @@ from jaxsync import _metrics
 class CostWeights(NamedTuple):
     resultant_ms: float = 1.0  # mean square resultant force over the settled window, per (0.01 N)^2
     resultant_peak: float = 1.0  # smooth (log-sum-exp) peak of the resultant, per 0.01 N
-    grip: float = 0.1  # mean square relative grip-force error, per (1 %)^2
+    grip: float = 1.0  # squared relative error of the mean grip force (the metric), per (1 %)^2
     sync: float = 0.1  # mean square synchronisation error, per (1 mm)^2
     effort: float = 1e-4  # mean |tau|^2, per (10 N m)^2
     peak_temperature: float = 0.002  # N, of the smooth peak
@@ -32,12 +32,14 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     n = jnp.maximum(mask.sum(), 1.0)
     res = _metrics.resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
     res_norm = jnp.sqrt(jnp.sum(res * res, -1) + 1e-12)
-    grip_err = (_metrics.grip_force(traj.pad_forces, traj.pad_pos) - s.grip_force) / s.grip_force
+    # the metric's grip error: of the window's mean grip force (noise averages out)
+    mean_grip = jnp.sum(mask * _metrics.grip_force(traj.pad_forces, traj.pad_pos)) / n
+    grip_err = (mean_grip - s.grip_force) / s.grip_force
     sync = _metrics.sync_error(traj.delta)
     return {
         "resultant_ms": w.resultant_ms * jnp.sum(mask * res_norm**2) / n / RESULTANT_SCALE**2,
         "resultant_peak": w.resultant_peak * _metrics.smooth_max(res_norm, mask, w.peak_temperature) / RESULTANT_SCALE,
-        "grip": w.grip * jnp.sum(mask * grip_err**2) / n / GRIP_SCALE**2,
+        "grip": w.grip * grip_err**2 / GRIP_SCALE**2,
         "sync": w.sync * jnp.sum(mask * sync**2) / n / SYNC_SCALE**2,
         "effort": w.effort * jnp.mean(jnp.sum(traj.torque**2, -1)) / EFFORT_SCALE**2,
     }
