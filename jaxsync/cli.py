@@ -188,10 +188,14 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--video-speed", type=_positive(float), default=0.5, help="playback speed of the video (0.5)")
     cmp_.set_defaults(func=cmd_compare)
 
+    from jaxsync._bench import add_bench_parser
     from jaxsync._render_cli import add_render_parser
+    from jaxsync.optimize.sweep import add_sweep_parser
     from jaxsync.optimize.tune import add_tune_parser
 
     add_tune_parser(sub)
+    add_sweep_parser(sub)
+    add_bench_parser(sub)
     add_render_parser(sub)
     return parser
 

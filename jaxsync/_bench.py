@@ -1,0 +1,571 @@
+"""``jaxsync bench``: how fast the simulator, its gradient and its compilation are.
+
+Measured in one run on one machine and written to ``bench.json`` (and printed
+as a table): closed-loop MJX environment-steps per second at several batch
+sizes; the same controller stepping MuJoCo C (one environment); bare
+``mj_step``; one forward rollout against its gradient; cold and warm
+(persistent-cache) compile times of the gradient; the peak memory of one
+tuning step. A benchmark reports, it never fails: the targets of
+docs/performance.md are printed next to the numbers.
+
+Compile times and the tuning step's peak memory are measured in child
+processes (a fresh process, and for the cold compile an empty cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from jaxsync._errors import ConfigError, JaxsyncError
+
+TARGETS = {
+    "mjx_over_mujoco_c": (">=", 3.0),
+    "grad_over_forward": ("<=", 4.0),
+    "grad_compile_cold_s": ("<=", 45.0),
+    "grad_compile_warm_s": ("<=", 5.0),
+    "tune_step_peak_rss_gib": ("<=", 6.0),
+}
+
+FULL = dict(batch_sizes=(1, 16, 64, 256), mjx_duration=4.0, c_duration=4.0, bare_steps=4000,
+            grad_duration=2.0, tune_batch=8, tune_duration=2.0, repeats=2)
+QUICK = dict(batch_sizes=(1, 2), mjx_duration=0.05, c_duration=0.05, bare_steps=200,
+             grad_duration=0.1, tune_batch=2, tune_duration=0.1, repeats=1)
+
+
+def short_task():
+    """The default task compressed into 2 s (hold from 1.5 s, settled from 1.7 s):
+    the horizon of the gradient and tuning-step measurements."""
+    from jaxsync._scenario import default_scenario
+
+    return default_scenario(t_close=0.4, t_squeeze=0.3, t_carry=0.8, settle_time=0.2, lift=[0.03, 0.0, 0.06])
+
+
+def _scenarios(base, n: int):
+    """n copies of ``base`` with noise keys 0..n-1 (a batch with a leading axis)."""
+    import jax
+
+    keys = np.stack([np.asarray(jax.random.key_data(jax.random.key(i)), dtype=np.uint32) for i in range(n)])
+    tree = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x)[None], n, axis=0), base)
+    return tree._replace(noise_key=keys)
+
+
+def _timeit(f, repeats: int) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        f()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+# ----------------------------------------------------------------- measurements
+
+
+def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> dict:
+    """Closed-loop env-steps/s of jit(vmap(rollout -> metrics)) at each batch size."""
+    import jax
+
+    from jaxsync._gains import default_gains
+    from jaxsync._metrics import summarize
+    from jaxsync._rollout import make_rollout
+    from jaxsync._scenario import default_scenario
+
+    fn = make_rollout(model, "synchronous", duration)
+    ev = jax.jit(jax.vmap(lambda g, s: summarize(fn(g, s), s), in_axes=(None, 0)))
+    g = default_gains()
+    out, compile_s = {}, {}
+    for b in batch_sizes:
+        s = jax.tree_util.tree_map(jax.numpy.asarray, _scenarios(default_scenario(), b))
+        t0 = time.perf_counter()
+        jax.block_until_ready(ev(g, s))
+        compile_s[str(b)] = time.perf_counter() - t0
+        dt = _timeit(lambda s=s: jax.block_until_ready(ev(g, s)), repeats)
+        out[str(b)] = b * fn.n_steps / dt
+        log(f"  MJX batch {b:>4}: {out[str(b)]:10.0f} env-steps/s ({dt:.2f} s for {b} x {fn.n_steps} steps; "
+            f"first call {compile_s[str(b)]:.1f} s)")
+    return {"rates": out, "first_call_s": compile_s, "steps": fn.n_steps}
+
+
+def mujoco_c_throughput(model, duration: float, log) -> dict:
+    """The same jitted control law stepping MuJoCo C (``backend="mujoco"``), one environment.
+
+    Each call re-jits its per-call control function (cached on disk after the
+    first), so the steady rate is taken from the difference of a short and a
+    long rollout; the raw rate of the long call is reported too.
+    """
+    import jax
+
+    from jaxsync._gains import default_gains
+    from jaxsync._rollout import rollout, steps_for
+    from jaxsync._scenario import default_scenario
+
+    g, s = default_gains(), default_scenario()
+    short = min(0.02, duration / 2)
+    jax.block_until_ready(rollout(model, g, s, backend="mujoco", duration=short))  # compile, warm the cache
+    t0 = time.perf_counter()
+    jax.block_until_ready(rollout(model, g, s, backend="mujoco", duration=short))
+    t_short = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(rollout(model, g, s, backend="mujoco", duration=duration))
+    t_long = time.perf_counter() - t0
+    n_short, n_long = steps_for(short, model), steps_for(duration, model)
+    steady = (n_long - n_short) / max(t_long - t_short, 1e-9)
+    raw = n_long / t_long
+    log(f"  MuJoCo C + controller: {steady:10.0f} env-steps/s steady ({raw:.0f} including the per-call "
+        f"set-up of {t_short:.2f} s)")
+    return {"rate": steady, "rate_including_setup": raw, "setup_s": t_short, "steps": n_long}
+
+
+def bare_mj_step(model, n: int, log) -> float:
+    import mujoco
+
+    m = model.mj_model
+    d = mujoco.MjData(m)
+    d.qpos[:] = model.keyframe_qpos("grasp")
+    mujoco.mj_forward(m, d)
+    for _ in range(50):
+        mujoco.mj_step(m, d)
+    t0 = time.perf_counter()
+    for _ in range(n):
+        mujoco.mj_step(m, d)
+    rate = n / (time.perf_counter() - t0)
+    log(f"  bare mj_step: {rate:10.0f} steps/s")
+    return rate
+
+
+def gradient_functions(duration: float, remat: bool = True):
+    """jit(cost) and jit(value_and_grad(cost)), cost = the rms resultant of one
+    rollout of the short task on the differentiable solver setting."""
+    import jax
+
+    from jaxsync._metrics import summarize
+    from jaxsync._model import load_model
+    from jaxsync._rollout import make_rollout
+
+    fn = make_rollout(load_model(solver="differentiable"), "synchronous", duration, remat=remat)
+
+    def cost(g, s):
+        return summarize(fn(g, s), s).rms_resultant_N
+
+    return jax.jit(cost), jax.jit(jax.value_and_grad(cost)), fn.n_steps
+
+
+def forward_and_gradient(duration: float, repeats: int, log) -> dict:
+    import jax
+
+    from jaxsync._gains import default_gains
+
+    fwd, grad, n_steps = gradient_functions(duration)
+    g, s = default_gains(), short_task()
+    t0 = time.perf_counter()
+    jax.block_until_ready(fwd(g, s))
+    t_fc = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    value, gr = jax.block_until_ready(grad(g, s))
+    t_gc = time.perf_counter() - t0
+    t_f = _timeit(lambda: jax.block_until_ready(fwd(g, s)), repeats)
+    t_g = _timeit(lambda: jax.block_until_ready(grad(g, s)), repeats)
+    finite = bool(all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(gr)))
+    log(f"  forward {t_f:.3f} s, value_and_grad {t_g:.3f} s over {n_steps} steps: ratio {t_g / t_f:.2f} "
+        f"(gradient finite: {finite})")
+    return {"forward_s": t_f, "grad_s": t_g, "grad_over_forward": t_g / t_f, "steps": n_steps,
+            "forward_first_call_s": t_fc, "grad_first_call_s": t_gc, "grad_finite": finite,
+            "cost_value": float(value)}
+
+
+def small_gradient():
+    """A small stand-in for ``--quick``: the gradient of the pad position through
+    one kinematics stage and the sensing (compiles in seconds, not minutes)."""
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+
+    from jaxsync._model import load_model
+    from jaxsync._physics import before_control, put_data
+    from jaxsync._sensing import sense
+
+    model = load_model(solver="differentiable")
+    mx, index = model.mjx_model, model.index
+    d = put_data(model.mj_model, mujoco.MjData(model.mj_model))
+    q0 = jnp.asarray(model.keyframe_qpos("grasp"))
+
+    def f(q):
+        return jnp.sum(sense(mx, before_control(mx, d.replace(qpos=q)), index).right.pad_pos)
+
+    return jax.jit(jax.grad(f)), (q0,)
+
+
+def _exported(fn, args, path: str):
+    """``fn`` traced once and kept on disk with ``jax.export`` (needs the
+    ``flatbuffers`` package): later processes skip the tracing."""
+    import jax
+    from jax import export
+
+    from jaxsync._gains import Gains
+    from jaxsync._scenario import Scenario
+
+    for cls, name in ((Gains, "jaxsync.Gains"), (Scenario, "jaxsync.Scenario")):
+        try:
+            export.register_namedtuple_serialization(cls, serialized_name=name)
+        except ValueError:
+            pass  # already registered
+    if os.path.exists(path):
+        with open(path, "rb") as f:
+            exp = export.deserialize(bytearray(f.read()))
+    else:
+        exp = export.export(fn)(*args)
+        with open(path, "wb") as f:
+            f.write(exp.serialize())
+    return jax.jit(exp.call)
+
+
+def _have_flatbuffers() -> bool:
+    try:
+        import flatbuffers  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+# ----------------------------------------------------------------- child processes
+
+
+def _child_setup():
+    import jax
+
+    from jaxsync._cache import enable_compilation_cache
+
+    jax.config.update("jax_enable_x64", True)
+    return enable_compilation_cache()
+
+
+def _maxrss_gib() -> float:
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return kib * (1 if sys.platform != "darwin" else 1 / 1024) / 1024**2
+
+
+def child(mode: str, cfg: dict) -> dict:
+    """Run in a fresh process: ``compile`` (trace + XLA-compile the gradient) or ``tune_step``."""
+    _child_setup()
+    import jax
+
+    from jaxsync._gains import default_gains
+
+    if mode == "compile":
+        t0 = time.perf_counter()
+        if cfg.get("small"):
+            grad, args = small_gradient()
+        else:
+            grad = gradient_functions(cfg["duration"])[1]
+            args = (default_gains(), short_task())
+        if cfg.get("exported"):  # the traced function from disk (jax.export), not traced again
+            grad = _exported(grad, args, cfg["exported"])
+        t1 = time.perf_counter()
+        lowered = grad.lower(*args)
+        t2 = time.perf_counter()
+        lowered.compile()
+        t3 = time.perf_counter()
+        return {"setup_s": t1 - t0, "trace_s": t2 - t1, "xla_compile_s": t3 - t2, "total_s": t3 - t1}
+    if mode == "tune_step":
+        import optax
+
+        from jaxsync._metrics import summarize
+        from jaxsync._model import load_model
+        from jaxsync._rollout import make_rollout
+
+        rss0 = _maxrss_gib()
+        fn = make_rollout(load_model(solver="differentiable"), "synchronous", cfg["duration"], remat=True)
+        opt = optax.adam(1e-3)
+
+        def loss(g, s):
+            return jax.vmap(lambda s1: summarize(fn(g, s1), s1).rms_resultant_N)(s).mean()
+
+        @jax.jit
+        def step(g, state, s):
+            value, grad = jax.value_and_grad(loss)(g, s)
+            updates, state = opt.update(grad, state, g)
+            return optax.apply_updates(g, updates), state, value
+
+        g = default_gains()
+        state = opt.init(g)
+        s = jax.tree_util.tree_map(jax.numpy.asarray, _scenarios(short_task(), cfg["batch"]))
+        t0 = time.perf_counter()
+        compiled = step.lower(g, state, s).compile()
+        t_compile = time.perf_counter() - t0
+        rss_compiled = _maxrss_gib()
+        mem = compiled.memory_analysis()
+        t0 = time.perf_counter()
+        g2, state, value = jax.block_until_ready(compiled(g, state, s))
+        t_step = time.perf_counter() - t0
+        return {
+            "peak_rss_gib": _maxrss_gib(),
+            "peak_rss_after_compile_gib": rss_compiled,
+            "rss_before_gib": rss0,
+            "xla_temp_gib": (mem.temp_size_in_bytes / 1024**3) if mem is not None else None,
+            "compile_s": t_compile,
+            "step_s": t_step,
+            "loss": float(value),
+        }
+    raise ValueError(mode)
+
+
+def _run_child(mode: str, cfg: dict, cache_dir: str | None) -> dict:
+    env = dict(os.environ)
+    env["JAXSYNC_CACHE_DIR"] = cache_dir or "off"
+    code = ("import json, sys; from jaxsync._bench import child; "
+            "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))")
+    proc = subprocess.run([sys.executable, "-c", code, mode, json.dumps(cfg)], capture_output=True, text=True,
+                          env=env, timeout=3600)
+    for line in proc.stdout.splitlines()[::-1]:
+        if line.startswith("JAXSYNC_BENCH "):
+            return json.loads(line[len("JAXSYNC_BENCH "):])
+    raise RuntimeError(f"benchmark child '{mode}' failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
+
+
+def compile_times(duration: float, small: bool, log) -> dict:
+    """Cold: a fresh process and an empty persistent cache. Warm: a second fresh
+    process on the same cache (what a user's second run sees). With the
+    ``flatbuffers`` package, also warm with the traced function kept on disk
+    (``jax.export``), which skips the tracing the persistent cache cannot save."""
+    cfg = {"duration": duration, "small": small}
+    out = {"function": "small stand-in (--quick)" if small else f"value_and_grad of a {duration:g} s rollout"}
+    with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
+        out["cold"] = cold = _run_child("compile", cfg, cache)
+        out["warm"] = warm = _run_child("compile", cfg, cache)
+        if _have_flatbuffers():
+            exported = {**cfg, "exported": os.path.join(cache, "grad.jaxexport")}
+            _run_child("compile", exported, cache)  # trace, export, compile the wrapper
+            out["warm_exported"] = _run_child("compile", exported, cache)
+    log(f"  gradient compile cold {cold['total_s']:.1f} s (trace {cold['trace_s']:.1f} + XLA "
+        f"{cold['xla_compile_s']:.1f}), warm {warm['total_s']:.1f} s (trace {warm['trace_s']:.1f} + "
+        f"cache {warm['xla_compile_s']:.1f})" + (" [small stand-in]" if small else ""))
+    if "warm_exported" in out:
+        log(f"  warm with the traced function on disk (jax.export): {out['warm_exported']['total_s']:.1f} s")
+    return out
+
+
+def tune_step_memory(batch: int, duration: float, cache_dir: str | None, log) -> dict:
+    r = _run_child("tune_step", {"batch": batch, "duration": duration}, cache_dir)
+    log(f"  tuning step (batch {batch}, {duration:g} s): peak RSS {r['peak_rss_gib']:.2f} GiB "
+        f"(after compiling {r['peak_rss_after_compile_gib']:.2f} GiB; XLA temporaries "
+        f"{r['xla_temp_gib'] or float('nan'):.3f} GiB), step {r['step_s']:.1f} s")
+    return r
+
+
+# ----------------------------------------------------------------- machine
+
+
+def machine() -> dict:
+    import jax
+    import jaxlib
+    import mujoco
+
+    cpu = platform.processor() or ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    try:
+        from importlib.metadata import version
+
+        mjx_version = version("mujoco-mjx")
+    except Exception:  # noqa: BLE001
+        mjx_version = None
+    mem = None
+    try:
+        mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1024**3
+    except (ValueError, OSError, AttributeError):
+        pass
+    return {
+        "cpu_model": cpu,
+        "cpu_cores": os.cpu_count(),
+        "memory_gib": mem,
+        "load_average_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax_backend": jax.default_backend(),
+        "jax_devices": [str(d) for d in jax.devices()],
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "mujoco": mujoco.__version__,
+        "mujoco_mjx": mjx_version,
+        "numpy": np.__version__,
+        "x64": bool(jax.config.jax_enable_x64),
+        "compilation_cache": jax.config.jax_compilation_cache_dir,
+    }
+
+
+# ----------------------------------------------------------------- run
+
+
+def targets(r: dict, judged: bool = True) -> dict:
+    """Each target with its value and whether it was met (None: a --quick run, not judged)."""
+    out = {}
+    for key, (op, bound) in TARGETS.items():
+        v = r.get(key)
+        if v is None:
+            continue
+        met = v >= bound if op == ">=" else v <= bound
+        out[key] = {"value": v, "target": f"{op} {bound:g}", "met": bool(met) if judged else None}
+    return out
+
+
+def _log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def run(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dict:
+    import jax
+
+    from jaxsync import _io
+    from jaxsync._model import load_model
+
+    cfg = dict(QUICK if quick else FULL)
+    if batch_sizes:
+        cfg["batch_sizes"] = tuple(batch_sizes)
+    _io.ensure_writable_dir(out)
+    t_start = time.perf_counter()
+    info = machine()
+    log(f"jaxsync bench{' --quick' if quick else ''} on {info['cpu_model']} ({info['cpu_cores']} cores), "
+        f"JAX {info['jax']} {info['jax_backend']}")
+    cache_dir = jax.config.jax_compilation_cache_dir
+    model = load_model(solver="accurate")
+    log("[1/6] MJX closed loop, default scenario")
+    mjx = mjx_throughput(model, cfg["batch_sizes"], cfg["mjx_duration"], cfg["repeats"], log)
+    log("[2/6] the same controller on MuJoCo C")
+    mjc = mujoco_c_throughput(model, cfg["c_duration"], log)
+    log("[3/6] bare mj_step")
+    bare = bare_mj_step(model, cfg["bare_steps"], log)
+    log("[4/6] forward rollout and its gradient (differentiable solver, rematerialised scan)")
+    fg = forward_and_gradient(cfg["grad_duration"], cfg["repeats"], log)
+    log("[5/6] gradient compile time, cold (empty cache) and warm (persistent cache), in fresh processes")
+    comp = compile_times(cfg["grad_duration"], quick, log)
+    log("[6/6] peak memory of one tuning step, in a fresh process")
+    tune = tune_step_memory(cfg["tune_batch"], cfg["tune_duration"], cache_dir, log)
+    best_b = max(mjx["rates"], key=mjx["rates"].get)
+    result = {
+        "mjx_env_steps_per_s": mjx["rates"],
+        "mjx_best_batch": int(best_b),
+        "mujoco_c_env_steps_per_s": mjc["rate"],
+        "mujoco_c_env_steps_per_s_including_setup": mjc["rate_including_setup"],
+        "bare_mj_step_per_s": bare,
+        "mjx_over_mujoco_c": mjx["rates"][best_b] / mjc["rate"],
+        "forward_s": fg["forward_s"],
+        "grad_s": fg["grad_s"],
+        "grad_over_forward": fg["grad_over_forward"],
+        "grad_compile_cold_s": comp["cold"]["total_s"],
+        "grad_compile_warm_s": comp["warm"]["total_s"],
+        "tune_step_peak_rss_gib": tune["peak_rss_gib"],
+        "grad_compile_warm_exported_s": comp["warm_exported"]["total_s"] if "warm_exported" in comp else None,
+        "details": {
+            "mjx": mjx,
+            "mujoco_c": mjc,
+            "forward_and_gradient": fg,
+            "compile": comp,
+            "tune_step": tune,
+            "config": {**cfg, "quick": quick, "flatbuffers": _have_flatbuffers()},
+        },
+        "machine": info,
+    }
+    result["targets"] = targets(result, judged=not quick)
+    result["wall_time_s"] = time.perf_counter() - t_start
+    _io.write_json(os.path.join(out, "bench.json"), result)
+    return result
+
+
+def table(r: dict) -> str:
+    rates = r["mjx_env_steps_per_s"]
+    rows = [(f"MJX closed loop, env-steps/s, batch {b}", f"{v:,.0f}") for b, v in rates.items()]
+    rows += [
+        ("MuJoCo C + same controller, env-steps/s", f"{r['mujoco_c_env_steps_per_s']:,.0f}"),
+        ("bare mj_step, steps/s", f"{r['bare_mj_step_per_s']:,.0f}"),
+        (f"MJX best (batch {r['mjx_best_batch']}) / MuJoCo C", f"{r['mjx_over_mujoco_c']:.2f}"),
+        ("forward rollout, s", f"{r['forward_s']:.3f}"),
+        ("value_and_grad, s", f"{r['grad_s']:.3f}"),
+        ("gradient / forward", f"{r['grad_over_forward']:.2f}"),
+        ("gradient compile cold, s", f"{r['grad_compile_cold_s']:.1f}"),
+        ("gradient compile warm (cache), s", f"{r['grad_compile_warm_s']:.1f}"),
+        ("tuning step peak RSS, GiB", f"{r['tune_step_peak_rss_gib']:.2f}"),
+    ]
+    tg = r.get("targets", {})
+    keymap = {"MJX best": "mjx_over_mujoco_c", "gradient / forward": "grad_over_forward",
+              "gradient compile cold": "grad_compile_cold_s", "gradient compile warm": "grad_compile_warm_s",
+              "tuning step peak": "tune_step_peak_rss_gib"}
+    w = max(len(a) for a, _ in rows)
+    lines = [f"{'measure':<{w}}  {'value':>12}  target"]
+    for name, val in rows:
+        key = next((k for p, k in keymap.items() if name.startswith(p)), None)
+        t = tg.get(key)
+        verdict = "(--quick)" if t and t["met"] is None else "met" if t and t["met"] else "MISSED"
+        mark = f"{t['target']:<8} {verdict}" if t else ""
+        lines.append(f"{name:<{w}}  {val:>12}  {mark}")
+    return "\n".join(lines)
+
+
+def _batch_list(text: str):
+    try:
+        sizes = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ConfigError(f"--batch-sizes must be comma-separated whole numbers, got {text!r}") from None
+    if not sizes or any(b < 1 for b in sizes):
+        raise ConfigError(f"--batch-sizes must be positive whole numbers, got {text!r}")
+    return sizes
+
+
+def add_bench_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "bench",
+        help="measure simulation throughput, gradient cost, compile times and memory",
+        description="Benchmark MJX against MuJoCo C, the gradient against the forward rollout, compile times "
+        "and the memory of a tuning step, in one run; writes bench.json and prints a table. "
+        "See docs/performance.md.",
+    )
+    p.add_argument("--out", default="results/bench", help="output folder (results/bench)")
+    p.add_argument("--quick", action="store_true",
+                   help="tiny horizons and batches: a smoke test, not a benchmark")
+    p.add_argument("--batch-sizes", default=None, help="MJX batch sizes, comma-separated (1,16,64,256)")
+    p.set_defaults(func=cmd_bench)
+    return p
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    sizes = _batch_list(args.batch_sizes) if args.batch_sizes is not None else None
+    r = run(args.out, quick=args.quick, batch_sizes=sizes)
+    print(table(r))
+    print(f"bench.json in {args.out} ({r['wall_time_s']:.0f} s)")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Standalone entry point, same as ``jaxsync bench``."""
+    from jaxsync.cli import _setup_jax
+
+    parser = argparse.ArgumentParser(prog="jaxsync")
+    parser.add_argument("--cache-dir", default=None, help="JAX persistent compilation cache ('off' disables)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_bench_parser(sub)
+    args = parser.parse_args(["bench", *(sys.argv[1:] if argv is None else argv)])
+    try:
+        _setup_jax(args)
+        return args.func(args)
+    except JaxsyncError as err:
+        print(f"jaxsync bench: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

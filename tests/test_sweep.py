@@ -1,0 +1,209 @@
+"""``jaxsync sweep``: parameter parsing, batches, bad input, resuming, sharding, outputs."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from jaxsync.optimize import sweep
+
+from jaxsync._errors import ConfigError, JaxsyncError
+
+# The fast test task (tests/conftest.py) as fixed sweep parameters, 1.2 s rollouts.
+FAST = [
+    "--param", "t_close=0.3", "--param", "t_squeeze=0.2", "--param", "t_carry=0.4",
+    "--param", "settle_time=0.1", "--param", "lift.x=0", "--param", "lift.z=0.03", "--duration", "1.2",
+]
+GRID = ["--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk", "2", "--no-progress"]
+
+
+def run_cli(argv: list[str]) -> int:
+    """What ``jaxsync sweep ...`` does once cli.py registers the subcommand."""
+    from jaxsync.cli import _setup_jax
+
+    parser = argparse.ArgumentParser(prog="jaxsync")
+    parser.add_argument("--cache-dir", default=None)
+    sub = parser.add_subparsers(dest="command", required=True)
+    sweep.add_sweep_parser(sub)
+    args = parser.parse_args(argv)
+    try:
+        _setup_jax(args)
+        return args.func(args)
+    except JaxsyncError as err:
+        print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+# ----------------------------------------------------------------- no compiling
+
+
+def test_grid_lists_and_names():
+    p = sweep.parse_param("k_rk=-1:1:5")
+    assert p.values == (-1.0, -0.5, 0.0, 0.5, 1.0) and p.swept
+    assert sweep.parse_param("object_mass=0.5,1,2").values == (0.5, 1.0, 2.0)
+    assert not sweep.parse_param("grip_force=12").swept  # one value: a fixed override
+    assert sweep.parse_param("k_rk=-1:1", random=True).interval == (-1.0, 1.0)
+    plan = sweep.make_plan(
+        ["k_rk=-1:1:3", "object_mass=0.5,1", "imp_stiffness.z=30,60", "imp_damping.l.x=90", "lift.z=0.05",
+         "noise_seed=3"],
+        duration=4.0,
+    )
+    assert plan.points.shape == (12, 6)
+    assert plan.points[:4, 0].tolist() == [-1.0] * 4  # the first parameter varies slowest
+    g, s = sweep.build_batch(plan.params, plan.points, plan.base_gains, plan.base_scenario)
+    assert g.k_rk.shape == (12,) and g.imp_stiffness.shape == (12, 2, 6)
+    np.testing.assert_array_equal(g.imp_stiffness[:, :, 2], np.repeat(plan.points[:, 2:3], 2, axis=1))
+    assert g.imp_stiffness[0, 0, 0] == 1500.0  # other axes keep the base gains
+    assert g.imp_damping[0, 1, 0] == 90.0 and g.imp_damping[0, 0, 0] != 90.0
+    np.testing.assert_array_equal(s.mass_estimate, s.object_mass)  # the controller knows the mass
+    assert s.lift[0].tolist() == [0.05, 0.0, 0.05]
+    import jax
+
+    assert s.noise_key[0].tolist() == np.asarray(jax.random.key_data(jax.random.key(3))).tolist()
+
+
+def test_random_samples_are_seeded_and_in_range():
+    args = ["k_rk=-1:1", "k_lk=-1:1:11", "object_mass=0.5,1,2", "noise_seed=0:9"]
+    a = sweep.make_plan(args, samples=50, seed=7)
+    b = sweep.make_plan(args, samples=50, seed=7)
+    c = sweep.make_plan(args, samples=50, seed=8)
+    assert a.points.shape == (50, 4)
+    np.testing.assert_array_equal(a.points, b.points)
+    assert a.fingerprint == b.fingerprint != c.fingerprint
+    assert np.all(np.abs(a.points[:, :2]) <= 1)
+    assert set(a.points[:, 2]) <= {0.5, 1.0, 2.0}
+    assert set(a.points[:, 3]) <= set(range(10)) and np.all(a.points[:, 3] == np.round(a.points[:, 3]))
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--param", "k_zz=0:1:3"], "unknown parameter 'k_zz'"),
+        (["--param", "imp_stiffness.w=1"], "unknown parameter 'imp_stiffness.w'"),
+        (["--param", "lift=0.1"], "name one component"),
+        (["--param", "k_rk=1:0:5"], "empty range"),
+        (["--param", "k_rk=0:1:0"], "empty range"),
+        (["--param", "k_rk="], "empty range"),
+        (["--param", "k_rk=0:1:x"], "must be a whole number"),
+        (["--param", "k_rk=a:1:3"], "'a' is not a number"),
+        (["--param", "k_rk=0,,1"], "malformed list"),
+        (["--param", "k_rk=0:1:2:3"], "malformed range"),
+        (["--param", "k_rk"], "expected NAME=VALUES"),
+        (["--param", "k_rk=0:1"], "needs a point count"),
+        (["--param", "k_rk=-2:1:4"], "gain 'k_rk' must lie in"),
+        (["--param", "object_mass=0,1"], "scenario 'object_mass' must lie in"),
+        (["--param", "noise_seed=1.5"], "whole numbers"),
+        (["--param", "k_rk=0,1", "--param", "k_rk=0"], "more than once"),
+        (["--param", "imp_stiffness=50", "--param", "imp_stiffness.z=60"], "both set imp_stiffness"),
+        (["--param", "k_rk=0,1", "--samples", "0"], "--samples must be a positive"),
+        (["--param", "k_rk=0,1", "--duration", "2"], "--duration must be at least 2.70"),
+        (["--param", "t_carry=1.2,3", "--duration", "4"], "--duration must be at least 4.50"),
+        ([], "give at least one --param"),
+    ],
+)
+def test_bad_input_is_a_clear_error(tmp_path, capsys, args, message):
+    rc = run_cli(["sweep", "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err
+    assert rc != 0, args
+    assert message in err, (args, err)
+    assert "Traceback" not in err
+
+
+# ----------------------------------------------------------------- compiled runs
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sweep") / "full"
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out)]) == 0
+    return out
+
+
+def test_sweep_writes_results_summary_and_heatmap(uninterrupted):
+    rows = _rows(uninterrupted / "results.csv")
+    assert len(rows) == 4
+    assert [(float(r["k_rk"]), float(r["object_mass"])) for r in rows] == [
+        (-0.5, 0.5), (-0.5, 0.6), (0.5, 0.5), (0.5, 0.6)
+    ]
+    for key in ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "ok"):
+        assert key in rows[0]
+    assert all(r["ok"] == "1" and r["dropped"] == "0" for r in rows)
+    assert all(0 < float(r["settled_peak_resultant_N"]) < 1 for r in rows)
+    summary = json.loads((uninterrupted / "summary.json").read_text())
+    assert summary["complete"] and summary["n_points"] == 4 and summary["n_ok"] == 4
+    assert summary["chunk"] == 2 and summary["n_chunks"] == 2 and summary["plot"] == "heatmap.png"
+    assert (uninterrupted / "heatmap.png").stat().st_size > 0
+    assert sorted(os.listdir(uninterrupted / "chunks")) == ["chunk_00000.npz", "chunk_00001.npz"]
+    assert not [p for p in os.listdir(uninterrupted) if p.startswith(".tmp")]
+
+
+def test_resume_reads_finished_chunks_back(uninterrupted, tmp_path):
+    out = tmp_path / "resumed"
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--max-chunks", "1"]) == 0  # "interrupted"
+    assert os.listdir(out / "chunks") == ["chunk_00000.npz"]
+    assert not (out / "results.csv").exists()
+    first = (out / "chunks" / "chunk_00000.npz").stat().st_mtime_ns
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timing"]["chunks_loaded"] == 1 and summary["timing"]["chunks_computed"] == 1
+    assert (out / "chunks" / "chunk_00000.npz").stat().st_mtime_ns == first  # read, not recomputed
+    assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
+    # a finished sweep re-run recomputes nothing
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["timing"]["chunks_computed"] == 0 and summary["timing"]["compile_s"] == 0
+
+
+def test_a_different_sweep_in_the_same_folder_needs_restart(uninterrupted, tmp_path, capsys):
+    out = tmp_path / "other"
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--max-chunks", "0"]) == 0
+    changed = ["--param", "k_rk=-0.5,0.5", "--chunk", "2", "--no-progress"]  # one swept parameter
+    assert run_cli(["sweep", *FAST, *changed, "--out", str(out)]) == 2
+    assert "holds a different sweep" in capsys.readouterr().err
+    assert run_cli(["sweep", *FAST, *changed, "--out", str(out), "--restart"]) == 0
+    assert (out / "line.png").stat().st_size > 0  # a 1-D sweep: a line plot
+    assert len(_rows(out / "results.csv")) == 2
+
+
+def test_memory_budget_too_small_even_for_one(tmp_path, capsys):
+    rc = run_cli(["sweep", *FAST, *GRID, "--out", str(tmp_path / "o"), "--memory-budget-gib", "1e-6"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert "exceed --memory-budget-gib 1e-06 even in chunks of one" in err
+
+
+def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
+    out = tmp_path / "sharded"
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    code = "import sys; from jaxsync.optimize.sweep import main; sys.exit(main(sys.argv[1:]))"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *FAST, *GRID, "--out", str(out)],
+        capture_output=True, text=True, env=env, timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["devices"] == ["cpu:0", "cpu:1"]
+    a, b = _rows(uninterrupted / "results.csv"), _rows(out / "results.csv")
+    assert a[0].keys() == b[0].keys() and len(a) == len(b)
+    for ra, rb in zip(a, b, strict=True):
+        for k in ra:
+            np.testing.assert_allclose(float(ra[k]), float(rb[k]), rtol=1e-9, err_msg=k)
+
+
+def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
+    import jax
+
+    monkeypatch.setattr(jax, "devices", lambda *a: ["d0", "d1"])
+    with pytest.raises(ConfigError, match="multiple of the 2 devices"):
+        sweep.run(sweep.make_plan(["k_rk=0,1"]), str(tmp_path), chunk=3)
