@@ -15,10 +15,14 @@ import sys
 from jaxsync.optimize.sweep import main
 
 DEFAULT = [
-    "--param", "k_rk=-1:1:11",
-    "--param", "k_lk=-1:1:11",
-    "--param", "object_mass=0.5,1,2",
-    "--out", "results/sweep_gains",
+    "--param",
+    "k_rk=-1:1:11",
+    "--param",
+    "k_lk=-1:1:11",
+    "--param",
+    "object_mass=0.5,1,2",
+    "--out",
+    "results/sweep_gains",
 ]
 
 if __name__ == "__main__":

@@ -22,13 +22,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.tune import TuneConfig, make_loss, make_optimizer, sample_scenarios, training_task
 
 from jaxsync import _gains, _io
 from jaxsync._cache import enable_compilation_cache
 from jaxsync._model import load_model
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.tune import TuneConfig, make_loss, make_optimizer, sample_scenarios, training_task
 
 
 def main(argv=None) -> int:
@@ -91,8 +91,9 @@ def main(argv=None) -> int:
     results["adam"] = {"curve": curve, "best_heldout_cost": best, "iterations": i}
 
     # --- CMA-ES (same batches: generation g uses batch g)
-    es = cma.CMAEvolutionStrategy(np.asarray(x0), args.sigma, {"popsize": args.popsize, "seed": args.seed + 1,
-                                                               "verbose": -9})
+    es = cma.CMAEvolutionStrategy(
+        np.asarray(x0), args.sigma, {"popsize": args.popsize, "seed": args.seed + 1, "verbose": -9}
+    )
     used, curve, best, gen = 0.0, [(0.0, initial)], initial, 0
     while used < args.budget:
         t = time.perf_counter()
@@ -106,14 +107,24 @@ def main(argv=None) -> int:
         curve.append((used, best))
         print(f"cmaes  {used:7.1f} s  generation {gen:3d}  held-out {h:.4g}  best {best:.4g}", flush=True)
         gen += 1
-    results["cmaes"] = {"curve": curve, "best_heldout_cost": best, "generations": gen,
-                        "rollouts_per_generation": args.popsize * args.batch}
+    results["cmaes"] = {
+        "curve": curve,
+        "best_heldout_cost": best,
+        "generations": gen,
+        "rollouts_per_generation": args.popsize * args.batch,
+    }
 
     for r in results.values():
         hit = [tt for tt, c in r["curve"] if c <= target]
         r["time_to_target_s"] = hit[0] if hit else None
-    summary = {"initial_heldout_cost": initial, "target_cost": target, "budget_s": args.budget,
-               "compile_s": compile_s, "methods": results, "options": vars(args)}
+    summary = {
+        "initial_heldout_cost": initial,
+        "target_cost": target,
+        "budget_s": args.budget,
+        "compile_s": compile_s,
+        "methods": results,
+        "options": vars(args),
+    }
     _io.write_json(f"{args.out}/tune_vs_cmaes.json", summary)
 
     import matplotlib
@@ -124,7 +135,12 @@ def main(argv=None) -> int:
     fig, ax = plt.subplots(figsize=(7, 4))
     for name, r in results.items():
         c = np.array(r["curve"])
-        ax.step(c[:, 0], c[:, 1], where="post", label=f"{name} (to target: {r['time_to_target_s'] and round(r['time_to_target_s'])} s)")
+        ax.step(
+            c[:, 0],
+            c[:, 1],
+            where="post",
+            label=f"{name} (to target: {r['time_to_target_s'] and round(r['time_to_target_s'])} s)",
+        )
     ax.axhline(target, color="k", ls=":", lw=0.8, label="target")
     ax.set_xlabel("optimisation wall time [s] (compile excluded)")
     ax.set_ylabel("best held-out cost")

@@ -19,6 +19,8 @@ from jaxsync._errors import (
     ModelFileError,
     ModelStructureError,
 )
+from jaxsync._gains import Gains, classical_equivalent, default_gains
+from jaxsync._metrics import Metrics, summarize
 from jaxsync._model import (
     SOLVERS,
     DualArmModel,
@@ -26,8 +28,6 @@ from jaxsync._model import (
     default_model_path,
     load_model,
 )
-from jaxsync._gains import Gains, classical_equivalent, default_gains
-from jaxsync._metrics import Metrics, summarize
 from jaxsync._physics import after_control, before_control, put_data
 from jaxsync._rollout import Trajectory, make_rollout, rollout
 from jaxsync._scenario import Scenario, default_scenario

@@ -36,10 +36,26 @@ TARGETS = {
     "tune_step_peak_rss_gib": ("<=", 6.0),
 }
 
-FULL = dict(batch_sizes=(1, 16, 64, 256), mjx_duration=4.0, c_duration=4.0, bare_steps=4000,
-            grad_duration=2.0, tune_batch=8, tune_duration=2.0, repeats=2)
-QUICK = dict(batch_sizes=(1, 2), mjx_duration=0.05, c_duration=0.05, bare_steps=200,
-             grad_duration=0.1, tune_batch=2, tune_duration=0.1, repeats=1)
+FULL = dict(
+    batch_sizes=(1, 16, 64, 256),
+    mjx_duration=4.0,
+    c_duration=4.0,
+    bare_steps=4000,
+    grad_duration=2.0,
+    tune_batch=8,
+    tune_duration=2.0,
+    repeats=2,
+)
+QUICK = dict(
+    batch_sizes=(1, 2),
+    mjx_duration=0.05,
+    c_duration=0.05,
+    bare_steps=200,
+    grad_duration=0.1,
+    tune_batch=2,
+    tune_duration=0.1,
+    repeats=1,
+)
 
 
 def short_task():
@@ -91,8 +107,10 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
         compile_s[str(b)] = time.perf_counter() - t0
         dt = _timeit(lambda s=s: jax.block_until_ready(ev(g, s)), repeats)
         out[str(b)] = b * fn.n_steps / dt
-        log(f"  MJX batch {b:>4}: {out[str(b)]:10.0f} env-steps/s ({dt:.2f} s for {b} x {fn.n_steps} steps; "
-            f"first call {compile_s[str(b)]:.1f} s)")
+        log(
+            f"  MJX batch {b:>4}: {out[str(b)]:10.0f} env-steps/s ({dt:.2f} s for {b} x {fn.n_steps} steps; "
+            f"first call {compile_s[str(b)]:.1f} s)"
+        )
     return {"rates": out, "first_call_s": compile_s, "steps": fn.n_steps}
 
 
@@ -121,8 +139,10 @@ def mujoco_c_throughput(model, duration: float, log) -> dict:
     n_short, n_long = steps_for(short, model), steps_for(duration, model)
     steady = (n_long - n_short) / max(t_long - t_short, 1e-9)
     raw = n_long / t_long
-    log(f"  MuJoCo C + controller: {steady:10.0f} env-steps/s steady ({raw:.0f} including the per-call "
-        f"set-up of {t_short:.2f} s)")
+    log(
+        f"  MuJoCo C + controller: {steady:10.0f} env-steps/s steady ({raw:.0f} including the per-call "
+        f"set-up of {t_short:.2f} s)"
+    )
     return {"rate": steady, "rate_including_setup": raw, "setup_s": t_short, "steps": n_long}
 
 
@@ -176,11 +196,20 @@ def forward_and_gradient(duration: float, repeats: int, log) -> dict:
     t_f = _timeit(lambda: jax.block_until_ready(fwd(g, s)), repeats)
     t_g = _timeit(lambda: jax.block_until_ready(grad(g, s)), repeats)
     finite = bool(all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(gr)))
-    log(f"  forward {t_f:.3f} s, value_and_grad {t_g:.3f} s over {n_steps} steps: ratio {t_g / t_f:.2f} "
-        f"(gradient finite: {finite})")
-    return {"forward_s": t_f, "grad_s": t_g, "grad_over_forward": t_g / t_f, "steps": n_steps,
-            "forward_first_call_s": t_fc, "grad_first_call_s": t_gc, "grad_finite": finite,
-            "cost_value": float(value)}
+    log(
+        f"  forward {t_f:.3f} s, value_and_grad {t_g:.3f} s over {n_steps} steps: ratio {t_g / t_f:.2f} "
+        f"(gradient finite: {finite})"
+    )
+    return {
+        "forward_s": t_f,
+        "grad_s": t_g,
+        "grad_over_forward": t_g / t_f,
+        "steps": n_steps,
+        "forward_first_call_s": t_fc,
+        "grad_first_call_s": t_gc,
+        "grad_finite": finite,
+        "cost_value": float(value),
+    }
 
 
 def small_gradient():
@@ -322,13 +351,16 @@ def child(mode: str, cfg: dict) -> dict:
 def _run_child(mode: str, cfg: dict, cache_dir: str | None) -> dict:
     env = dict(os.environ)
     env["JAXSYNC_CACHE_DIR"] = cache_dir or "off"
-    code = ("import json, sys; from jaxsync._bench import child; "
-            "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))")
-    proc = subprocess.run([sys.executable, "-c", code, mode, json.dumps(cfg)], capture_output=True, text=True,
-                          env=env, timeout=3600)
+    code = (
+        "import json, sys; from jaxsync._bench import child; "
+        "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code, mode, json.dumps(cfg)], capture_output=True, text=True, env=env, timeout=3600
+    )
     for line in proc.stdout.splitlines()[::-1]:
         if line.startswith("JAXSYNC_BENCH "):
-            return json.loads(line[len("JAXSYNC_BENCH "):])
+            return json.loads(line[len("JAXSYNC_BENCH ") :])
     raise RuntimeError(f"benchmark child '{mode}' failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
 
 
@@ -346,9 +378,11 @@ def compile_times(duration: float, small: bool, log) -> dict:
             exported = {**cfg, "exported": os.path.join(cache, "grad.jaxexport")}
             _run_child("compile", exported, cache)  # trace, export, compile the wrapper
             out["warm_exported"] = _run_child("compile", exported, cache)
-    log(f"  gradient compile cold {cold['total_s']:.1f} s (trace {cold['trace_s']:.1f} + XLA "
+    log(
+        f"  gradient compile cold {cold['total_s']:.1f} s (trace {cold['trace_s']:.1f} + XLA "
         f"{cold['xla_compile_s']:.1f}), warm {warm['total_s']:.1f} s (trace {warm['trace_s']:.1f} + "
-        f"cache {warm['xla_compile_s']:.1f})" + (" [small stand-in]" if small else ""))
+        f"cache {warm['xla_compile_s']:.1f})" + (" [small stand-in]" if small else "")
+    )
     if "warm_exported" in out:
         log(f"  warm with the traced function on disk (jax.export): {out['warm_exported']['total_s']:.1f} s")
     return out
@@ -356,9 +390,11 @@ def compile_times(duration: float, small: bool, log) -> dict:
 
 def tune_step_memory(batch: int, duration: float, cache_dir: str | None, log) -> dict:
     r = _run_child("tune_step", {"batch": batch, "duration": duration}, cache_dir)
-    log(f"  tuning step (batch {batch}, {duration:g} s): peak RSS {r['peak_rss_gib']:.2f} GiB "
+    log(
+        f"  tuning step (batch {batch}, {duration:g} s): peak RSS {r['peak_rss_gib']:.2f} GiB "
         f"(after compiling {r['peak_rss_after_compile_gib']:.2f} GiB; XLA temporaries "
-        f"{r['xla_temp_gib'] or float('nan'):.3f} GiB), step {r['step_s']:.1f} s")
+        f"{r['xla_temp_gib'] or float('nan'):.3f} GiB), step {r['step_s']:.1f} s"
+    )
     return r
 
 
@@ -440,8 +476,10 @@ def run(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dict:
     _io.ensure_writable_dir(out)
     t_start = time.perf_counter()
     info = machine()
-    log(f"jaxsync bench{' --quick' if quick else ''} on {info['cpu_model']} ({info['cpu_cores']} cores), "
-        f"JAX {info['jax']} {info['jax_backend']}")
+    log(
+        f"jaxsync bench{' --quick' if quick else ''} on {info['cpu_model']} ({info['cpu_cores']} cores), "
+        f"JAX {info['jax']} {info['jax_backend']}"
+    )
     cache_dir = jax.config.jax_compilation_cache_dir
     model = load_model(solver="accurate")
     log("[1/6] MJX closed loop, default scenario")
@@ -502,9 +540,13 @@ def table(r: dict) -> str:
         ("tuning step peak RSS, GiB", f"{r['tune_step_peak_rss_gib']:.2f}"),
     ]
     tg = r.get("targets", {})
-    keymap = {"MJX best": "mjx_over_mujoco_c", "gradient / forward": "grad_over_forward",
-              "gradient compile cold": "grad_compile_cold_s", "gradient compile warm": "grad_compile_warm_s",
-              "tuning step peak": "tune_step_peak_rss_gib"}
+    keymap = {
+        "MJX best": "mjx_over_mujoco_c",
+        "gradient / forward": "grad_over_forward",
+        "gradient compile cold": "grad_compile_cold_s",
+        "gradient compile warm": "grad_compile_warm_s",
+        "tuning step peak": "tune_step_peak_rss_gib",
+    }
     w = max(len(a) for a, _ in rows)
     lines = [f"{'measure':<{w}}  {'value':>12}  target"]
     for name, val in rows:
@@ -535,8 +577,7 @@ def add_bench_parser(subparsers) -> argparse.ArgumentParser:
         "See docs/performance.md.",
     )
     p.add_argument("--out", default="results/bench", help="output folder (results/bench)")
-    p.add_argument("--quick", action="store_true",
-                   help="tiny horizons and batches: a smoke test, not a benchmark")
+    p.add_argument("--quick", action="store_true", help="tiny horizons and batches: a smoke test, not a benchmark")
     p.add_argument("--batch-sizes", default=None, help="MJX batch sizes, comma-separated (1,16,64,256)")
     p.set_defaults(func=cmd_bench)
     return p

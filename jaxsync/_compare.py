@@ -62,10 +62,14 @@ def run(
     for i, name in enumerate(CONTROLLERS):
         log(f"[{i + 1}/2] {name}: rolling out {duration:g} s on {backend} (the first run compiles)...")
         t0 = time.perf_counter()
-        traj = jax.block_until_ready(rollout(model, gains, scenario, controller=name, duration=duration, backend=backend))
+        traj = jax.block_until_ready(
+            rollout(model, gains, scenario, controller=name, duration=duration, backend=backend)
+        )
         m = _metrics.summarize(traj, scenario)
-        log(f"[{i + 1}/2] {name}: done in {time.perf_counter() - t0:.1f} s, "
-            f"settled peak resultant {float(m.settled_peak_resultant_N):.4f} N")
+        log(
+            f"[{i + 1}/2] {name}: done in {time.perf_counter() - t0:.1f} s, "
+            f"settled peak resultant {float(m.settled_peak_resultant_N):.4f} N"
+        )
         results[name] = (traj, m)
     return results
 
@@ -100,7 +104,7 @@ def plot_forces(series: dict, scenario, title: str, path: str, resultant_ylim: f
     ax2.set_xlabel("time [s]")
     ax2.legend(loc="upper right")
     for ax in (ax1, ax2):
-        for x, lab in ((t_carry, "lift"), (t_hold, "hold"), (t_settled, "settled")):
+        for x in (t_carry, t_hold, t_settled):
             ax.axvline(x, color="0.6", lw=0.6)
         ax.grid(alpha=0.3)
     ax1.text(t_carry, ax1.get_ylim()[1], " lift", va="top", fontsize=8, color="0.4")
@@ -114,11 +118,13 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
     _io.ensure_writable_dir(out)
     summary: dict = {}
     columns: dict = {}
-    all_series = {name: {k: np.asarray(v) for k, v in _metrics.series(traj, scenario).items()}
-                  for name, (traj, _) in results.items()}
+    all_series = {
+        name: {k: np.asarray(v) for k, v in _metrics.series(traj, scenario).items()}
+        for name, (traj, _) in results.items()
+    }
     # one resultant scale for both plots, so they can be compared by eye
     ylim = 1.5 * max(float(np.asarray(m.settled_peak_resultant_N)) for _, m in results.values()) or None
-    for name, (traj, m) in results.items():
+    for name, (_, m) in results.items():
         summary[name] = _metrics_dict(m)
         se = all_series[name]
         if not columns:

@@ -108,7 +108,13 @@ def step(
         pos_ref = ref.pad_pos[i] + off[i, :3]
         rot_ref = _so3.exp(off[i, 3:]) @ ref.pad_rot[i]
         ddx = _joint_space.reference_acceleration(
-            arms[i], pos_ref, rot_ref, ref.pad_vel[i] + off_vel[i], ref.pad_acc[i] + off_acc[i], gains.kp_pos, gains.kd_pos
+            arms[i],
+            pos_ref,
+            rot_ref,
+            ref.pad_vel[i] + off_vel[i],
+            ref.pad_acc[i] + off_acc[i],
+            gains.kp_pos,
+            gains.kd_pos,
         )
         taus.append(_joint_space.torques(arms[i], ddx, ref.q_rest[i], gains.kp_null, gains.kd_null, ref.wrench[i]))
     info = ControlInfo(offset=off, delta=delta, force_error=force_error)

@@ -118,10 +118,7 @@ def _id(m: mujoco.MjModel, kind: str, name: str) -> int:
 
 def _check_structure(m: mujoco.MjModel, path: str) -> None:
     missing = [
-        f"{kind} '{name}'"
-        for kind, names in required_names().items()
-        for name in names
-        if _id(m, kind, name) < 0
+        f"{kind} '{name}'" for kind, names in required_names().items() for name in names if _id(m, kind, name) < 0
     ]
     problems = []
     if missing:
@@ -156,8 +153,7 @@ def _contact_index(geoms: np.ndarray, g1: int, g2: int, path: str) -> int:
     hits = [i for i, (a, b) in enumerate(geoms) if {int(a), int(b)} == {g1, g2}]
     if len(hits) != 1:
         raise ModelStructureError(
-            f"{path}: expected exactly one contact between geoms {g1} and {g2} "
-            f"(an explicit <pair>), found {len(hits)}"
+            f"{path}: expected exactly one contact between geoms {g1} and {g2} (an explicit <pair>), found {len(hits)}"
         )
     return hits[0]
 
@@ -180,9 +176,7 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
             prefix=a,
             qpos_adr=tuple(int(m.jnt_qposadr[j]) for j in joints),
             dof_adr=tuple(int(m.jnt_dofadr[j]) for j in joints),
-            actuator_ids=tuple(
-                _id(m, "actuator", f"{a}_motor{k}") for k in range(1, JOINTS_PER_ARM + 1)
-            ),
+            actuator_ids=tuple(_id(m, "actuator", f"{a}_motor{k}") for k in range(1, JOINTS_PER_ARM + 1)),
             ee_body=_id(m, "body", f"{a}_ee"),
             root_body=int(m.body_rootid[_id(m, "body", f"{a}_ee")]),
             pad_site=_id(m, "site", f"{a}_pad"),

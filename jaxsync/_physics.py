@@ -120,5 +120,3 @@ def inertial_wrench(cinert: jax.Array, cvel: jax.Array, cacc: jax.Array) -> jax.
 
 def full_mass_matrix(m: mjx.Model, d: mjx.Data) -> jax.Array:
     return mjx.full_m(m, d)
-
-

@@ -261,10 +261,7 @@ class _Session:
         if self.object_body >= 0:
             for i in range(scene.ngeom):
                 g = scene.geoms[i]
-                if (
-                    g.objtype == mujoco.mjtObj.mjOBJ_GEOM
-                    and self.model.geom_bodyid[g.objid] == self.object_body
-                ):
+                if g.objtype == mujoco.mjtObj.mjOBJ_GEOM and self.model.geom_bodyid[g.objid] == self.object_body:
                     g.rgba[3] = OVERLAY_OBJECT_ALPHA
         for k in range(forces.shape[0]):
             f = forces[k]

@@ -22,8 +22,9 @@ def cmd_render(args) -> int:
     return 0
 
 
-def compare_video(model, results: dict, scenario, out: str, speed: float = 0.5,
-                  width: int = 480, height: int = 360) -> str:
+def compare_video(
+    model, results: dict, scenario, out: str, speed: float = 0.5, width: int = 480, height: int = 360
+) -> str:
     """Both controllers' rollouts side by side, from the states that were
     computed (MJX states drawn by MuJoCo's renderer), with each pad's contact
     force on the object as an arrow; ``speed`` < 1 is slow motion."""
@@ -36,7 +37,8 @@ def compare_video(model, results: dict, scenario, out: str, speed: float = 0.5,
     for name, (traj, _) in results.items():
         peak = float(summarize(traj, scenario).settled_peak_resultant_N)
         overlay = _render.ForceOverlay(
-            forces=np.asarray(traj.pad_forces), points=np.asarray(traj.pad_pos),
+            forces=np.asarray(traj.pad_forces),
+            points=np.asarray(traj.pad_pos),
             caption=f"{name}: settled peak resultant {peak * 1000:.1f} mN (x{speed:g} speed)",
         )
         frames[name] = _render.render_trajectory(

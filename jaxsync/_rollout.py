@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from jaxsync import _controller, _physics, _scenario
 from jaxsync._controller import ControllerOptions, Reference
@@ -181,7 +180,9 @@ def make_rollout(
             if truncate_every is not None:
                 cut = (k % truncate_every == 0) & (k > 0)
                 carry = jax.tree_util.tree_map(
-                    lambda x: jnp.where(cut, jax.lax.stop_gradient(x), x) if jnp.issubdtype(x.dtype, jnp.inexact) else x,
+                    lambda x: (
+                        jnp.where(cut, jax.lax.stop_gradient(x), x) if jnp.issubdtype(x.dtype, jnp.inexact) else x
+                    ),
                     carry,
                 )
             d, cstate = carry
@@ -195,9 +196,7 @@ def make_rollout(
             d = _physics.after_control(mx, d, ctrl, unroll)
             for _ in range(control_substeps - 1):
                 d = _physics.after_control(mx, _physics.before_control(mx, d), ctrl, unroll)
-            forces = jnp.stack(
-                [_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms]
-            )
+            forces = jnp.stack([_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms])
             row = Trajectory(
                 time=t,
                 qpos=noisy.qpos,
@@ -256,8 +255,13 @@ def rollout(
         return _jitted(model, controller, float(duration), int(control_substeps), cross_term)(gains, scenario)
     if backend == "mujoco":
         return rollout_mujoco(
-            model, gains, scenario, controller=controller, duration=duration,
-            control_substeps=control_substeps, cross_term=cross_term,
+            model,
+            gains,
+            scenario,
+            controller=controller,
+            duration=duration,
+            control_substeps=control_substeps,
+            cross_term=cross_term,
         )
     raise ConfigError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
 
@@ -364,7 +368,9 @@ def rollout_mujoco(
         mujoco.mj_fullM(m, d, full_m)
         arms = tuple(
             _sense_arm_c(
-                m, d, a,
+                m,
+                d,
+                a,
                 np.concatenate([raw_all[a.force_adr : a.force_adr + 3], raw_all[a.torque_adr : a.torque_adr + 3]]),
                 full_m,
             )
@@ -404,5 +410,3 @@ def rollout_mujoco(
 
 def steps_for(duration: float, model: DualArmModel, control_substeps: int = 1) -> int:
     return int(round(duration / (model.mj_model.opt.timestep * control_substeps)))
-
-

@@ -85,7 +85,9 @@ def default_scenario(**overrides) -> Scenario:
     if values["mass_estimate"] is None:
         values["mass_estimate"] = values["object_mass"]
     # numpy first: strongly typed arrays, so user-built scenarios share the compiled rollout
-    arrays = {k: jnp.asarray(np.asarray(v, dtype=np.uint32 if k == "noise_key" else np.float64)) for k, v in values.items()}
+    arrays = {
+        k: jnp.asarray(np.asarray(v, dtype=np.uint32 if k == "noise_key" else np.float64)) for k, v in values.items()
+    }
     return validate(Scenario(**arrays))
 
 

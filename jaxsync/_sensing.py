@@ -132,9 +132,7 @@ def sense_object(m: mjx.Model, d: mjx.Data, index: ModelIndex) -> ObjectState:
     qa, va = index.object_qpos_adr, index.object_dof_adr
     quat = d.qpos[qa + 3 : qa + 7]
     rot = d.xmat[index.object_body]
-    pad_forces = jnp.stack(
-        [_physics.contact_force_on(m, d, arm.contact_id, arm.object_is_geom1) for arm in index.arms]
-    )
+    pad_forces = jnp.stack([_physics.contact_force_on(m, d, arm.contact_id, arm.object_is_geom1) for arm in index.arms])
     return ObjectState(
         pos=d.qpos[qa : qa + 3],
         quat=quat,

@@ -63,9 +63,7 @@ def cross_mapped(values: jax.Array, pads: jax.Array, cross_term: str) -> jax.Arr
     return jnp.stack([values[0] + t_rl @ values[1], values[1] + t_lr @ values[0]])
 
 
-def synchronous_offset(
-    delta_k: jax.Array, k_il: jax.Array, mapped: jax.Array
-) -> jax.Array:
+def synchronous_offset(delta_k: jax.Array, k_il: jax.Array, mapped: jax.Array) -> jax.Array:
     """x_ik - x_id = delta_ik + k_il x_ild   (eqs. 14, 17), (2, 6).
 
     Args: delta_k (2, 6) from :func:`relative_compensation`; k_il (2,) = (k_rl,

@@ -85,7 +85,6 @@ def _scenario_from_args(args: argparse.Namespace):
 
     from jaxsync._scenario import default_scenario
 
-    d = default_scenario()
     overrides = {}
     if args.object_mass is not None:
         overrides["object_mass"] = args.object_mass
@@ -98,12 +97,10 @@ def _scenario_from_args(args: argparse.Namespace):
     overrides["noise_key"] = np.asarray(jax.random.key_data(jax.random.key(args.seed)))
     if "object_mass" in overrides:
         overrides["mass_estimate"] = overrides["object_mass"]
-    del d
     return default_scenario(**overrides)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    import json
     import time
 
     from jaxsync import _compare, _gains
@@ -131,7 +128,6 @@ def cmd_compare(args: argparse.Namespace) -> int:
     ratio = summary["resultant_ratio"]
     print(f"resultant_ratio (classical / synchronous): {ratio:.3f}" if ratio else "resultant_ratio: n/a")
     print(f"results in {args.out}: summary.json, series.csv, forces_classical.png, forces_synchronous.png")
-    del json
     return 0
 
 
@@ -175,7 +171,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--grip-force", type=_positive(float), default=None, help="desired grip force f_d, N (10)")
     cmp_.add_argument("--object-mass", type=_positive(float), default=None, help="object mass, kg (0.5)")
     cmp_.add_argument(
-        "--object-offset", type=float, default=None,
+        "--object-offset",
+        type=float,
+        default=None,
         help="where the object starts off the nominal grasp centre along the clamping axis, m (0.003)",
     )
     cmp_.add_argument("--force-noise", type=float, default=None, help="wrist force noise std, N (0.1)")

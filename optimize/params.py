@@ -104,5 +104,10 @@ class TuneSpec:
         return Gains(**g)
 
     def describe(self) -> dict:
-        return {"tuned": list(self.tuned), "per_arm": self.per_arm, "isotropic": self.isotropic,
-                "damping_ratio_band": [ZETA_MIN, ZETA_MAX], "k_range": [-1, 1]}
+        return {
+            "tuned": list(self.tuned),
+            "per_arm": self.per_arm,
+            "isotropic": self.isotropic,
+            "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
+            "k_range": [-1, 1],
+        }

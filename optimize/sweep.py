@@ -117,8 +117,7 @@ def resolve_name(name: str) -> Target:
     if head in VECTOR_FIELDS:
         if len(parts) == 2 and parts[1] in VEC_AXES:
             return Target("scenario", head, (VEC_AXES[parts[1]],))
-        raise ConfigError(f"parameter {name!r}: {head} is a vector, name one component: "
-                          f"{head}.x, {head}.y or {head}.z")
+        raise ConfigError(f"parameter {name!r}: {head} is a vector, name one component: {head}.x, {head}.y or {head}.z")
     raise bad
 
 
@@ -240,8 +239,7 @@ def _check_overlaps(params: list[Param], base_gains: Gains, base_scenario: Scena
         key = f"{t.kind}:{t.field}"
         for other, om in owner.get(key, []):
             if np.any(om & mask):
-                raise ConfigError(f"parameters {other!r} and {p.name!r} both set {t.field}; "
-                                  "give each entry once")
+                raise ConfigError(f"parameters {other!r} and {p.name!r} both set {t.field}; give each entry once")
         owner.setdefault(key, []).append((p.name, mask))
 
 
@@ -362,8 +360,18 @@ def make_plan(
             f"--duration must be at least {need:.2f} s for this sweep (hold start + settling time + 0.2 s "
             f"of settled window for its longest phases), got {duration:g}"
         )
-    return Plan(params, points, samples, int(seed), float(duration), controller, solver,
-                base_gains, base_scenario, bool(jax.config.jax_enable_x64))
+    return Plan(
+        params,
+        points,
+        samples,
+        int(seed),
+        float(duration),
+        controller,
+        solver,
+        base_gains,
+        base_scenario,
+        bool(jax.config.jax_enable_x64),
+    )
 
 
 # ----------------------------------------------------------------- evaluation
@@ -401,8 +409,9 @@ def _evaluator(solver: str, controller: str, duration: float, n_devices: int):
     if n_devices == 1:
         return jax.jit(local), fn.n_steps
     mesh = _mesh()
-    sharded = jax.shard_map(local, mesh=mesh, in_specs=(P("batch"), P("batch")), out_specs=P("batch"),
-                            check_vma=False)  # MJX's solver mixes batched and unbatched cond branches
+    sharded = jax.shard_map(
+        local, mesh=mesh, in_specs=(P("batch"), P("batch")), out_specs=P("batch"), check_vma=False
+    )  # MJX's solver mixes batched and unbatched cond branches
     return jax.jit(sharded), fn.n_steps
 
 
@@ -440,8 +449,13 @@ def memory_bytes(compiled) -> int | None:
         return None
     if m is None:
         return None
-    return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
-               + m.generated_code_size_in_bytes - m.alias_size_in_bytes)
+    return int(
+        m.argument_size_in_bytes
+        + m.output_size_in_bytes
+        + m.temp_size_in_bytes
+        + m.generated_code_size_in_bytes
+        - m.alias_size_in_bytes
+    )
 
 
 def _signature(tree):
@@ -467,8 +481,9 @@ def _gather(tree):
     return jax.tree_util.tree_map(np.asarray, tree)
 
 
-def choose_chunk(plan: Plan, *, chunk: int | None, budget_gib: float, n_devices: int, platform: str,
-                 log=lambda m: None):
+def choose_chunk(
+    plan: Plan, *, chunk: int | None, budget_gib: float, n_devices: int, platform: str, log=lambda m: None
+):
     """Compile for a fixed chunk size within the memory budget.
 
     Returns (chunk, compiled, bytes per device). Starts from ``chunk`` (or a
@@ -506,8 +521,10 @@ def choose_chunk(plan: Plan, *, chunk: int | None, budget_gib: float, n_devices:
                 f"device: one {plan.duration:g} s rollout needs about {per_env / 2**20:.1f} MiB "
                 f"(XLA memory analysis); raise the budget or shorten --duration"
             )
-        log(f"{c * n_devices} points need {used / GIB:.3f} GiB per device, over the "
-            f"{budget_gib:g} GiB budget: trying {fit * n_devices}")
+        log(
+            f"{c * n_devices} points need {used / GIB:.3f} GiB per device, over the "
+            f"{budget_gib:g} GiB budget: trying {fit * n_devices}"
+        )
         c = fit
 
 
@@ -592,8 +609,7 @@ def _stats(x: np.ndarray) -> dict | None:
     x = x[np.isfinite(x)]
     if not len(x):
         return None
-    return {"min": float(x.min()), "median": float(np.median(x)), "max": float(x.max()),
-            "mean": float(x.mean())}
+    return {"min": float(x.min()), "median": float(np.median(x)), "max": float(x.max()), "mean": float(x.mean())}
 
 
 def summarize_sweep(plan: Plan, metrics: dict) -> dict:
@@ -655,8 +671,10 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
         j = axes_j[0]
         xs = np.asarray(plan.params[j].values)
         for ax, k in zip(axs[0], plot_metrics, strict=True):
-            ys = [np.mean(metrics[k][(plan.points[:, j] == v) & ok]) if ((plan.points[:, j] == v) & ok).any()
-                  else np.nan for v in xs]
+            ys = [
+                np.mean(metrics[k][(plan.points[:, j] == v) & ok]) if ((plan.points[:, j] == v) & ok).any() else np.nan
+                for v in xs
+            ]
             ax.plot(xs, ys, "o-")
             ax.set_xlabel(plan.params[j].name)
             ax.set_ylabel(k)
@@ -722,8 +740,7 @@ def run(
     devices = jax.devices()
     n_dev = len(devices)
     if chunk is not None and chunk % n_dev:
-        raise ConfigError(f"--chunk {chunk} must be a multiple of the {n_dev} devices "
-                          "the sweep is sharded over")
+        raise ConfigError(f"--chunk {chunk} must be a multiple of the {n_dev} devices the sweep is sharded over")
     stored = _prepare_out(out, plan, restart) if main_proc else None
     if jax.process_count() > 1:  # every process reads the same finished chunks (a shared --out)
         from jax.experimental import multihost_utils
@@ -759,19 +776,28 @@ def run(
         platform = devices[0].platform
         t0 = time.perf_counter()
         if c is None:
-            c, compiled, used = choose_chunk(plan, chunk=chunk, budget_gib=budget_gib, n_devices=n_dev,
-                                             platform=platform, log=log)
+            c, compiled, used = choose_chunk(
+                plan, chunk=chunk, budget_gib=budget_gib, n_devices=n_dev, platform=platform, log=log
+            )
         else:
-            c, compiled, used = choose_chunk(plan, chunk=c, budget_gib=budget_gib, n_devices=n_dev,
-                                             platform=platform, log=log)
+            c, compiled, used = choose_chunk(
+                plan, chunk=c, budget_gib=budget_gib, n_devices=n_dev, platform=platform, log=log
+            )
             if c != c_stored:
-                raise ConfigError(f"the stored chunk size {c_stored} no longer fits --memory-budget-gib "
-                                  f"{budget_gib:g}; pass --restart")
+                raise ConfigError(
+                    f"the stored chunk size {c_stored} no longer fits --memory-budget-gib "
+                    f"{budget_gib:g}; pass --restart"
+                )
         compile_s = time.perf_counter() - t0
         n_chunks = -(-n // c)
     if main_proc:
-        plan_doc = {"fingerprint": plan.fingerprint, "chunk": c, "n_chunks": n_chunks, "n_devices": n_dev,
-                    "spec": plan.spec}
+        plan_doc = {
+            "fingerprint": plan.fingerprint,
+            "chunk": c,
+            "n_chunks": n_chunks,
+            "n_devices": n_dev,
+            "spec": plan.spec,
+        }
         _io.write_json(os.path.join(out, "plan.json"), plan_doc)
 
     todo = [i for i in range(n_chunks) if i not in results]
@@ -786,8 +812,14 @@ def run(
     if progress and main_proc:
         from tqdm import tqdm
 
-        bar = tqdm(total=n, initial=sum(len(r["dropped"]) for r in results.values()), unit="pt",
-                   desc="sweep", file=sys.stderr, dynamic_ncols=True)
+        bar = tqdm(
+            total=n,
+            initial=sum(len(r["dropped"]) for r in results.values()),
+            unit="pt",
+            desc="sweep",
+            file=sys.stderr,
+            dynamic_ncols=True,
+        )
     n_steps = _evaluator(plan.solver, plan.controller, plan.duration, n_dev)[1]
     try:
         for i in todo:
@@ -818,28 +850,34 @@ def run(
         "env_steps_per_s": done_points * n_steps / eval_s if computed and eval_s > 0 else None,
     }
     if len(results) < n_chunks:
-        log(f"stopped after {computed} new chunk(s) (--max-chunks): {len(results)} of {n_chunks} done; "
-            "run the same command again to finish")
+        log(
+            f"stopped after {computed} new chunk(s) (--max-chunks): {len(results)} of {n_chunks} done; "
+            "run the same command again to finish"
+        )
         return {"complete": False, "chunks_done": len(results), "n_chunks": n_chunks, "timing": timing}
     metrics = {k: np.concatenate([results[i][k] for i in range(n_chunks)]) for k in fields}
     summary = {"complete": True, **summarize_sweep(plan, metrics)}
     if main_proc:
         write_csv(os.path.join(out, "results.csv"), plan, metrics)
         fig = plot(out, plan, metrics, plot_metrics)
-        summary.update({
-            "sweep": plan.spec,
-            "fingerprint": plan.fingerprint,
-            "chunk": c,
-            "n_chunks": n_chunks,
-            "n_steps_per_rollout": n_steps,
-            "devices": [str(d) for d in devices],
-            "process_count": jax.process_count(),
-            "memory": {"budget_gib_per_device": budget_gib,
-                       "chunk_gib_per_device": used / GIB if used is not None else None},
-            "timing": timing,
-            "plot": fig,
-            "files": ["results.csv", "summary.json", "plan.json", "chunks/"] + ([fig] if fig else []),
-        })
+        summary.update(
+            {
+                "sweep": plan.spec,
+                "fingerprint": plan.fingerprint,
+                "chunk": c,
+                "n_chunks": n_chunks,
+                "n_steps_per_rollout": n_steps,
+                "devices": [str(d) for d in devices],
+                "process_count": jax.process_count(),
+                "memory": {
+                    "budget_gib_per_device": budget_gib,
+                    "chunk_gib_per_device": used / GIB if used is not None else None,
+                },
+                "timing": timing,
+                "plot": fig,
+                "files": ["results.csv", "summary.json", "plan.json", "chunks/"] + ([fig] if fig else []),
+            }
+        )
         _io.write_json(os.path.join(out, "summary.json"), summary)
     return summary
 
@@ -869,27 +907,43 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
         "all JAX devices, resumable. Writes results.csv, summary.json, a heatmap (2 swept parameters) or a "
         "line plot (1) to --out. See docs/sweep.md.",
     )
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUES",
-                   help="a parameter and its values: lo:hi:n (n points), a,b,c (a list), v (fixed), or lo:hi "
-                   "(with --samples). Names: gains (k_rk, imp_stiffness, imp_stiffness.z, "
-                   "imp_stiffness.r.z, ...), "
-                   "scenario fields (object_mass, lift.z, ...), noise_seed. Repeat for each parameter.")
-    p.add_argument("--samples", type=int, default=None,
-                   help="draw this many random points instead of the grid")
+    p.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUES",
+        help="a parameter and its values: lo:hi:n (n points), a,b,c (a list), v (fixed), or lo:hi "
+        "(with --samples). Names: gains (k_rk, imp_stiffness, imp_stiffness.z, "
+        "imp_stiffness.r.z, ...), "
+        "scenario fields (object_mass, lift.z, ...), noise_seed. Repeat for each parameter.",
+    )
+    p.add_argument("--samples", type=int, default=None, help="draw this many random points instead of the grid")
     p.add_argument("--seed", type=int, default=0, help="seed of the random points (0)")
     p.add_argument("--duration", type=_positive(float), default=4.0, help="seconds simulated per rollout (4)")
     p.add_argument("--controller", default="synchronous", choices=["synchronous", "classical"])
     p.add_argument("--solver", default="accurate", choices=["accurate", "differentiable"])
     p.add_argument("--gains", default=None, help="JSON file of base gains (default: built-in)")
-    p.add_argument("--chunk", type=int, default=None,
-                   help="points per compiled batch, a multiple of the device count (default: 32 per CPU "
-                   "device, 1024 per accelerator, shrunk to fit the memory budget)")
-    p.add_argument("--memory-budget-gib", type=float, default=DEFAULT_BUDGET_GIB,
-                   help=f"memory per device for one chunk, GiB ({DEFAULT_BUDGET_GIB:g})")
+    p.add_argument(
+        "--chunk",
+        type=int,
+        default=None,
+        help="points per compiled batch, a multiple of the device count (default: 32 per CPU "
+        "device, 1024 per accelerator, shrunk to fit the memory budget)",
+    )
+    p.add_argument(
+        "--memory-budget-gib",
+        type=float,
+        default=DEFAULT_BUDGET_GIB,
+        help=f"memory per device for one chunk, GiB ({DEFAULT_BUDGET_GIB:g})",
+    )
     p.add_argument("--out", default="results/sweep", help="output folder (results/sweep)")
     p.add_argument("--restart", action="store_true", help="discard a different or finished sweep in --out")
-    p.add_argument("--plot-metric", action="append", default=None,
-                   help=f"metric(s) to plot (default: {', '.join(DEFAULT_PLOT_METRICS)})")
+    p.add_argument(
+        "--plot-metric",
+        action="append",
+        default=None,
+        help=f"metric(s) to plot (default: {', '.join(DEFAULT_PLOT_METRICS)})",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
     p.set_defaults(func=cmd_sweep)
@@ -898,17 +952,33 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     gains = _gains.load(args.gains) if args.gains else None
-    plan = make_plan(args.param, samples=args.samples, seed=args.seed, duration=args.duration,
-                     controller=args.controller, solver=args.solver, base_gains=gains)
-    summary = run(plan, args.out, chunk=args.chunk, budget_gib=args.memory_budget_gib, restart=args.restart,
-                  progress=not args.no_progress, max_chunks=args.max_chunks,
-                  plot_metrics=tuple(args.plot_metric or DEFAULT_PLOT_METRICS))
+    plan = make_plan(
+        args.param,
+        samples=args.samples,
+        seed=args.seed,
+        duration=args.duration,
+        controller=args.controller,
+        solver=args.solver,
+        base_gains=gains,
+    )
+    summary = run(
+        plan,
+        args.out,
+        chunk=args.chunk,
+        budget_gib=args.memory_budget_gib,
+        restart=args.restart,
+        progress=not args.no_progress,
+        max_chunks=args.max_chunks,
+        plot_metrics=tuple(args.plot_metric or DEFAULT_PLOT_METRICS),
+    )
     if not summary["complete"]:
         return 0
     t = summary["timing"]
-    print(f"{summary['n_points']} points ({summary['n_ok']} ok, {summary['n_dropped']} dropped, "
-          f"{summary['n_nonfinite']} non-finite) in {t['wall_s']:.1f} s "
-          f"(compile {t['compile_s']:.1f} s; {t['chunks_loaded']} chunk(s) read back)")
+    print(
+        f"{summary['n_points']} points ({summary['n_ok']} ok, {summary['n_dropped']} dropped, "
+        f"{summary['n_nonfinite']} non-finite) in {t['wall_s']:.1f} s "
+        f"(compile {t['compile_s']:.1f} s; {t['chunks_loaded']} chunk(s) read back)"
+    )
     for k, best in summary["best_ok_point"].items():
         where = ", ".join(f"{n}={v:g}" for n, v in best.items() if n not in ("point", k))
         print(f"lowest {k}: {best[k]:.5g} at {where}")

@@ -16,18 +16,18 @@ import math
 import os
 import pickle
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxsync.optimize.cost import CostWeights, cost, cost_terms
+from jaxsync.optimize.params import TuneSpec
 
 from jaxsync import _gains, _io, _metrics, _scenario
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync._rollout import make_rollout
-from jaxsync.optimize.cost import CostWeights, cost, cost_terms
-from jaxsync.optimize.params import TuneSpec
 
 
 class TuneError(JaxsyncError):
@@ -60,7 +60,9 @@ class TuneConfig:
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name.replace('_', ' ')} must be a positive integer, got {getattr(self, name)}")
         if not hasattr(optax, self.optimizer) or self.optimizer.startswith("_"):
-            raise ConfigError(f"optimizer must name an optax optimiser (adam, adamw, sgd, lion, ...), got {self.optimizer!r}")
+            raise ConfigError(
+                f"optimizer must name an optax optimiser (adam, adamw, sgd, lion, ...), got {self.optimizer!r}"
+            )
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         return self
@@ -107,7 +109,11 @@ def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scena
 def make_loss(diff_model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights):
     """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready."""
     fn = make_rollout(
-        diff_model, "synchronous", cfg.train_duration, remat=True, truncate_every=cfg.truncate_every,
+        diff_model,
+        "synchronous",
+        cfg.train_duration,
+        remat=True,
+        truncate_every=cfg.truncate_every,
         start=cfg.train_start,
     )
 
@@ -181,7 +187,7 @@ def tune(
     spec: TuneSpec,
     base: _gains.Gains,
     cfg: TuneConfig,
-    weights: CostWeights = CostWeights(),
+    weights: CostWeights | None = None,
     *,
     out: str | None = None,
     resume: bool = False,
@@ -198,7 +204,7 @@ def tune(
     from tqdm import tqdm
 
     cfg.validate()
-    loss = make_loss(diff_model, spec, base, cfg, weights)
+    loss = make_loss(diff_model, spec, base, cfg, weights if weights is not None else CostWeights())
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
     opt = make_optimizer(cfg)
     train_base = training_task(**dict(cfg.train_task))
@@ -207,12 +213,14 @@ def tune(
     if resume:
         state = _load_checkpoint(ckpt)
         if fingerprint is not None and state.get("fingerprint") != fingerprint:
-            raise ConfigError(f"--resume: {ckpt} was written by a run with other options; "
-                              f"its options: {state.get('fingerprint')}")
+            raise ConfigError(
+                f"--resume: {ckpt} was written by a run with other options; its options: {state.get('fingerprint')}"
+            )
         theta = jax.tree_util.tree_map(jnp.asarray, state["theta"])
         opt_state = jax.tree_util.tree_map(jnp.asarray, state["opt_state"])
-        opt_state = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(opt.init(theta)),
-                                                 jax.tree_util.tree_leaves(opt_state))
+        opt_state = jax.tree_util.tree_unflatten(
+            jax.tree_util.tree_structure(opt.init(theta)), jax.tree_util.tree_leaves(opt_state)
+        )
         history, start, bad = list(state["history"]), int(state["iteration"]), int(state["bad"])
     else:
         theta = spec.init(base)
@@ -220,8 +228,14 @@ def tune(
         history, start, bad = [], 0, 0
 
     def snapshot(i):
-        return {"theta": theta, "opt_state": opt_state, "history": history, "iteration": i, "bad": bad,
-                "fingerprint": fingerprint}
+        return {
+            "theta": theta,
+            "opt_state": opt_state,
+            "history": history,
+            "iteration": i,
+            "bad": bad,
+            "fingerprint": fingerprint,
+        }
 
     bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, unit="it", dynamic_ncols=True)
     i = start
@@ -238,15 +252,23 @@ def tune(
                 bad = 0
             else:
                 bad += 1
-                bar.write(f"iteration {i}: non-finite cost or gradient (cost {float(value)}, |grad| {gnorm}); step skipped")
+                bar.write(
+                    f"iteration {i}: non-finite cost or gradient (cost {float(value)}, |grad| {gnorm}); step skipped"
+                )
                 if bad >= cfg.max_bad_steps:
                     g = _gains.to_dict(spec.to_gains(theta, base))
                     raise TuneError(
                         f"{bad} non-finite gradients in a row, the last at iteration {i}; stopping. "
                         f"Gains at that point: {g}"
                     )
-            row = {"iteration": i, "cost": float(value), "grad_norm": gnorm, "skipped": int(not finite),
-                   "seconds": time.perf_counter() - t0, **{f"term_{k}": float(v) for k, v in terms.items()}}
+            row = {
+                "iteration": i,
+                "cost": float(value),
+                "grad_norm": gnorm,
+                "skipped": int(not finite),
+                "seconds": time.perf_counter() - t0,
+                **{f"term_{k}": float(v) for k, v in terms.items()},
+            }
             history.append(row)
             bar.set_postfix(cost=f"{float(value):.4g}", grad=f"{gnorm:.3g}")
             bar.update(1)
@@ -257,8 +279,10 @@ def tune(
     except KeyboardInterrupt:
         if ckpt:
             _save_checkpoint(ckpt, snapshot(len(history)))
-            bar.write(f"interrupted: checkpoint saved to {ckpt} after {len(history)} iterations; "
-                      "run again with --resume to continue")
+            bar.write(
+                f"interrupted: checkpoint saved to {ckpt} after {len(history)} iterations; "
+                "run again with --resume to continue"
+            )
         raise
     finally:
         bar.close()
@@ -292,8 +316,9 @@ def plot_loss(history: list[dict], path: str) -> None:
 
 
 def cmd_tune(args) -> int:
-    from jaxsync._model import load_model
     from jaxsync.optimize.params import TUNABLE
+
+    from jaxsync._model import load_model
 
     _io.ensure_writable_dir(args.out)
     tuned = _names(args.tune) or list(TuneSpec().tuned)
@@ -303,9 +328,16 @@ def cmd_tune(args) -> int:
         raise ConfigError(f"--freeze: unknown parameter(s) {unknown}; tunable: {list(TUNABLE)}")
     spec = TuneSpec(tuned=tuple(n for n in tuned if n not in frozen), per_arm=args.per_arm, isotropic=args.isotropic)
     cfg = TuneConfig(
-        iterations=args.iterations, batch=args.batch, learning_rate=args.lr, optimizer=args.optimizer,
-        schedule=args.schedule, clip_norm=args.clip, seed=args.seed, heldout_seed=args.heldout_seed,
-        heldout_batch=args.heldout_batch, checkpoint_every=args.checkpoint_every,
+        iterations=args.iterations,
+        batch=args.batch,
+        learning_rate=args.lr,
+        optimizer=args.optimizer,
+        schedule=args.schedule,
+        clip_norm=args.clip,
+        seed=args.seed,
+        heldout_seed=args.heldout_seed,
+        heldout_batch=args.heldout_batch,
+        checkpoint_every=args.checkpoint_every,
         truncate_every=args.truncate_every or None,
     ).validate()
     if args.heldout_seed == args.seed:
@@ -328,13 +360,18 @@ def cmd_tune(args) -> int:
         with open(os.path.join(args.out, "heldout_before.json")) as f:
             before = json.load(f)
     if before is None:
-        print(f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True)
+        print(
+            f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True
+        )
         before = _eval_summary(evaluate(base, held))
         _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
 
     diff_model = load_model(args.model, solver="differentiable")
-    print(f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
-          f"(the first iteration compiles the gradient, minutes on a small CPU)", flush=True)
+    print(
+        f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
+        f"(the first iteration compiles the gradient, minutes on a small CPU)",
+        flush=True,
+    )
     gains, history, _ = tune(diff_model, spec, base, cfg, out=args.out, resume=args.resume, fingerprint=fingerprint)
 
     print("held-out evaluation after tuning...", flush=True)
@@ -361,8 +398,7 @@ def cmd_tune(args) -> int:
     }
     _io.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
-    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N"
-          + (f" ({b / a:.2f}x lower)" if a else ""))
+    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + (f" ({b / a:.2f}x lower)" if a else ""))
     print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
     print(f"results in {args.out}: gains.json, history.csv, loss.png, summary.json")
     return 0
@@ -383,7 +419,9 @@ def add_tune_parser(sub) -> None:
     p.add_argument("--optimizer", default="adam", help="an optax optimiser by name (adam)")
     p.add_argument("--schedule", default="cosine", choices=["cosine", "constant"])
     p.add_argument("--clip", type=float, default=1.0, help="global-norm gradient clipping (1.0)")
-    p.add_argument("--tune", default=None, help=f"comma-separated parameters to tune (default all: {','.join(TUNABLE)})")
+    p.add_argument(
+        "--tune", default=None, help=f"comma-separated parameters to tune (default all: {','.join(TUNABLE)})"
+    )
     p.add_argument("--freeze", default=None, help="comma-separated parameters to keep fixed")
     p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")
     p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")

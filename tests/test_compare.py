@@ -24,9 +24,7 @@ def _cli(*args, cwd):
 
 def test_compare_writes_a_well_formed_summary(tmp_path, rollouts):
     s = rollouts["scenario"]
-    results = {
-        name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")
-    }
+    results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
     summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0)
     for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
         assert (tmp_path / f).stat().st_size > 0, f

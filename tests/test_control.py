@@ -12,7 +12,6 @@ from jaxsync import _impedance, _metrics, _so3, _sync
 from jaxsync._gains import default_gains
 from jaxsync._rollout import make_rollout, rollout, steps_for
 
-
 # ------------------------------------------------------------ pure laws
 
 
@@ -175,10 +174,24 @@ def _hand_made(T=10):
     time = jnp.arange(T) * 0.1
     delta = z(2, 6).at[:, 0, 1].set(0.002)
     return Trajectory(
-        time=time, qpos=z(21), qvel=z(20), obj_pos=z(3), obj_vel=z(3), plan_obj_pos=z(3), plan_obj_acc=z(3),
-        plan_grip_force=jnp.full(T, 10.0), phase=jnp.full(T, 3), pad_pos=pad_pos, plan_pad_pos=pad_pos,
-        pad_normal=normal, pad_forces=f, wrist_wrench=z(2, 6), torque=jnp.ones((T, 14)), offset=z(2, 6),
-        delta=delta, impedance_offset=z(2, 6),
+        time=time,
+        qpos=z(21),
+        qvel=z(20),
+        obj_pos=z(3),
+        obj_vel=z(3),
+        plan_obj_pos=z(3),
+        plan_obj_acc=z(3),
+        plan_grip_force=jnp.full(T, 10.0),
+        phase=jnp.full(T, 3),
+        pad_pos=pad_pos,
+        plan_pad_pos=pad_pos,
+        pad_normal=normal,
+        pad_forces=f,
+        wrist_wrench=z(2, 6),
+        torque=jnp.ones((T, 14)),
+        offset=z(2, 6),
+        delta=delta,
+        impedance_offset=z(2, 6),
     )
 
 

@@ -103,12 +103,14 @@ def test_grasp_keyframe_is_a_clamp_pose(model):
 def test_only_explicit_pairs_collide(model):
     m = model.mj_model
     assert np.all(m.geom_contype == 0) and np.all(m.geom_conaffinity == 0)
-    names = {
-        frozenset((m.geom(int(m.pair_geom1[i])).name, m.geom(int(m.pair_geom2[i])).name)) for i in range(m.npair)
-    }
+    names = {frozenset((m.geom(int(m.pair_geom1[i])).name, m.geom(int(m.pair_geom2[i])).name)) for i in range(m.npair)}
     assert names == {frozenset(p) for p in (("r_pad", "object"), ("l_pad", "object"), ("stand", "object"))}
     types = {int(m.geom(n).type[0]) for n in ("r_pad", "l_pad", "object", "stand")}
-    assert types <= {int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_PLANE)}  # analytic in MJX
+    assert types <= {
+        int(mujoco.mjtGeom.mjGEOM_SPHERE),
+        int(mujoco.mjtGeom.mjGEOM_CYLINDER),
+        int(mujoco.mjtGeom.mjGEOM_PLANE),
+    }  # analytic in MJX
 
 
 def test_solver_settings(model, diff_model):

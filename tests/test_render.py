@@ -64,9 +64,7 @@ def test_render_pose_named_camera_and_bad_qpos(gl, model):
 @pytest.mark.parametrize("speed, expected", [(1.0, 11), (2.0, 6), (0.5, 21)])
 def test_render_trajectory_frame_count(gl, model, traj, speed, expected):
     qpos, dt = traj
-    frames = render.render_trajectory(
-        model.mj_model, qpos, fps_out=10, sim_dt=dt, speed=speed, width=W, height=H
-    )
+    frames = render.render_trajectory(model.mj_model, qpos, fps_out=10, sim_dt=dt, speed=speed, width=W, height=H)
     assert len(frames) == expected  # 1 s shown at 10 frames per second, sped up or slowed down
     assert all(f.shape == (H, W, 3) and f.dtype == np.uint8 for f in frames)
     assert not np.array_equal(frames[0], frames[-1])  # the arms moved
@@ -79,9 +77,7 @@ def test_render_trajectory_force_overlay(gl, model, traj):
     forces[:, 0, 1], forces[:, 1, 1] = 10.0, -10.0  # each pad pushes the ball towards the other
     points = np.broadcast_to(np.array([[0.65, -0.1, 0.9], [0.65, 0.1, 0.9]]), (T, 2, 3))
     plain = render.render_trajectory(model.mj_model, qpos, 10, dt, 5.0, width=W, height=H)
-    drawn = render.render_trajectory(
-        model.mj_model, qpos, 10, dt, 5.0, width=W, height=H, forces=forces, points=points
-    )
+    drawn = render.render_trajectory(model.mj_model, qpos, 10, dt, 5.0, width=W, height=H, forces=forces, points=points)
     assert len(drawn) == len(plain) == 3  # speed 5: t = 0, 0.5, 1 s
     assert (np.abs(drawn[-1].astype(int) - plain[-1].astype(int)).sum(-1) > 30).sum() > 100
     via_overlay = render.render_trajectory(
@@ -89,9 +85,7 @@ def test_render_trajectory_force_overlay(gl, model, traj):
     )
     assert np.array_equal(via_overlay[-1], drawn[-1])
     with pytest.raises(ConfigError):
-        render.render_trajectory(
-            model.mj_model, qpos, 10, dt, width=W, height=H, forces=forces[:3], points=points[:3]
-        )
+        render.render_trajectory(model.mj_model, qpos, 10, dt, width=W, height=H, forces=forces[:3], points=points[:3])
 
 
 def test_side_by_side(gl, model, traj):

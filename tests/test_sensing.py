@@ -56,8 +56,7 @@ def _random_states(model, n, seed=0):
         d.ctrl[:] = rng.uniform(-0.3, 0.3, m.nu) * m.actuator_ctrlrange[:, 1]
         mujoco.mj_forward(m, d)
         gaps = [
-            mujoco.mj_geomDistance(m, d, arm.pad_geom, model.index.object_geom, 0.05, None)
-            for arm in model.index.arms
+            mujoco.mj_geomDistance(m, d, arm.pad_geom, model.index.object_geom, 0.05, None) for arm in model.index.arms
         ]
         if min(gaps) > 0.01:
             found += 1
@@ -158,7 +157,11 @@ def test_clamped_wrench_equals_true_contact_force(model, forward_sense):
     assert pad_forces[0][1] > 5 and pad_forces[1][1] < -5
     for arm, s, f_obj in zip(model.index.arms, (sensed.right, sensed.left), pad_forces, strict=True):
         # MuJoCo C's contact force, for the same contact, as a second opinion
-        c = [i for i in range(d.ncon) if {d.contact[i].geom1, d.contact[i].geom2} == {arm.pad_geom, model.index.object_geom}]
+        c = [
+            i
+            for i in range(d.ncon)
+            if {d.contact[i].geom1, d.contact[i].geom2} == {arm.pad_geom, model.index.object_geom}
+        ]
         assert len(c) == 1
         f6 = np.zeros(6)
         mujoco.mj_contactForce(m, d, c[0], f6)

@@ -17,8 +17,20 @@ from jaxsync._errors import ConfigError, JaxsyncError
 
 # The fast test task (tests/conftest.py) as fixed sweep parameters, 1.2 s rollouts.
 FAST = [
-    "--param", "t_close=0.3", "--param", "t_squeeze=0.2", "--param", "t_carry=0.4",
-    "--param", "settle_time=0.1", "--param", "lift.x=0", "--param", "lift.z=0.03", "--duration", "1.2",
+    "--param",
+    "t_close=0.3",
+    "--param",
+    "t_squeeze=0.2",
+    "--param",
+    "t_carry=0.4",
+    "--param",
+    "settle_time=0.1",
+    "--param",
+    "lift.x=0",
+    "--param",
+    "lift.z=0.03",
+    "--duration",
+    "1.2",
 ]
 GRID = ["--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk", "2", "--no-progress"]
 
@@ -55,8 +67,14 @@ def test_grid_lists_and_names():
     assert not sweep.parse_param("grip_force=12").swept  # one value: a fixed override
     assert sweep.parse_param("k_rk=-1:1", random=True).interval == (-1.0, 1.0)
     plan = sweep.make_plan(
-        ["k_rk=-1:1:3", "object_mass=0.5,1", "imp_stiffness.z=30,60", "imp_damping.l.x=90", "lift.z=0.05",
-         "noise_seed=3"],
+        [
+            "k_rk=-1:1:3",
+            "object_mass=0.5,1",
+            "imp_stiffness.z=30,60",
+            "imp_damping.l.x=90",
+            "lift.z=0.05",
+            "noise_seed=3",
+        ],
         duration=4.0,
     )
     assert plan.points.shape == (12, 6)
@@ -134,7 +152,10 @@ def test_sweep_writes_results_summary_and_heatmap(uninterrupted):
     rows = _rows(uninterrupted / "results.csv")
     assert len(rows) == 4
     assert [(float(r["k_rk"]), float(r["object_mass"])) for r in rows] == [
-        (-0.5, 0.5), (-0.5, 0.6), (0.5, 0.5), (0.5, 0.6)
+        (-0.5, 0.5),
+        (-0.5, 0.6),
+        (0.5, 0.5),
+        (0.5, 0.6),
     ]
     for key in ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "ok"):
         assert key in rows[0]
@@ -189,7 +210,10 @@ def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
     code = "import sys; from jaxsync.optimize.sweep import main; sys.exit(main(sys.argv[1:]))"
     proc = subprocess.run(
         [sys.executable, "-c", code, *FAST, *GRID, "--out", str(out)],
-        capture_output=True, text=True, env=env, timeout=900,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=900,
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())

@@ -8,23 +8,33 @@ import subprocess
 import sys
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.flatten_util import ravel_pytree
-
-import jaxsync
-from jaxsync import _gains
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
 from jaxsync.optimize.tune import TuneConfig, make_loss, sample_scenarios, training_task, tune
 
+import jaxsync
+from jaxsync import _gains
+
 # A short task in contact from the first step: start at the grasp keyframe,
 # hold from 0.15 s, 0.25 s in all (125 steps).
 SHORT = dict(
-    iterations=4, batch=2, learning_rate=0.05, checkpoint_every=2, train_duration=0.25, truncate_every=None,
+    iterations=4,
+    batch=2,
+    learning_rate=0.05,
+    checkpoint_every=2,
+    train_duration=0.25,
+    truncate_every=None,
     train_start="grasp",
-    train_task=(("t_close", 0.02), ("t_squeeze", 0.08), ("t_carry", 0.05), ("settle_time", 0.0), ("lift", (0.0, 0.0, 0.002))),
+    train_task=(
+        ("t_close", 0.02),
+        ("t_squeeze", 0.08),
+        ("t_carry", 0.05),
+        ("settle_time", 0.0),
+        ("lift", (0.0, 0.0, 0.002)),
+    ),
 )
 
 
@@ -95,7 +105,9 @@ def test_gradient_matches_central_differences(short_loss):
     g = np.asarray(grad(x0))
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
     eps = 1e-5
-    fd = np.array([(float(value(x0.at[i].add(eps))) - float(value(x0.at[i].add(-eps)))) / (2 * eps) for i in range(x0.size)])
+    fd = np.array(
+        [(float(value(x0.at[i].add(eps))) - float(value(x0.at[i].add(-eps)))) / (2 * eps) for i in range(x0.size)]
+    )
     scale = np.abs(g).max()
     np.testing.assert_allclose(g, fd, rtol=1e-3, atol=0.02 * scale)
     u = np.random.default_rng(1).standard_normal(x0.size)
@@ -142,6 +154,11 @@ def test_tune_cli_rejects_bad_input(tmp_path):
         (["--resume", "--out", str(tmp_path / "empty")], "no checkpoint"),
     ]
     for args, msg in cases:
-        r = subprocess.run([exe, "tune", "--out", str(tmp_path / "o"), *args], capture_output=True, text=True,
-                           timeout=600, cwd=tmp_path)
+        r = subprocess.run(
+            [exe, "tune", "--out", str(tmp_path / "o"), *args],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            cwd=tmp_path,
+        )
         assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr[-500:])
