@@ -355,8 +355,14 @@ def _run_child(mode: str, cfg: dict, cache_dir: str | None) -> dict:
         "import json, sys; from jaxsync._bench import child; "
         "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))"
     )
+    # cwd away from any source checkout: ``python -c`` puts the cwd first on sys.path
     proc = subprocess.run(
-        [sys.executable, "-c", code, mode, json.dumps(cfg)], capture_output=True, text=True, env=env, timeout=3600
+        [sys.executable, "-c", code, mode, json.dumps(cfg)],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=3600,
+        cwd=tempfile.gettempdir(),
     )
     for line in proc.stdout.splitlines()[::-1]:
         if line.startswith("JAXSYNC_BENCH "):

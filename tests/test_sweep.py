@@ -214,6 +214,7 @@ def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
         text=True,
         env=env,
         timeout=900,
+        cwd=tmp_path,  # not the source checkout: python -c puts the cwd first on sys.path
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
