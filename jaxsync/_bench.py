@@ -87,8 +87,39 @@ def _timeit(f, repeats: int) -> float:
 # ----------------------------------------------------------------- measurements
 
 
+def cpu_vmap_limit() -> int | None:
+    """The largest vmap batch that is safe on this backend, None if unlimited.
+
+    jaxlib's CPU LAPACK kernels (the batched Cholesky of MJX's Newton solver)
+    split large batches over XLA's intra-op thread pool and block waiting for
+    the pieces; when as many of them run at once as the pool has threads they
+    wait for each other for ever (gdb: every pool thread in
+    ``lapack_dpotrf_ffi`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``).
+    Measured on 2 cores with jaxlib 0.10.2: batch 64 runs, 128 and 256 hang.
+    Not checked on other jaxlib versions, so the cap applies to every CPU
+    backend; ``JAXSYNC_CPU_VMAP_LIMIT`` overrides it (0: no cap).
+    """
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return None
+    env = os.environ.get("JAXSYNC_CPU_VMAP_LIMIT")
+    if env is not None:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ConfigError(f"JAXSYNC_CPU_VMAP_LIMIT must be a whole number (0: no cap), got {env!r}") from None
+        return n if n > 0 else None
+    return 64
+
+
 def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> dict:
-    """Closed-loop env-steps/s of jit(vmap(rollout -> metrics)) at each batch size."""
+    """Closed-loop env-steps/s of jit(vmap(rollout -> metrics)) at each batch size.
+
+    Batches above :func:`cpu_vmap_limit` run as one call of ``lax.map`` over
+    vmapped slices of the limit (the whole batch in one compiled call, at most
+    the limit in one vmap).
+    """
     import jax
 
     from jaxsync._gains import default_gains
@@ -97,21 +128,30 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
     from jaxsync._scenario import default_scenario
 
     fn = make_rollout(model, "synchronous", duration)
-    ev = jax.jit(jax.vmap(lambda g, s: summarize(fn(g, s), s), in_axes=(None, 0)))
+
+    def one(g, s):
+        return summarize(fn(g, s), s)
+
+    ev = jax.jit(jax.vmap(one, in_axes=(None, 0)))
+    limit = cpu_vmap_limit()
     g = default_gains()
-    out, compile_s = {}, {}
+    out, compile_s, how = {}, {}, {}
     for b in batch_sizes:
         s = jax.tree_util.tree_map(jax.numpy.asarray, _scenarios(default_scenario(), b))
+        f, how[str(b)] = ev, f"vmap {b}"
+        if limit and b > limit:
+            f = jax.jit(lambda g, s: jax.lax.map(lambda s1: one(g, s1), s, batch_size=limit))
+            how[str(b)] = f"lax.map over vmap {limit} (CPU LAPACK deadlock above {limit})"
         t0 = time.perf_counter()
-        jax.block_until_ready(ev(g, s))
+        jax.block_until_ready(f(g, s))
         compile_s[str(b)] = time.perf_counter() - t0
-        dt = _timeit(lambda s=s: jax.block_until_ready(ev(g, s)), repeats)
+        dt = _timeit(lambda s=s, f=f: jax.block_until_ready(f(g, s)), repeats)
         out[str(b)] = b * fn.n_steps / dt
         log(
             f"  MJX batch {b:>4}: {out[str(b)]:10.0f} env-steps/s ({dt:.2f} s for {b} x {fn.n_steps} steps; "
-            f"first call {compile_s[str(b)]:.1f} s)"
+            f"first call {compile_s[str(b)]:.1f} s; {how[str(b)]})"
         )
-    return {"rates": out, "first_call_s": compile_s, "steps": fn.n_steps}
+    return {"rates": out, "first_call_s": compile_s, "steps": fn.n_steps, "how": how}
 
 
 def mujoco_c_throughput(model, duration: float, log) -> dict:

@@ -493,11 +493,17 @@ def choose_chunk(
     search never undershoots a chunk that fits). Raises ConfigError when not
     even one environment per device fits.
     """
+    from jaxsync._bench import cpu_vmap_limit
+
     budget = budget_gib * GIB
     per_dev_cap = DEFAULT_CHUNK_PER_DEVICE.get(platform, 1024)
     n = len(plan.points)
     max_useful = -(-n // n_devices)  # per device
     c = min(chunk // n_devices if chunk else per_dev_cap, max_useful)
+    limit = cpu_vmap_limit()
+    if limit and c > limit:
+        log(f"{c} points per device can hang jaxlib's CPU LAPACK kernels (docs/performance.md): using {limit}")
+        c = limit
     c = max(c, 1)
     g1, s1 = build_batch(plan.params, plan.points[:1], plan.base_gains, plan.base_scenario)
     sig = (_signature(g1), _signature(s1))
@@ -928,7 +934,8 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="points per compiled batch, a multiple of the device count (default: 32 per CPU "
-        "device, 1024 per accelerator, shrunk to fit the memory budget)",
+        "device, 1024 per accelerator, shrunk to fit the memory budget; at most 64 per CPU "
+        "device (JAXSYNC_CPU_VMAP_LIMIT), see docs/performance.md)",
     )
     p.add_argument(
         "--memory-budget-gib",

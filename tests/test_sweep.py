@@ -232,3 +232,20 @@ def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(jax, "devices", lambda *a: ["d0", "d1"])
     with pytest.raises(ConfigError, match="multiple of the 2 devices"):
         sweep.run(sweep.make_plan(["k_rk=0,1"]), str(tmp_path), chunk=3)
+
+
+def test_cpu_chunks_stay_below_the_lapack_deadlock(monkeypatch):
+    import jax
+
+    from jaxsync._bench import cpu_vmap_limit
+
+    monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT", raising=False)
+    if jax.default_backend() == "cpu":
+        assert cpu_vmap_limit() == 64
+        monkeypatch.setenv("JAXSYNC_CPU_VMAP_LIMIT", "0")
+        assert cpu_vmap_limit() is None
+        monkeypatch.setenv("JAXSYNC_CPU_VMAP_LIMIT", "many")
+        with pytest.raises(ConfigError, match="JAXSYNC_CPU_VMAP_LIMIT"):
+            cpu_vmap_limit()
+        monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT")
+    assert sweep.DEFAULT_CHUNK_PER_DEVICE["cpu"] <= (cpu_vmap_limit() or 10**9)
