@@ -51,9 +51,17 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
     if d._impl.efc_J.size == 0:
         d = d.replace(qacc=d.qacc_smooth)
     else:
-        d = mjx.solve(m, d)
-        for _ in range(solver_unroll - 1):
-            d = mjx.solve(m, d.replace(qacc_warmstart=d.qacc))
+        if solver_unroll > 1:
+            # a scan traces the solve once (unrolled, the program held three
+            # copies; same values to 1e-14, docs/performance.md)
+
+            def one_solve(dd, _):
+                dd = mjx.solve(m, dd)
+                return dd.replace(qacc_warmstart=dd.qacc), None  # mjx.euler sets the next warm start
+
+            d, _ = jax.lax.scan(one_solve, d, None, length=solver_unroll)
+        else:
+            d = mjx.solve(m, d)
         d = mjx.sensor_acc(m, d)
     if m.opt.integrator != IntegratorType.EULER:
         raise NotImplementedError("jaxsync steps the Euler integrator only")

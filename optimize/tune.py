@@ -45,24 +45,37 @@ class TuneConfig:
     seed: int = 0
     heldout_seed: int = 1000
     heldout_batch: int = 4
-    train_duration: float = 2.0
+    train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
     eval_duration: float = 4.0
     truncate_every: int | None = 100
     checkpoint_every: int = 5
     max_bad_steps: int = 3
     train_start: str = "approach"  # keyframe the training rollouts start from
-    train_task: tuple = ()  # (field, value) overrides of training_task()
+    train_task: tuple = ()  # (field, value) overrides of the training task
+    task: str = "short"  # "short": training_task() (2 s); "full": the default task, as held out
+    validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
+    validation_seed: int = 500
+    validation_batch: int = 4
 
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
             raise ConfigError(f"learning rate must be positive, got {self.learning_rate}")
-        for name in ("iterations", "batch", "heldout_batch", "checkpoint_every", "max_bad_steps"):
+        for name in ("iterations", "batch", "heldout_batch", "checkpoint_every", "max_bad_steps", "validation_batch"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name.replace('_', ' ')} must be a positive integer, got {getattr(self, name)}")
+        if self.validate_every < 0:
+            raise ConfigError(f"validate every must be 0 (off) or a positive integer, got {self.validate_every}")
+        if len({self.seed, self.heldout_seed, self.validation_seed}) < 3:
+            raise ConfigError(
+                f"the training, validation and held-out seeds must differ (got {self.seed}, "
+                f"{self.validation_seed}, {self.heldout_seed}): held-out scenarios are never trained on or selected on"
+            )
         if not hasattr(optax, self.optimizer) or self.optimizer.startswith("_"):
             raise ConfigError(
                 f"optimizer must name an optax optimiser (adam, adamw, sgd, lion, ...), got {self.optimizer!r}"
             )
+        if self.task not in ("short", "full"):
+            raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         return self
@@ -80,6 +93,13 @@ def training_task(**overrides) -> _scenario.Scenario:
     values = dict(t_close=0.3, t_squeeze=0.4, t_carry=0.5, settle_time=0.3, lift=[0.02, 0.0, 0.05])
     values.update(overrides)
     return _scenario.default_scenario(**values)
+
+
+def training_base(cfg: TuneConfig) -> tuple[_scenario.Scenario, float]:
+    """The training scenario family's base and its rollout duration."""
+    if cfg.task == "full":
+        return _scenario.default_scenario(**dict(cfg.train_task)), cfg.eval_duration
+    return training_task(**dict(cfg.train_task)), cfg.train_duration
 
 
 def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scenario.Scenario:
@@ -111,7 +131,7 @@ def make_loss(diff_model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, w
     fn = make_rollout(
         diff_model,
         "synchronous",
-        cfg.train_duration,
+        training_base(cfg)[1],
         remat=True,
         truncate_every=cfg.truncate_every,
         start=cfg.train_start,
@@ -145,8 +165,33 @@ def make_optimizer(cfg: TuneConfig) -> optax.GradientTransformation:
 
 
 def heldout_scenarios(cfg: TuneConfig) -> _scenario.Scenario:
-    """Full-task scenarios from the held-out seed (never used for training)."""
+    """Full-task scenarios from the held-out seed (never used for training or selection)."""
     return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, _scenario.default_scenario())
+
+
+def validation_scenarios(cfg: TuneConfig) -> _scenario.Scenario:
+    """Full-task scenarios from the validation seed: they pick the iterate, the
+    held-out ones only score it."""
+    return sample_scenarios(jax.random.key(cfg.validation_seed), cfg.validation_batch, _scenario.default_scenario())
+
+
+def select_iterate(validation: list[dict]) -> dict | None:
+    """The validated iterate with the lowest settled peak resultant whose grip
+    error is not worse than the start's (the first entry, which therefore always
+    qualifies). Entries: {"iteration", "settled_peak_resultant_N",
+    "grip_force_error_rel", "dropped", "nonfinite", ...}."""
+    if not validation:
+        return None
+    grip0 = validation[0]["grip_force_error_rel"]
+    ok = [
+        v
+        for v in validation
+        if v["settled_peak_resultant_N"] is not None
+        and not v["dropped"]
+        and not v["nonfinite"]
+        and (v is validation[0] or v["grip_force_error_rel"] <= grip0)
+    ]
+    return min(ok, key=lambda v: v["settled_peak_resultant_N"]) if ok else validation[0]
 
 
 def _eval_summary(m) -> dict:
@@ -194,8 +239,15 @@ def tune(
     fingerprint: dict | None = None,
     progress: bool = True,
     on_iteration: Callable | None = None,
+    validate: Callable | None = None,
 ):
     """Run the optimisation loop; returns (tuned gains, history rows, state).
+
+    With ``validate`` (gains -> an evaluation dict, see :func:`select_iterate`)
+    the start and every ``cfg.validate_every`` iterations (and the last) are
+    evaluated, and the returned gains are the selected iterate's; without it,
+    the last iterate's. ``state["validation"]`` lists the evaluations,
+    ``state["selected"]`` the chosen one.
 
     Checkpoints (``out/checkpoint.pkl``) every ``cfg.checkpoint_every``
     iterations and on Ctrl-C; ``resume`` continues from the last one and ends
@@ -207,7 +259,7 @@ def tune(
     loss = make_loss(diff_model, spec, base, cfg, weights if weights is not None else CostWeights())
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
     opt = make_optimizer(cfg)
-    train_base = training_task(**dict(cfg.train_task))
+    train_base = training_base(cfg)[0]
     ckpt = os.path.join(_io.ensure_writable_dir(out), "checkpoint.pkl") if out else None
 
     if resume:
@@ -222,10 +274,28 @@ def tune(
             jax.tree_util.tree_structure(opt.init(theta)), jax.tree_util.tree_leaves(opt_state)
         )
         history, start, bad = list(state["history"]), int(state["iteration"]), int(state["bad"])
+        validation = list(state.get("validation", []))
+        kept = {int(k): jax.tree_util.tree_map(jnp.asarray, v) for k, v in state.get("kept", {}).items()}
     else:
         theta = spec.init(base)
         opt_state = opt.init(theta)
         history, start, bad = [], 0, 0
+        validation, kept = [], {}
+
+    every = cfg.validate_every if validate is not None else 0
+
+    def run_validation(i):
+        """Evaluate the iterate after i steps; keep its parameters while it may be selected."""
+        r = {"iteration": i, **validate(spec.to_gains(theta, base))}
+        validation.append(r)
+        kept[i] = theta
+        best = select_iterate(validation)["iteration"]
+        for k in [k for k in kept if k != best]:
+            del kept[k]
+        bar.write(
+            f"validation after {i} iterations: settled peak {r['settled_peak_resultant_N']} N, grip error "
+            f"{r['grip_force_error_rel']}; selected so far: iteration {best}"
+        )
 
     def snapshot(i):
         return {
@@ -235,11 +305,17 @@ def tune(
             "iteration": i,
             "bad": bad,
             "fingerprint": fingerprint,
+            "validation": validation,
+            "kept": kept,
         }
 
     bar = tqdm(total=cfg.iterations, initial=start, disable=not progress, unit="it", dynamic_ncols=True)
     i = start
     try:
+        if every and not validation:
+            run_validation(0)
+        elif every and (start % every == 0 or start == cfg.iterations) and validation[-1]["iteration"] != start:
+            run_validation(start)  # interrupted between a step and its validation
         for i in range(start, cfg.iterations):
             scen = sample_scenarios(jax.random.fold_in(jax.random.key(cfg.seed), i), cfg.batch, train_base)
             t0 = time.perf_counter()
@@ -274,6 +350,8 @@ def tune(
             bar.update(1)
             if on_iteration is not None:
                 on_iteration(i, theta, row)
+            if every and ((i + 1) % every == 0 or i + 1 == cfg.iterations):
+                run_validation(i + 1)
             if ckpt and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == cfg.iterations):
                 _save_checkpoint(ckpt, snapshot(i + 1))
     except KeyboardInterrupt:
@@ -286,24 +364,51 @@ def tune(
         raise
     finally:
         bar.close()
-    return spec.to_gains(theta, base), history, snapshot(cfg.iterations)
+    state = snapshot(cfg.iterations)
+    state["last_gains"] = spec.to_gains(theta, base)
+    state["selected"] = select_iterate(validation)
+    if state["selected"] is not None:
+        return spec.to_gains(kept[state["selected"]["iteration"]], base), history, state
+    return state["last_gains"], history, state
 
 
 # -------------------------------------------------------------------- CLI
+
+
+def _weights(items: list[str] | None) -> CostWeights:
+    """``--weight NAME=VALUE`` (repeatable) over the defaults of CostWeights."""
+    w = CostWeights()
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in CostWeights._fields:
+            raise ConfigError(f"--weight must be NAME=VALUE with NAME one of {list(CostWeights._fields)}, got {item!r}")
+        try:
+            v = float(value)
+        except ValueError:
+            raise ConfigError(f"--weight {name}: not a number: {value!r}") from None
+        if not math.isfinite(v) or v < 0 or (name == "peak_temperature" and v <= 0):
+            raise ConfigError(f"--weight {name} must be a finite number >= 0 (temperature > 0), got {v}")
+        w = w._replace(**{name: v})
+    return w
 
 
 def _names(text: str | None) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()] if text else []
 
 
-def plot_loss(history: list[dict], path: str) -> None:
+def plot_loss(history: list[dict], path: str, validation: list[dict] | None = None, selected=None) -> None:
+    """The training cost and its terms; with validation, a second panel of the
+    validation settled peak and grip error, the selected iterate marked."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     it = [r["iteration"] for r in history]
-    fig, ax = plt.subplots(figsize=(7, 4))
+    panels = 2 if validation else 1
+    fig, axes = plt.subplots(panels, 1, figsize=(7, 4 * panels), squeeze=False)
+    ax = axes[0, 0]
     ax.semilogy(it, [r["cost"] for r in history], label="batch cost", color="k")
     for k in sorted(k for k in history[0] if k.startswith("term_")):
         ax.semilogy(it, [max(r[k], 1e-12) for r in history], lw=0.8, label=k[5:])
@@ -311,6 +416,23 @@ def plot_loss(history: list[dict], path: str) -> None:
     ax.set_ylabel("cost (training batch)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+    if validation:
+        ax = axes[1, 0]
+        vi = [v["iteration"] for v in validation]
+        peak = [v["settled_peak_resultant_N"] or float("nan") for v in validation]
+        grip = [100 * (v["grip_force_error_rel"] or float("nan")) for v in validation]
+        ax.plot(vi, peak, "o-", color="C0", label="settled peak resultant (N)")
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("validation settled peak resultant (N)", color="C0")
+        ax.grid(alpha=0.3)
+        ax2 = ax.twinx()
+        ax2.plot(vi, grip, "s--", color="C3", label="grip error (%)")
+        ax2.axhline(grip[0], color="C3", lw=0.6, ls=":")
+        ax2.set_ylabel("validation grip-force error (%)", color="C3")
+        if selected is not None:
+            ax.axvline(selected["iteration"], color="k", lw=0.8, ls="--")
+            ax.set_title(f"selected iterate: {selected['iteration']}", fontsize=9)
+    fig.tight_layout()
     _io.save_figure(fig, path)
     plt.close(fig)
 
@@ -339,9 +461,12 @@ def cmd_tune(args) -> int:
         heldout_batch=args.heldout_batch,
         checkpoint_every=args.checkpoint_every,
         truncate_every=args.truncate_every or None,
+        validate_every=args.validate_every,
+        validation_seed=args.validation_seed,
+        validation_batch=args.validation_batch,
+        task=args.task,
     ).validate()
-    if args.heldout_seed == args.seed:
-        raise ConfigError("--heldout-seed must differ from --seed: held-out scenarios are never trained on")
+    weights = _weights(args.weight)
     base = _gains.load(args.gains) if args.gains else _gains.default_gains()
     if args.resume and not os.path.exists(os.path.join(args.out, "checkpoint.pkl")):
         raise ConfigError(f"--resume: no checkpoint at {os.path.join(args.out, 'checkpoint.pkl')}")
@@ -372,15 +497,44 @@ def cmd_tune(args) -> int:
         f"(the first iteration compiles the gradient, minutes on a small CPU)",
         flush=True,
     )
-    gains, history, _ = tune(diff_model, spec, base, cfg, out=args.out, resume=args.resume, fingerprint=fingerprint)
+    valid = validation_scenarios(cfg)
+
+    def validate(g):
+        return _eval_summary(evaluate(g, valid))
+
+    if cfg.validate_every:
+        print(
+            f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
+            f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
+            "worse than the start's)",
+            flush=True,
+        )
+    gains, history, state = tune(
+        diff_model,
+        spec,
+        base,
+        cfg,
+        out=args.out,
+        resume=args.resume,
+        fingerprint=fingerprint,
+        validate=validate if cfg.validate_every else None,
+        weights=weights,
+    )
+    selected = state["selected"]
+    if selected is not None:
+        print(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)", flush=True)
 
     print("held-out evaluation after tuning...", flush=True)
     after = _eval_summary(evaluate(gains, held))
     _io.write_json(os.path.join(args.out, "gains.json"), {"gains": _gains.to_dict(gains), "tune": spec.describe()})
+    _io.write_json(
+        os.path.join(args.out, "gains_last.json"),
+        {"gains": _gains.to_dict(state["last_gains"]), "tune": spec.describe()},
+    )
     cols = {k: [r[k] for r in history] for k in history[0]} if history else {}
     if cols:
         _io.write_csv(os.path.join(args.out, "history.csv"), cols)
-        plot_loss(history, os.path.join(args.out, "loss.png"))
+        plot_loss(history, os.path.join(args.out, "loss.png"), state["validation"], selected)
     summary = {
         "initial_cost": history[0]["cost"] if history else None,
         "final_cost": history[-1]["cost"] if history else None,
@@ -393,14 +547,17 @@ def cmd_tune(args) -> int:
         "wall_time_s": time.perf_counter() - t_start,
         "iterations": len(history),
         "skipped_steps": int(sum(r["skipped"] for r in history)),
+        "selected_iteration": selected["iteration"] if selected is not None else len(history),
+        "validation": [{k: v for k, v in r.items()} for r in state["validation"]],
         "options": options,
+        "weights": weights._asdict(),
         "tune": spec.describe(),
     }
     _io.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
     print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + (f" ({b / a:.2f}x lower)" if a else ""))
     print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
-    print(f"results in {args.out}: gains.json, history.csv, loss.png, summary.json")
+    print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
 
 
@@ -430,6 +587,30 @@ def add_tune_parser(sub) -> None:
     p.add_argument("--heldout-seed", type=int, default=1000, help="held-out scenarios seed (1000)")
     p.add_argument("--heldout-batch", type=int, default=4, help="held-out scenarios (4)")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period, iterations (5)")
+    p.add_argument(
+        "--validate-every",
+        type=int,
+        default=5,
+        help="evaluate the iterate on validation scenarios every N iterations and keep the best one "
+        "whose grip error is not worse than the start's (5; 0: keep the last iterate)",
+    )
+    p.add_argument("--validation-seed", type=int, default=500, help="validation scenarios seed (500)")
+    p.add_argument("--validation-batch", type=int, default=4, help="validation scenarios (4)")
+    p.add_argument(
+        "--task",
+        default="short",
+        choices=["short", "full"],
+        help="training task: 'short' (2 s, compressed phases) or 'full' (the 4 s default task the held-out "
+        "scenarios use; twice the cost per step) (short)",
+    )
+    p.add_argument(
+        "--weight",
+        action="append",
+        default=None,
+        metavar="NAME=VALUE",
+        help="a cost weight (repeatable): resultant_ms, resultant_peak, grip, sync, effort, peak_temperature "
+        "(defaults in docs/tuning.md)",
+    )
     p.add_argument("--gains", default=None, help="start from this gains JSON (default: built-in)")
     p.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
     p.add_argument("--out", default="results/tune", help="output folder (results/tune)")

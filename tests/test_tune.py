@@ -3,6 +3,7 @@ differences, and a resumed run ending where an uninterrupted one ends."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -116,25 +117,67 @@ def test_gradient_matches_central_differences(short_loss):
     assert abs(dd - g @ u) <= 0.01 * abs(g @ u) + 1e-3 * scale
 
 
+def _fake_validation(g):
+    """A cheap stand-in for the held-out-style evaluation: a smooth function of the gains."""
+    return {
+        "settled_peak_resultant_N": float(abs(g.k_rl - 0.55) + abs(g.k_ll - 0.55)),
+        "grip_force_error_rel": float(0.01 + abs(g.k_rk)),
+        "dropped": 0,
+        "nonfinite": 0,
+    }
+
+
 def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
-    cfg = TuneConfig(**SHORT)
+    cfg = dataclasses.replace(TuneConfig(**SHORT), validate_every=2)
     spec, base = TuneSpec(), _gains.default_gains()
-    full, hist_full, _ = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), progress=False)
-    # Ctrl-C during the second iteration's callback: a checkpoint is written, then resume to the end
+    kw = dict(progress=False, validate=_fake_validation)
+    full, hist_full, st_full = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
+    # Ctrl-C during the second iteration's callback (before its validation): a
+    # checkpoint is written, then resume to the end
 
     def interrupt(i, theta, row):
         if i == 1:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), progress=False, on_iteration=interrupt)
+        tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
     assert (tmp_path / "b" / "checkpoint.pkl").exists()
-    resumed, hist_res, _ = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, progress=False)
+    resumed, hist_res, st_res = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
     assert len(hist_res) == len(hist_full) == cfg.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert [r["cost"] for r in hist_res] == [r["cost"] for r in hist_full]
     assert hist_full[-1]["cost"] != hist_full[0]["cost"]  # it did move
+    # validated at 0, 2, 4 in both runs; the selection is the same
+    assert [v["iteration"] for v in st_full["validation"]] == [0, 2, 4]
+    assert [v["iteration"] for v in st_res["validation"]] == [0, 2, 4]
+    assert st_res["selected"]["iteration"] == st_full["selected"]["iteration"]
+    # the returned gains are the selected iterate's, which the fake validation agrees is best allowed
+    scores = {v["iteration"]: v for v in st_full["validation"]}
+    sel = st_full["selected"]
+    assert _fake_validation(full) == {k: scores[sel["iteration"]][k] for k in _fake_validation(full)}
+    allowed = [v for v in st_full["validation"] if v["grip_force_error_rel"] <= scores[0]["grip_force_error_rel"]]
+    assert sel["settled_peak_resultant_N"] == min(v["settled_peak_resultant_N"] for v in allowed)
+    if sel["iteration"] != cfg.iterations:
+        assert _gains.to_dict(st_full["last_gains"]) != _gains.to_dict(full)
+
+
+def test_select_iterate_keeps_the_grip_error():
+    from jaxsync.optimize.tune import select_iterate
+
+    def v(i, peak, grip, dropped=0):
+        return {
+            "iteration": i,
+            "settled_peak_resultant_N": peak,
+            "grip_force_error_rel": grip,
+            "dropped": dropped,
+            "nonfinite": 0,
+        }
+
+    assert select_iterate([]) is None
+    runs = [v(0, 0.010, 0.005), v(5, 0.004, 0.006), v(10, 0.006, 0.005), v(15, 0.003, 0.004, dropped=1)]
+    assert select_iterate(runs)["iteration"] == 10  # 5 is lower but worsens the grip; 15 dropped an object
+    assert select_iterate(runs[:2])["iteration"] == 0  # nothing better allowed: the start
 
 
 def test_tune_cli_rejects_bad_input(tmp_path):
@@ -152,6 +195,8 @@ def test_tune_cli_rejects_bad_input(tmp_path):
         (["--optimizer", "nope"], "optimizer must name an optax"),
         (["--out", str(blocker / "x")], "cannot be written"),
         (["--resume", "--out", str(tmp_path / "empty")], "no checkpoint"),
+        (["--validate-every", "-1"], "validate every must be"),
+        (["--validation-seed", "1000"], "seeds must differ"),
     ]
     for args, msg in cases:
         r = subprocess.run(
