@@ -19,14 +19,63 @@ module only.
 
 from __future__ import annotations
 
+import types
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
 from mujoco.mjx._src import math as _math
+from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import IntegratorType
+
+# ---------------------------------------------------------------- MJX gradient fix
+
+
+@jax.custom_jvp
+def sqrt_zero_safe(x: jax.Array) -> jax.Array:
+    """sqrt with derivative 0 at x <= 0 instead of inf (same values)."""
+    return jnp.sqrt(x)
+
+
+@sqrt_zero_safe.defjvp
+def _sqrt_zero_safe_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    y = jnp.sqrt(x)
+    pos = x > 0
+    return y, jnp.where(pos, dx / (2.0 * jnp.where(pos, y, 1.0)), 0.0)
+
+
+class _JnpSafeSqrt(types.ModuleType):
+    """jax.numpy with :func:`sqrt_zero_safe` as ``sqrt``."""
+
+    sqrt = staticmethod(sqrt_zero_safe)
+
+    def __getattr__(self, name):
+        return getattr(jnp, name)
+
+
+def patch_mjx_elliptic_gradient() -> None:
+    """Make reverse-mode gradients through MJX's elliptic-cone solver finite.
+
+    MJX 3.17's Newton line search takes ``t = jp.sqrt(tsqr)`` of each
+    contact's tangential force and only then guards ``t == 0``; a contact
+    with no tangential force (every contact that is not touching: MJX keeps
+    their rows, zeroed) has ``tsqr = 0``, the derivative of sqrt there is
+    inf, and inf * 0 made every gradient NaN (measured: the tuning loss's
+    gradient on the elliptic cone, NaN without this, finite with it and equal
+    to central differences, tests/test_tune.py). Values are unchanged; only
+    the derivative at 0 becomes 0. Applied once, on import, to
+    ``mujoco.mjx._src.solver`` (whose ``sqrt`` calls are all in the solver's
+    cost and line search).
+    """
+    if not isinstance(_solver.jp, _JnpSafeSqrt):
+        _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
+
+
+patch_mjx_elliptic_gradient()
 
 
 def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:

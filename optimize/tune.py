@@ -292,9 +292,12 @@ def tune(
         best = select_iterate(validation)["iteration"]
         for k in [k for k in kept if k != best]:
             del kept[k]
+        peak, grip = r["settled_peak_resultant_N"], r["grip_force_error_rel"]
         bar.write(
-            f"validation after {i} iterations: settled peak {r['settled_peak_resultant_N']} N, grip error "
-            f"{r['grip_force_error_rel']}; selected so far: iteration {best}"
+            f"validation after {i} iterations: settled peak "
+            + (f"{peak:.5f} N, grip error {100 * grip:.2f} %" if peak is not None else "n/a (all dropped)")
+            + (f", {r['dropped']} dropped" if r.get("dropped") else "")
+            + f"; selected so far: iteration {best}"
         )
 
     def snapshot(i):

@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 
+import jax
 import mujoco
 import numpy as np
 import pytest
@@ -115,7 +116,8 @@ def test_only_explicit_pairs_collide(model):
 
 def test_solver_settings(model, diff_model):
     assert diff_model.mj_model.opt.iterations == 1
-    assert diff_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_PYRAMIDAL  # elliptic: NaN gradients in MJX
+    # the same physics: elliptic (its MJX gradient made finite by _physics.patch_mjx_elliptic_gradient)
+    assert diff_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.iterations > 1
     for mdl in (model, diff_model):
@@ -196,3 +198,16 @@ def test_cli_info_prints_versions_and_model(tmp_path):
     for word in ("jax", "mujoco-mjx", "devices", "joints_per_arm", "r: 7, l: 7", "contact_pairs", "timestep_s"):
         assert word in out.stdout
     assert "warp" not in out.stdout
+
+
+def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
+    """The elliptic-cone fix (jaxsync._physics.patch_mjx_elliptic_gradient) is installed."""
+    from mujoco.mjx._src import solver
+
+    from jaxsync._physics import sqrt_zero_safe
+
+    assert solver.jp.sqrt is sqrt_zero_safe
+    assert solver.jp.zeros is jax.numpy.zeros  # everything else is jax.numpy's
+    assert float(jax.grad(sqrt_zero_safe)(0.0)) == 0.0
+    assert abs(float(jax.grad(sqrt_zero_safe)(4.0)) - 0.25) < 1e-15
+    assert float(sqrt_zero_safe(9.0)) == 3.0
