@@ -54,7 +54,9 @@ def main(argv=None) -> int:
 
     model = load_model(solver="differentiable")
     spec, base = TuneSpec(), _gains.default_gains()
-    cfg = TuneConfig(batch=args.batch, learning_rate=args.lr, iterations=10_000, schedule="constant", seed=args.seed)
+    cfg = TuneConfig(
+        batch=args.batch, learning_rate=args.lr, iterations=10_000, schedule="constant", seed=args.seed, task="short"
+    )
     loss = make_loss(model, spec, base, cfg, CostWeights())
     theta0 = spec.init(base)
     x0, unravel = ravel_pytree(theta0)

@@ -14,7 +14,7 @@ from jaxsync import _metrics
 class CostWeights(NamedTuple):
     resultant_ms: float = 1.0  # mean square resultant force over the settled window, per (0.01 N)^2
     resultant_peak: float = 1.0  # smooth (log-sum-exp) peak of the resultant, per 0.01 N
-    grip: float = 1.0  # squared relative error of the mean grip force (the metric), per (1 %)^2
+    grip: float = 10.0  # |relative error| of the mean grip force (the metric, smoothed at 0.01 %), per 1 %
     sync: float = 0.1  # mean square synchronisation error, per (1 mm)^2
     effort: float = 1e-4  # mean |tau|^2, per (10 N m)^2
     peak_temperature: float = 0.002  # N, of the smooth peak
@@ -22,6 +22,7 @@ class CostWeights(NamedTuple):
 
 RESULTANT_SCALE = 0.01  # N
 GRIP_SCALE = 0.01  # relative
+GRIP_SMOOTH = 1e-4  # relative: |x| ~ sqrt(x^2 + s^2)
 SYNC_SCALE = 1e-3  # m
 EFFORT_SCALE = 10.0  # N m
 
@@ -39,7 +40,9 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     return {
         "resultant_ms": w.resultant_ms * jnp.sum(mask * res_norm**2) / n / RESULTANT_SCALE**2,
         "resultant_peak": w.resultant_peak * _metrics.smooth_max(res_norm, mask, w.peak_temperature) / RESULTANT_SCALE,
-        "grip": w.grip * grip_err**2 / GRIP_SCALE**2,
+        # the metric's statistic (mean |error| over scenarios), not its square:
+        # a squared term is flat near the small errors the task starts from
+        "grip": w.grip * jnp.sqrt(grip_err**2 + GRIP_SMOOTH**2) / GRIP_SCALE,
         "sync": w.sync * jnp.sum(mask * sync**2) / n / SYNC_SCALE**2,
         "effort": w.effort * jnp.mean(jnp.sum(traj.torque**2, -1)) / EFFORT_SCALE**2,
     }

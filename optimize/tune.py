@@ -44,7 +44,7 @@ class TuneConfig:
     clip_norm: float = 1.0
     seed: int = 0
     heldout_seed: int = 1000
-    heldout_batch: int = 4
+    heldout_batch: int = 16
     train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
     eval_duration: float = 4.0
     truncate_every: int | None = 100
@@ -52,10 +52,10 @@ class TuneConfig:
     max_bad_steps: int = 3
     train_start: str = "approach"  # keyframe the training rollouts start from
     train_task: tuple = ()  # (field, value) overrides of the training task
-    task: str = "short"  # "short": training_task() (2 s); "full": the default task, as held out
+    task: str = "full"  # "full": the default task, as held out; "short": training_task() (2 s)
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500
-    validation_batch: int = 4
+    validation_batch: int = 16
 
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
@@ -588,7 +588,7 @@ def add_tune_parser(sub) -> None:
     p.add_argument("--truncate-every", type=int, default=100, help="truncated backprop window, steps (0: none)")
     p.add_argument("--seed", type=int, default=0, help="training scenarios seed (0)")
     p.add_argument("--heldout-seed", type=int, default=1000, help="held-out scenarios seed (1000)")
-    p.add_argument("--heldout-batch", type=int, default=4, help="held-out scenarios (4)")
+    p.add_argument("--heldout-batch", type=int, default=16, help="held-out scenarios (16)")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period, iterations (5)")
     p.add_argument(
         "--validate-every",
@@ -598,13 +598,13 @@ def add_tune_parser(sub) -> None:
         "whose grip error is not worse than the start's (5; 0: keep the last iterate)",
     )
     p.add_argument("--validation-seed", type=int, default=500, help="validation scenarios seed (500)")
-    p.add_argument("--validation-batch", type=int, default=4, help="validation scenarios (4)")
+    p.add_argument("--validation-batch", type=int, default=16, help="validation scenarios (16)")
     p.add_argument(
         "--task",
-        default="short",
-        choices=["short", "full"],
+        default="full",
+        choices=["full", "short"],
         help="training task: 'short' (2 s, compressed phases) or 'full' (the 4 s default task the held-out "
-        "scenarios use; twice the cost per step) (short)",
+        "scenarios use; twice the cost per step of 'short') (full)",
     )
     p.add_argument(
         "--weight",

@@ -26,6 +26,7 @@ SHORT = dict(
     batch=2,
     learning_rate=0.05,
     checkpoint_every=2,
+    task="short",
     train_duration=0.25,
     truncate_every=None,
     train_start="grasp",
@@ -207,3 +208,62 @@ def test_tune_cli_rejects_bad_input(tmp_path):
             cwd=tmp_path,
         )
         assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr[-500:])
+
+
+def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
+    """The command's plumbing (files, summary keys, selected vs last gains), with
+    the optimisation loop and the held-out rollouts replaced by stand-ins (both
+    are tested above; compiling them here would cost minutes)."""
+    import collections
+    import json
+
+    from jaxsync.optimize import tune as tune_mod
+
+    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite")
+    fake_metrics = collections.namedtuple("FakeMetrics", fields)(
+        settled_peak_resultant_N=np.array([0.01, 0.02]),
+        grip_force_error_rel=np.array([0.004, 0.006]),
+        dropped=np.array([False, False]),
+        nonfinite=np.array([False, False]),
+    )
+    monkeypatch.setattr(tune_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
+    calls = {}
+
+    def fake_tune(diff_model, spec, base, cfg, weights=None, *, validate=None, **kw):
+        calls["weights"], calls["cfg"] = weights, cfg
+        v0 = {"iteration": 0, **validate(base)}
+        last = base._replace(k_rl=0.4)
+        history = [{"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1, "term_grip": 1.0}]
+        return base, history, {"validation": [v0], "selected": v0, "last_gains": last}
+
+    monkeypatch.setattr(tune_mod, "tune", fake_tune)
+    from jaxsync.cli import build_parser
+
+    parser = build_parser()
+    out = tmp_path / "run"
+    args = parser.parse_args(["tune", "--out", str(out), "--weight", "grip=3", "--iterations", "1"])
+    assert tune_mod.cmd_tune(args) == 0
+    assert calls["weights"].grip == 3.0 and calls["cfg"].task == "full" and calls["cfg"].heldout_batch == 16
+    summary = json.loads((out / "summary.json").read_text())
+    for key in (
+        "initial_cost",
+        "final_cost",
+        "heldout_settled_peak_resultant_N_before",
+        "heldout_settled_peak_resultant_N_after",
+        "heldout_grip_force_error_rel_before",
+        "heldout_grip_force_error_rel_after",
+        "wall_time_s",
+        "iterations",
+        "options",
+        "selected_iteration",
+        "validation",
+        "weights",
+    ):
+        assert key in summary, key
+    assert summary["heldout_settled_peak_resultant_N_before"] == pytest.approx(0.015)
+    assert summary["options"]["weight"] == ["grip=3"]
+    selected = json.loads((out / "gains.json").read_text())["gains"]
+    last = json.loads((out / "gains_last.json").read_text())["gains"]
+    assert selected["k_rl"] == 0.5 and last["k_rl"] == 0.4
+    for f in ("history.csv", "loss.png"):
+        assert (out / f).stat().st_size > 0
