@@ -284,30 +284,6 @@ def small_gradient():
     return jax.jit(jax.grad(f)), (q0,)
 
 
-def _exported(fn, args, path: str):
-    """``fn`` traced once and kept on disk with ``jax.export`` (needs the
-    ``flatbuffers`` package): later processes skip the tracing."""
-    import jax
-    from jax import export
-
-    from jaxsync._gains import Gains
-    from jaxsync._scenario import Scenario
-
-    for cls, name in ((Gains, "jaxsync.Gains"), (Scenario, "jaxsync.Scenario")):
-        try:
-            export.register_namedtuple_serialization(cls, serialized_name=name)
-        except ValueError:
-            pass  # already registered
-    if os.path.exists(path):
-        with open(path, "rb") as f:
-            exp = export.deserialize(bytearray(f.read()))
-    else:
-        exp = export.export(fn)(*args)
-        with open(path, "wb") as f:
-            f.write(exp.serialize())
-    return jax.jit(exp.call)
-
-
 def _have_flatbuffers() -> bool:
     try:
         import flatbuffers  # noqa: F401
@@ -358,8 +334,10 @@ def child(mode: str, cfg: dict) -> dict:
         else:
             grad = gradient_functions(cfg["duration"])[1]
             args = (default_gains(), short_task())
-        if cfg.get("exported"):  # the traced function from disk (jax.export), not traced again
-            grad = _exported(grad, args, cfg["exported"])
+        if cfg.get("exported"):  # what the CLI does: the traced function from disk (jax.export)
+            from jaxsync._cache import traced_on_disk
+
+            grad = traced_on_disk(grad, args, "bench.gradient")
         t1 = time.perf_counter()
         lowered = grad.lower(*args)
         t2 = time.perf_counter()
@@ -442,7 +420,7 @@ def compile_times(duration: float, small: bool, log) -> dict:
         out["cold"] = cold = _run_child("compile", cfg, cache)
         out["warm"] = warm = _run_child("compile", cfg, cache)
         if _have_flatbuffers():
-            exported = {**cfg, "exported": os.path.join(cache, "grad.jaxexport")}
+            exported = {**cfg, "exported": True}
             _run_child("compile", exported, cache)  # trace, export, compile the wrapper
             out["warm_exported"] = _run_child("compile", exported, cache)
     log(
@@ -573,9 +551,12 @@ def run(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dict:
         "grad_s": fg["grad_s"],
         "grad_over_forward": fg["grad_over_forward"],
         "grad_compile_cold_s": comp["cold"]["total_s"],
-        "grad_compile_warm_s": comp["warm"]["total_s"],
+        # what `jaxsync tune` does on a second run: the traced function from disk
+        # (jax.export) and the XLA executable from the persistent cache; the
+        # persistent cache alone (tracing again) is reported next to it
+        "grad_compile_warm_s": (comp["warm_exported"] if "warm_exported" in comp else comp["warm"])["total_s"],
+        "grad_compile_warm_persistent_cache_only_s": comp["warm"]["total_s"],
         "tune_step_peak_rss_gib": tune["peak_rss_gib"],
-        "grad_compile_warm_exported_s": comp["warm_exported"]["total_s"] if "warm_exported" in comp else None,
         "details": {
             "mjx": mjx,
             "mujoco_c": mjc,
@@ -603,7 +584,8 @@ def table(r: dict) -> str:
         ("value_and_grad, s", f"{r['grad_s']:.3f}"),
         ("gradient / forward", f"{r['grad_over_forward']:.2f}"),
         ("gradient compile cold, s", f"{r['grad_compile_cold_s']:.1f}"),
-        ("gradient compile warm (cache), s", f"{r['grad_compile_warm_s']:.1f}"),
+        ("gradient compile warm (as the CLI: traced on disk + cache), s", f"{r['grad_compile_warm_s']:.1f}"),
+        ("gradient compile warm, persistent cache only, s", f"{r['grad_compile_warm_persistent_cache_only_s']:.1f}"),
         ("tuning step peak RSS, GiB", f"{r['tune_step_peak_rss_gib']:.2f}"),
     ]
     tg = r.get("targets", {})
@@ -611,7 +593,7 @@ def table(r: dict) -> str:
         "MJX best": "mjx_over_mujoco_c",
         "gradient / forward": "grad_over_forward",
         "gradient compile cold": "grad_compile_cold_s",
-        "gradient compile warm": "grad_compile_warm_s",
+        "gradient compile warm (as": "grad_compile_warm_s",
         "tuning step peak": "tune_step_peak_rss_gib",
     }
     w = max(len(a) for a, _ in rows)

@@ -26,8 +26,12 @@ from jaxsync.optimize.cost import CostWeights, cost, cost_terms
 from jaxsync.optimize.params import TuneSpec
 
 from jaxsync import _gains, _io, _metrics, _scenario
+from jaxsync._cache import traced_on_disk
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync._rollout import make_rollout
+
+# TuneConfig fields the training loss's program depends on (the rest steer the loop)
+_PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")
 
 
 class TuneError(JaxsyncError):
@@ -256,8 +260,32 @@ def tune(
     from tqdm import tqdm
 
     cfg.validate()
-    loss = make_loss(diff_model, spec, base, cfg, weights if weights is not None else CostWeights())
-    value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    weights = weights if weights is not None else CostWeights()
+    loss = make_loss(diff_model, spec, base, cfg, weights)
+    value_and_grad = None  # built at the first step, from its arguments
+
+    def build_value_and_grad(theta, scen):
+        """jit(value_and_grad(loss)), its traced form kept on disk between runs
+        (``jaxsync._cache.traced_on_disk``), keyed by everything the loss closes over."""
+        import hashlib
+
+        with open(diff_model.path, "rb") as f:
+            model_hash = hashlib.sha256(f.read()).hexdigest()
+        program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
+        key = repr(
+            (
+                "tune.value_and_grad",
+                spec.describe(),
+                _gains.to_dict(base),
+                program,
+                tuple(weights),
+                diff_model.path,
+                model_hash,
+                diff_model.solver,
+            )
+        )
+        return traced_on_disk(jax.value_and_grad(loss, has_aux=True), (theta, scen), key, log=bar.write)
+
     opt = make_optimizer(cfg)
     train_base = training_base(cfg)[0]
     ckpt = os.path.join(_io.ensure_writable_dir(out), "checkpoint.pkl") if out else None
@@ -322,6 +350,8 @@ def tune(
         for i in range(start, cfg.iterations):
             scen = sample_scenarios(jax.random.fold_in(jax.random.key(cfg.seed), i), cfg.batch, train_base)
             t0 = time.perf_counter()
+            if value_and_grad is None:
+                value_and_grad = build_value_and_grad(theta, scen)
             (value, terms), grad = value_and_grad(theta, scen)
             gnorm = float(optax.global_norm(grad))
             finite = math.isfinite(float(value)) and math.isfinite(gnorm)
