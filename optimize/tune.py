@@ -353,7 +353,7 @@ def tune(
             if value_and_grad is None:
                 value_and_grad = build_value_and_grad(theta, scen)
             (value, terms), grad = value_and_grad(theta, scen)
-            gnorm = float(optax.global_norm(grad))
+            gnorm = float(optax.tree.norm(grad))
             finite = math.isfinite(float(value)) and math.isfinite(gnorm)
             if finite:
                 updates, opt_state = opt.update(grad, opt_state, theta)
