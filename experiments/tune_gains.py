@@ -1,6 +1,6 @@
 """Tune the synchronous controller's gains by gradient (thin wrapper over ``jaxsync tune``).
 
-python experiments/tune_gains.py --iterations 30 --out results/tune
+python experiments/tune_gains.py --iterations 60 --out results/tune
 """
 
 import sys

@@ -40,7 +40,7 @@ class TuneError(JaxsyncError):
 
 @dataclasses.dataclass(frozen=True)
 class TuneConfig:
-    iterations: int = 30
+    iterations: int = 60
     batch: int = 4
     learning_rate: float = 0.05
     optimizer: str = "adam"
@@ -603,7 +603,7 @@ def add_tune_parser(sub) -> None:
         description="Gradient-based gain tuning (optax) on batches of randomised scenarios, "
         "evaluated on held-out scenarios before and after.",
     )
-    p.add_argument("--iterations", type=int, default=30, help="optimisation steps (30)")
+    p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
     p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4)")
     p.add_argument("--lr", type=float, default=0.05, help="learning rate (0.05)")
     p.add_argument("--optimizer", default="adam", help="an optax optimiser by name (adam)")
