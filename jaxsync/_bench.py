@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from jaxsync._errors import ConfigError, JaxsyncError
+from jaxsync._errors import ConfigError
 
 TARGETS = {
     "mjx_over_mujoco_c": (">=", 3.0),
@@ -642,19 +642,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Standalone entry point, same as ``jaxsync bench``."""
-    from jaxsync.cli import _setup_jax
+    from jaxsync.cli import main as cli_main
 
-    parser = argparse.ArgumentParser(prog="jaxsync")
-    parser.add_argument("--cache-dir", default=None, help="JAX persistent compilation cache ('off' disables)")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_bench_parser(sub)
-    args = parser.parse_args(["bench", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        _setup_jax(args)
-        return args.func(args)
-    except JaxsyncError as err:
-        print(f"jaxsync bench: error: {err}", file=sys.stderr)
-        return 2
+    return cli_main(["bench", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ An interrupted run never leaves a half-written result.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -25,22 +26,34 @@ def ensure_writable_dir(path: str) -> str:
     return path
 
 
-def atomic_write_bytes(path: str, data: bytes) -> None:
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike):
+    """A temporary file name beside ``path`` (same extension) to write to; on
+    success it replaces ``path`` as an ordinary file (umask permissions, not
+    mkstemp's 0600), on failure it is removed."""
+    path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(dir=directory, prefix=".tmp-", suffix=os.path.basename(path))
+    fd, tmp = tempfile.mkstemp(
+        dir=directory, prefix=".tmp-" + os.path.basename(path) + "-", suffix=os.path.splitext(path)[1]
+    )
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+        yield tmp
         umask = os.umask(0)
         os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; results are ordinary files
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_bytes(path: str, data: bytes) -> None:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def atomic_write_text(path: str, text: str) -> None:

@@ -17,12 +17,12 @@ import importlib
 import os
 import subprocess
 import sys
-import tempfile
 import warnings
 from collections.abc import Sequence
 
 import numpy as np
 
+from jaxsync import _io
 from jaxsync._errors import ConfigError, JaxsyncError
 
 # Tried in this order when MUJOCO_GL is not set: both work without a display.
@@ -483,39 +483,14 @@ def side_by_side(
 # --------------------------------------------------------------------------- files
 
 
-def _atomic_target(path: str | os.PathLike) -> tuple[str, str]:
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    suffix = os.path.splitext(path)[1]
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-" + os.path.basename(path) + "-", suffix=suffix, dir=directory)
-    os.close(fd)
-    return path, tmp
-
-
-def _commit(tmp: str, path: str) -> None:
-    os.chmod(tmp, 0o666 & ~_umask())
-    os.replace(tmp, path)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
 def save_png(image: np.ndarray, path: str | os.PathLike) -> str:
     """Write an RGB(A) uint8 image to ``path`` as PNG, atomically; returns the path."""
     from PIL import Image
 
-    path, tmp = _atomic_target(path)
-    try:
+    path = os.fspath(path)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with _io.atomic_path(path) as tmp:
         Image.fromarray(np.asarray(image, np.uint8)).save(tmp, format="PNG")
-        _commit(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 
@@ -551,17 +526,12 @@ def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: floa
     if ext.lower() != ".gif" and not mp4_available():
         path = root + ".gif"
         ext = ".gif"
-    path, tmp = _atomic_target(path)
-    try:
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with _io.atomic_path(path) as tmp:
         if ext.lower() == ".gif":
             _write_gif(frames, tmp, fps)
         else:
             _write_mp4(frames, tmp, fps)
-        _commit(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -208,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"jaxsync {args.command}: interrupted", file=sys.stderr)
+        hint = getattr(args, "interrupted_hint", None)
+        print(f"jaxsync {args.command}: interrupted" + (f" ({hint})" if hint else ""), file=sys.stderr)
         return 130
     except Exception as err:  # an unexpected failure: say what, keep the traceback opt-in
         if os.environ.get("JAXSYNC_DEBUG"):

@@ -32,7 +32,7 @@ import time
 import numpy as np
 
 from jaxsync import _gains, _io, _scenario
-from jaxsync._errors import ConfigError, JaxsyncError
+from jaxsync._errors import ConfigError
 from jaxsync._gains import Gains
 from jaxsync._scenario import Scenario
 
@@ -891,20 +891,9 @@ def run(
 # ----------------------------------------------------------------- CLI
 
 
-def _positive(kind):
-    def parse(text):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-        if not v > 0:
-            raise argparse.ArgumentTypeError(f"must be positive, got {text}")
-        return v
-
-    return parse
-
-
 def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
+    from jaxsync.cli import _positive
+
     p = subparsers.add_parser(
         "sweep",
         help="batched parameter study over gains and scenario parameters (grid or random samples)",
@@ -953,7 +942,7 @@ def add_sweep_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
-    p.set_defaults(func=cmd_sweep)
+    p.set_defaults(func=cmd_sweep, interrupted_hint="finished chunks are kept; run again to resume")
     return p
 
 
@@ -996,22 +985,9 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Standalone entry point (``python -m jaxsync.optimize.sweep``), same as ``jaxsync sweep``."""
-    from jaxsync.cli import _setup_jax
+    from jaxsync.cli import main as cli_main
 
-    parser = argparse.ArgumentParser(prog="jaxsync")
-    parser.add_argument("--cache-dir", default=None, help="JAX persistent compilation cache ('off' disables)")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_sweep_parser(sub)
-    args = parser.parse_args(["sweep", *(sys.argv[1:] if argv is None else argv)])
-    try:
-        _setup_jax(args)
-        return args.func(args)
-    except JaxsyncError as err:
-        print(f"jaxsync sweep: error: {err}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("jaxsync sweep: interrupted (finished chunks are kept; run again to resume)", file=sys.stderr)
-        return 130
+    return cli_main(["sweep", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

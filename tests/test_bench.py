@@ -6,14 +6,9 @@ and recorded, not asserted).
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 
 import pytest
-
-from jaxsync._bench import add_bench_parser
-from jaxsync._errors import JaxsyncError
 
 KEYS = (
     "mujoco_c_env_steps_per_s",
@@ -29,20 +24,10 @@ KEYS = (
 
 
 def run_cli(argv: list[str]) -> int:
-    """What ``jaxsync bench ...`` does once cli.py registers the subcommand."""
-    from jaxsync.cli import _setup_jax
+    """``jaxsync bench ...`` in this process."""
+    from jaxsync.cli import main
 
-    parser = argparse.ArgumentParser(prog="jaxsync")
-    parser.add_argument("--cache-dir", default=None)
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_bench_parser(sub)
-    args = parser.parse_args(argv)
-    try:
-        _setup_jax(args)
-        return args.func(args)
-    except JaxsyncError as err:
-        print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    return main(argv)
 
 
 def test_bench_rejects_bad_batch_sizes(tmp_path, capsys):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import os
@@ -13,7 +12,7 @@ import numpy as np
 import pytest
 from jaxsync.optimize import sweep
 
-from jaxsync._errors import ConfigError, JaxsyncError
+from jaxsync._errors import ConfigError
 
 # The fast test task (tests/conftest.py) as fixed sweep parameters, 1.2 s rollouts.
 FAST = [
@@ -36,20 +35,10 @@ GRID = ["--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk
 
 
 def run_cli(argv: list[str]) -> int:
-    """What ``jaxsync sweep ...`` does once cli.py registers the subcommand."""
-    from jaxsync.cli import _setup_jax
+    """``jaxsync sweep ...`` in this process."""
+    from jaxsync.cli import main
 
-    parser = argparse.ArgumentParser(prog="jaxsync")
-    parser.add_argument("--cache-dir", default=None)
-    sub = parser.add_subparsers(dest="command", required=True)
-    sweep.add_sweep_parser(sub)
-    args = parser.parse_args(argv)
-    try:
-        _setup_jax(args)
-        return args.func(args)
-    except JaxsyncError as err:
-        print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    return main(argv)
 
 
 def _rows(path):
