@@ -89,32 +89,6 @@ def _timeit(f, repeats: int) -> float:
 # ----------------------------------------------------------------- measurements
 
 
-def cpu_vmap_limit() -> int | None:
-    """The largest vmap batch that is safe on this backend, None if unlimited.
-
-    jaxlib's CPU LAPACK kernels (the batched Cholesky of MJX's Newton solver)
-    split large batches over XLA's intra-op thread pool and block waiting for
-    the pieces; when as many of them run at once as the pool has threads they
-    wait for each other for ever (gdb: every pool thread in
-    ``lapack_dpotrf_ffi`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``).
-    Measured on 2 cores with jaxlib 0.10.2: batch 64 runs, 128 and 256 hang.
-    Not checked on other jaxlib versions, so the cap applies to every CPU
-    backend; ``JAXSYNC_CPU_VMAP_LIMIT`` overrides it (0: no cap).
-    """
-    import jax
-
-    if jax.default_backend() != "cpu":
-        return None
-    env = os.environ.get("JAXSYNC_CPU_VMAP_LIMIT")
-    if env is not None:
-        try:
-            n = int(env)
-        except ValueError:
-            raise ConfigError(f"JAXSYNC_CPU_VMAP_LIMIT must be a whole number (0: no cap), got {env!r}") from None
-        return n if n > 0 else None
-    return 64
-
-
 def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> dict:
     """Closed-loop env-steps/s of jit(vmap(rollout -> metrics)) at each batch size.
 
@@ -135,6 +109,8 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
         return summarize(fn(g, s), s)
 
     ev = jax.jit(jax.vmap(one, in_axes=(None, 0)))
+    from jaxsync._rollout import cpu_vmap_limit
+
     limit = cpu_vmap_limit()
     g = default_gains()
     out, compile_s, how = {}, {}, {}

@@ -10,6 +10,7 @@ that can be jitted, vmapped over gains and scenarios, and differentiated.
 from __future__ import annotations
 
 import functools
+import os
 from typing import NamedTuple
 
 import jax
@@ -410,3 +411,27 @@ def rollout_mujoco(
 
 def steps_for(duration: float, model: DualArmModel, control_substeps: int = 1) -> int:
     return int(round(duration / (model.mj_model.opt.timestep * control_substeps)))
+
+
+def cpu_vmap_limit() -> int | None:
+    """The largest vmap batch that is safe on this backend, None if unlimited.
+
+    jaxlib's CPU LAPACK kernels (the batched Cholesky of MJX's Newton solver)
+    split large batches over XLA's intra-op thread pool and block waiting for
+    the pieces; when as many of them run at once as the pool has threads they
+    wait for each other for ever (gdb: every pool thread in
+    ``lapack_dpotrf_ffi`` -> ``ParallelBatchMap`` -> ``BlockingCounter::Wait``).
+    Measured on 2 cores with jaxlib 0.10.2: batch 64 runs, 128 and 256 hang.
+    Not checked on other jaxlib versions, so the cap applies to every CPU
+    backend; ``JAXSYNC_CPU_VMAP_LIMIT`` overrides it (0: no cap).
+    """
+    if jax.default_backend() != "cpu":
+        return None
+    env = os.environ.get("JAXSYNC_CPU_VMAP_LIMIT")
+    if env is not None:
+        try:
+            n = int(env)
+        except ValueError:
+            raise ConfigError(f"JAXSYNC_CPU_VMAP_LIMIT must be a whole number (0: no cap), got {env!r}") from None
+        return n if n > 0 else None
+    return 64

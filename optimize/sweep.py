@@ -493,7 +493,7 @@ def choose_chunk(
     search never undershoots a chunk that fits). Raises ConfigError when not
     even one environment per device fits.
     """
-    from jaxsync._bench import cpu_vmap_limit
+    from jaxsync._rollout import cpu_vmap_limit
 
     budget = budget_gib * GIB
     per_dev_cap = DEFAULT_CHUNK_PER_DEVICE.get(platform, 1024)

@@ -226,7 +226,7 @@ def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
 def test_cpu_chunks_stay_below_the_lapack_deadlock(monkeypatch):
     import jax
 
-    from jaxsync._bench import cpu_vmap_limit
+    from jaxsync._rollout import cpu_vmap_limit
 
     monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT", raising=False)
     if jax.default_backend() == "cpu":
