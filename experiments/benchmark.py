@@ -9,7 +9,7 @@ Writes bench.json and prints a table; docs/performance.md discusses the numbers.
 
 import sys
 
-from jaxsync._bench import main
+from jaxsync.cli import main
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(["bench", *sys.argv[1:]]))

@@ -12,7 +12,7 @@ The heatmap (heatmap.png) averages over the object masses; results.csv has every
 
 import sys
 
-from jaxsync.optimize.sweep import main
+from jaxsync.cli import main
 
 DEFAULT = [
     "--param",
@@ -26,4 +26,4 @@ DEFAULT = [
 ]
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:] or DEFAULT))
+    sys.exit(main(["sweep", *(sys.argv[1:] or DEFAULT)]))

@@ -22,13 +22,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.tune import TuneConfig, make_loss, make_optimizer, sample_scenarios, training_task
+from jaxsync.optimize.loop import apply_update
 
-from jaxsync import _gains, _io
-from jaxsync._cache import enable_compilation_cache
-from jaxsync._model import load_model
+import jaxsync
+from jaxsync import (
+    CostWeights,
+    TuneConfig,
+    TuneSpec,
+    _io,  # atomic result files
+    make_loss,
+    sample_scenarios,
+    short_task,
+)
 
 
 def main(argv=None) -> int:
@@ -49,11 +54,11 @@ def main(argv=None) -> int:
         print("tune_vs_cmaes: needs the 'cma' package: pip install 'jaxsync[baseline]'", file=sys.stderr)
         return 2
     jax.config.update("jax_enable_x64", True)
-    enable_compilation_cache()
+    jaxsync.enable_compilation_cache()
     _io.ensure_writable_dir(args.out)
 
-    model = load_model(solver="differentiable")
-    spec, base = TuneSpec(), _gains.default_gains()
+    model = jaxsync.load_model(solver="differentiable")
+    spec, base = TuneSpec(), jaxsync.default_gains()
     cfg = TuneConfig(
         batch=args.batch, learning_rate=args.lr, iterations=10_000, schedule="constant", seed=args.seed, task="short"
     )
@@ -62,8 +67,8 @@ def main(argv=None) -> int:
     x0, unravel = ravel_pytree(theta0)
     value = jax.jit(lambda x, s: loss(unravel(x), s)[0])
     value_and_grad = jax.jit(jax.value_and_grad(lambda th, s: loss(th, s)[0]))
-    held = sample_scenarios(jax.random.key(10_000 + args.seed), args.heldout_batch, training_task())
-    batch_of = lambda i: sample_scenarios(jax.random.fold_in(jax.random.key(args.seed), i), args.batch, training_task())  # noqa: E731
+    held = sample_scenarios(jax.random.key(10_000 + args.seed), args.heldout_batch, short_task())
+    batch_of = lambda i: sample_scenarios(jax.random.fold_in(jax.random.key(args.seed), i), args.batch, short_task())  # noqa: E731
 
     t = time.perf_counter()
     initial = float(value(x0, held))
@@ -74,16 +79,13 @@ def main(argv=None) -> int:
 
     results = {}
     # --- gradient (Adam)
-    opt = make_optimizer(cfg)
+    opt = cfg.optimizer_transform()
     theta, state = theta0, opt.init(theta0)
     used, curve, best, i = 0.0, [(0.0, initial)], initial, 0
     while used < args.budget:
         t = time.perf_counter()
         v, g = value_and_grad(theta, batch_of(i))
-        jax.block_until_ready(g)
-        if np.isfinite(float(v)) and all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(g)):
-            upd, state = opt.update(g, state, theta)
-            theta = jax.tree_util.tree_map(lambda a, b: a + b, theta, upd)
+        theta, state = jax.block_until_ready(apply_update(opt, theta, state, v, g))[:2]  # skips a non-finite step
         used += time.perf_counter() - t
         h = float(value(ravel_pytree(theta)[0], held))
         best = min(best, h)
@@ -127,7 +129,7 @@ def main(argv=None) -> int:
         "methods": results,
         "options": vars(args),
     }
-    _io.write_json(f"{args.out}/tune_vs_cmaes.json", summary)
+    _io.write_json(f"{args.out}/tune_vs_cmaes.json", summary)  # atomic writes
 
     import matplotlib
 

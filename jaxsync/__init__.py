@@ -1,9 +1,36 @@
 """jaxsync: differentiable dual-arm contact-force synchronous control with MJX.
 
-The public face; everything else lives in private modules.
+The public face; everything else lives in private modules
+(docs/architecture.md maps them). In the order the data flows:
+
+- the model and sensing: :func:`load_model`, :func:`put_data`,
+  :func:`before_control` (the state's kinematics and dynamics), :func:`sense`,
+  :func:`after_control` (apply torques, step);
+- the controller: :func:`init`, :func:`step`, :class:`ControllerOptions`,
+  :class:`Reference`, :class:`Gains`;
+- the task: :class:`Scenario`, :func:`default_scenario`, :func:`short_task`;
+- rollouts on MJX (:func:`rollout`, :func:`make_rollout`) and on MuJoCo C
+  (:func:`rollout_mujoco`), recorded as a :class:`Trajectory`;
+- metrics: :func:`summarize`, :func:`series`, :class:`Metrics`;
+- tuning and sweeps (``jaxsync.optimize``, loaded on first use): :func:`tune`,
+  :class:`TuneConfig`, :class:`TuneSpec`, :class:`CostWeights`,
+  :func:`make_loss`, :func:`sample_scenarios`, :func:`make_plan`,
+  :func:`run_sweep`;
+- :func:`enable_compilation_cache`: JAX's persistent compilation cache.
+
+Example:
+  >>> import jax
+  >>> jax.config.update("jax_enable_x64", True)
+  >>> import jaxsync
+  >>> jaxsync.enable_compilation_cache()  # later runs skip most compiling
+  >>> model = jaxsync.load_model()
+  >>> s = jaxsync.short_task()
+  >>> traj = jaxsync.rollout(model, jaxsync.default_gains(), s, duration=1.7)
+  >>> float(jaxsync.summarize(traj, s).settled_peak_resultant_N)  # doctest: +SKIP
 """
 
 import contextlib
+import importlib
 import io
 
 # MJX prints "Failed to import warp" to stdout when the optional warp backend is
@@ -12,6 +39,8 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx as _mjx  # noqa: F401
 del contextlib, io
 
+from jaxsync._cache import enable_compilation_cache
+from jaxsync._controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
 from jaxsync._errors import (
     ConfigError,
     JaxsyncError,
@@ -20,41 +49,50 @@ from jaxsync._errors import (
     ModelStructureError,
 )
 from jaxsync._gains import Gains, classical_equivalent, default_gains
-from jaxsync._metrics import Metrics, summarize
-from jaxsync._model import (
-    SOLVERS,
-    DualArmModel,
-    ModelIndex,
-    default_model_path,
-    load_model,
-)
+from jaxsync._metrics import Metrics, series, summarize
+from jaxsync._model import DualArmModel, default_model_path, load_model
 from jaxsync._physics import after_control, before_control, put_data
-from jaxsync._rollout import Trajectory, make_rollout, rollout
-from jaxsync._scenario import Scenario, default_scenario
+from jaxsync._rollout import make_rollout, rollout
+from jaxsync._rollout_mujoco import rollout_mujoco
+from jaxsync._scenario import Scenario, default_scenario, short_task
 from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
+from jaxsync._trajectory import Trajectory
 
 __version__ = "0.1.0"
 
+# The tuning and sweep API lives in jaxsync.optimize, which imports the
+# library: it is loaded on first use, so ``import jaxsync`` stays light and
+# free of import cycles.
+_OPTIMIZE = {
+    "tune": "jaxsync.optimize.tune",
+    "TuneConfig": "jaxsync.optimize.tune",
+    "TuneResult": "jaxsync.optimize.tune",
+    "make_loss": "jaxsync.optimize.tune",
+    "TuneSpec": "jaxsync.optimize.params",
+    "CostWeights": "jaxsync.optimize.cost",
+    "sample_scenarios": "jaxsync.optimize.tasks",
+    "make_plan": "jaxsync.optimize.sweep",
+}
+_RENAMED = {"run_sweep": ("jaxsync.optimize.sweep", "run")}
+
+
+def __getattr__(name: str):
+    if name in _OPTIMIZE:
+        return getattr(importlib.import_module(_OPTIMIZE[name]), name)
+    if name in _RENAMED:
+        module, attr = _RENAMED[name]
+        return getattr(importlib.import_module(module), attr)
+    raise AttributeError(f"module 'jaxsync' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_OPTIMIZE) | set(_RENAMED))
+
+
 __all__ = [
-    "SOLVERS",
+    # model and sensing
     "ArmState",
-    "Gains",
-    "Metrics",
-    "Scenario",
-    "Trajectory",
-    "classical_equivalent",
-    "default_gains",
-    "default_scenario",
-    "make_rollout",
-    "rollout",
-    "summarize",
-    "ConfigError",
     "DualArmModel",
-    "JaxsyncError",
-    "ModelError",
-    "ModelFileError",
-    "ModelIndex",
-    "ModelStructureError",
     "ObjectState",
     "Sensed",
     "after_control",
@@ -63,4 +101,44 @@ __all__ = [
     "load_model",
     "put_data",
     "sense",
+    # controller
+    "CONTROLLERS",
+    "ControllerOptions",
+    "ControllerState",
+    "Gains",
+    "Reference",
+    "classical_equivalent",
+    "default_gains",
+    "init",
+    "step",
+    # task
+    "Scenario",
+    "default_scenario",
+    "short_task",
+    # rollouts
+    "Trajectory",
+    "make_rollout",
+    "rollout",
+    "rollout_mujoco",
+    # metrics
+    "Metrics",
+    "series",
+    "summarize",
+    # tuning and sweeps (jaxsync.optimize)
+    "CostWeights",
+    "TuneConfig",
+    "TuneResult",
+    "TuneSpec",
+    "make_loss",
+    "make_plan",
+    "run_sweep",
+    "sample_scenarios",
+    "tune",
+    # set-up and errors
+    "enable_compilation_cache",
+    "ConfigError",
+    "JaxsyncError",
+    "ModelError",
+    "ModelFileError",
+    "ModelStructureError",
 ]

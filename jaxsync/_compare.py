@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 import time
@@ -11,10 +10,11 @@ import jax
 import numpy as np
 
 from jaxsync import _gains, _io, _metrics, _scenario
+from jaxsync._controller import CONTROLLERS
 from jaxsync._errors import ConfigError
 from jaxsync._rollout import rollout
+from jaxsync._scenario import min_duration
 
-CONTROLLERS = ("classical", "synchronous")
 SUMMARY_KEYS = (
     "settled_peak_resultant_N",
     "mean_grip_force_N",
@@ -22,24 +22,6 @@ SUMMARY_KEYS = (
     "sync_error_rms_m",
     "dropped",
 )
-
-
-def min_duration(s) -> float:
-    """The shortest rollout with a settled window: hold start + settle + 0.2 s."""
-    _, _, t_hold = _scenario.phase_times(s)
-    return float(t_hold + s.settle_time) + 0.2
-
-
-def _metrics_dict(m: _metrics.Metrics) -> dict:
-    out = {}
-    for k, v in m._asdict().items():
-        v = np.asarray(v).item()
-        if k in ("dropped", "nonfinite"):
-            v = bool(v)
-        elif isinstance(v, float) and math.isnan(v):
-            v = None
-        out[k] = v
-    return out
 
 
 def run(
@@ -125,7 +107,7 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
     # one resultant scale for both plots, so they can be compared by eye
     ylim = 1.5 * max(float(np.asarray(m.settled_peak_resultant_N)) for _, m in results.values()) or None
     for name, (_, m) in results.items():
-        summary[name] = _metrics_dict(m)
+        summary[name] = _metrics.to_dict(m)
         se = all_series[name]
         if not columns:
             columns["time_s"] = se["time_s"].tolist()

@@ -76,7 +76,7 @@ def _as_arrays(g: Gains) -> Gains:
 def classical_equivalent(g: Gains) -> Gains:
     """The synchronous gains that reduce it to the classical controller
     (k_rk = k_lk = 0, k_rl = k_ll = 1; the cross term is switched off
-    separately, see ``SyncOptions``)."""
+    separately: ``ControllerOptions(cross_term="none")``)."""
     z, o = jnp.zeros_like(g.k_rk), jnp.ones_like(g.k_rl)  # zeros_like keeps the (strong) dtype
     return g._replace(k_rk=z, k_lk=z, k_rl=o, k_ll=o)
 

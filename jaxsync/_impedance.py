@@ -20,34 +20,6 @@ def init() -> ImpedanceState:
     return ImpedanceState(offset=jnp.zeros((2, 6)), rate=jnp.zeros((2, 6)))
 
 
-def acceleration(
-    mass: jax.Array,
-    damping: jax.Array,
-    stiffness: jax.Array,
-    frame: jax.Array,
-    offset: jax.Array,
-    rate: jax.Array,
-    force_error: jax.Array,
-) -> jax.Array:
-    """dde_i = M_d^-1 (f_i - f_id - B_d de_i - K_d e_i)   (eqs. 9, 10, 15).
-
-    The diagonal M_d, B_d, K_d act along the axes of ``frame`` (the planned
-    pad frame): translations and rotations about its x, y, z (z the normal).
-
-    Args:
-      mass, damping, stiffness: (6,) diagonal M_d, B_d, K_d.
-      frame: (3, 3) rotation of the pad frame in the world.
-      offset, rate: (6,) e_i and de_i, world frame.
-      force_error: (6,) f_i - f_id, world frame (force; torque).
-    Returns:
-      (6,) dde_i, world frame.
-    """
-    to_local = lambda v: jnp.concatenate([frame.T @ v[:3], frame.T @ v[3:]])  # noqa: E731
-    e, de, f = to_local(offset), to_local(rate), to_local(force_error)
-    dde = (f - damping * de - stiffness * e) / mass
-    return jnp.concatenate([frame @ dde[:3], frame @ dde[3:]])
-
-
 def step(
     state: ImpedanceState,
     mass: jax.Array,

@@ -6,10 +6,12 @@ is the hold phase after ``scenario.settle_time``.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxsync._scenario import GRAVITY, Scenario, phase_times
 
@@ -24,6 +26,20 @@ def normal_forces(pad_forces: jax.Array, pad_normal: jax.Array) -> jax.Array:
     Args: pad_forces (T, 2, 3); pad_normal (T, 2, 3) unit normals pointing into the object.
     """
     return jnp.einsum("tij,tij->ti", pad_forces, pad_normal)
+
+
+def safe_norm(x: jax.Array, axis: int = -1) -> jax.Array:
+    """|x| along ``axis``, with a zero (not NaN) gradient at x = 0 (MJX's
+    ``math.norm`` pattern); the value is the exact norm. Every norm of a force
+    or an error that a cost may differentiate goes through here.
+
+    Example:
+      >>> float(safe_norm(jnp.array([3.0, 4.0])))
+      5.0
+    """
+    n2 = jnp.sum(x * x, axis=axis)
+    zero = n2 == 0.0
+    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, n2)))
 
 
 def _unit(v: jax.Array) -> jax.Array:
@@ -51,8 +67,7 @@ def resultant_force(pad_forces: jax.Array, plan_obj_acc: jax.Array, object_mass:
 
 def sync_error(delta: jax.Array) -> jax.Array:
     """(T,) |delta_r - delta_l| of the position part (eq. 13), m. delta (T, 2, 6)."""
-    d = delta[:, 0, :3] - delta[:, 1, :3]
-    return jnp.sqrt(jnp.sum(d * d, -1) + 1e-30)
+    return safe_norm(delta[:, 0, :3] - delta[:, 1, :3])
 
 
 def settled_mask(time: jax.Array, s: Scenario) -> jax.Array:
@@ -93,13 +108,19 @@ def _first_time(flag, time):
 
 
 def summarize(traj, s: Scenario) -> Metrics:
-    """All metrics of one trajectory (a ``jaxsync.Trajectory``)."""
+    """All metrics of one trajectory (a ``jaxsync.Trajectory``); ``jax.vmap`` it for a batch.
+
+    Example:
+      >>> traj = jaxsync.rollout(model, jaxsync.default_gains(), s, duration=1.7)  # doctest: +SKIP
+      >>> m = summarize(traj, s)
+      >>> float(m.settled_peak_resultant_N), bool(m.dropped)
+    """
     mask = settled_mask(traj.time, s)
-    res = jnp.linalg.norm(resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass) + 1e-30, axis=-1)
+    res = safe_norm(resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass))
     grip = grip_force(traj.pad_forces, traj.pad_pos)
     grip_err = jnp.abs(grip - s.grip_force) / s.grip_force
     mean_grip = _masked_mean(grip, mask)
-    obj_err = jnp.linalg.norm(traj.obj_pos - traj.plan_obj_pos + 1e-30, axis=-1)
+    obj_err = safe_norm(traj.obj_pos - traj.plan_obj_pos)
     finite = jnp.isfinite(traj.qpos).all(-1) & jnp.isfinite(traj.pad_forces).reshape(len(traj.time), -1).all(-1)
     lost = (traj.phase >= 2) & ((obj_err > DROP_DISTANCE) | ~finite)
     return Metrics(
@@ -127,11 +148,29 @@ def series(traj, s: Scenario) -> dict[str, jax.Array]:
         "right_normal_force_N": fn[:, 0],
         "left_normal_force_N": fn[:, 1],
         "grip_force_N": grip_force(traj.pad_forces, traj.pad_pos),
-        "resultant_force_N": jnp.linalg.norm(res, axis=-1),
+        "resultant_force_N": safe_norm(res),
         "resultant_x_N": res[:, 0],
         "resultant_y_N": res[:, 1],
         "resultant_z_N": res[:, 2],
         "sync_error_m": sync_error(traj.delta),
-        "object_error_m": jnp.linalg.norm(traj.obj_pos - traj.plan_obj_pos, axis=-1),
+        "object_error_m": safe_norm(traj.obj_pos - traj.plan_obj_pos),
         "phase": traj.phase,
     }
+
+
+BOOL_METRICS = ("dropped", "nonfinite")
+
+
+def to_arrays(m: Metrics) -> dict[str, np.ndarray]:
+    """Metrics (one rollout or a batch) as host numpy arrays by name; the flags as bool."""
+    return {k: np.asarray(v).astype(bool) if k in BOOL_METRICS else np.asarray(v) for k, v in m._asdict().items()}
+
+
+def to_dict(m: Metrics) -> dict:
+    """One rollout's metrics as plain Python for JSON: floats, bools for the
+    flags, None for NaN (e.g. ``drop_time_s`` when nothing dropped)."""
+    out = {}
+    for k, v in to_arrays(m).items():
+        v = v.item()
+        out[k] = None if isinstance(v, float) and math.isnan(v) else v
+    return out

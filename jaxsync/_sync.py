@@ -43,9 +43,9 @@ def rigid_transport(r_ij: jax.Array) -> jax.Array:
 #       imbalances would otherwise shake). No lever-arm term: with it
 #       (T_ij = -transport), differential pad rotations leaked into a common
 #       translation of both pads and the tangential resultant grew.
-#   "rigid": T_ij = +transport (rigid_transport), the reading of
-#       shared/design/controller.md: keeps the rigid-body part, cancels the
-#       squeeze part. Measured: it does not hold the grip force.
+#   "rigid": T_ij = +transport (rigid_transport), the original design
+#       note's reading (docs/controller.md): keeps the rigid-body part, cancels
+#       the squeeze part. Measured: it does not hold the grip force.
 #   "none": no cross term.
 CROSS_TERMS = ("squeeze", "rigid", "none")
 

@@ -32,7 +32,7 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     mask = _metrics.settled_mask(traj.time, s)
     n = jnp.maximum(mask.sum(), 1.0)
     res = _metrics.resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
-    res_norm = jnp.sqrt(jnp.sum(res * res, -1) + 1e-12)
+    res_norm = _metrics.safe_norm(res)
     # the metric's grip error: of the window's mean grip force (noise averages out)
     mean_grip = jnp.sum(mask * _metrics.grip_force(traj.pad_forces, traj.pad_pos)) / n
     grip_err = (mean_grip - s.grip_force) / s.grip_force

@@ -89,7 +89,7 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts):
     """``jaxsync render`` writes a non-blank PNG; the comparison video has one
     frame per 1/25 s of slowed-down rollout (skipped without an OpenGL backend)."""
     from jaxsync import _render
-    from jaxsync._render_cli import VIDEO_FPS, compare_video
+    from jaxsync.cli.render import VIDEO_FPS, compare_video
 
     try:
         _render.select_gl_backend()

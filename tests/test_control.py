@@ -163,7 +163,7 @@ def test_mjx_and_mujoco_c_backends_agree(model, rollouts):
 
 def _hand_made(T=10):
     """Two pads on the y axis squeezing with 10 N, plus a known net force."""
-    from jaxsync._rollout import Trajectory
+    from jaxsync import Trajectory
 
     z = lambda *shape: jnp.zeros((T, *shape))  # noqa: E731
     pad_pos = jnp.tile(jnp.array([[0.0, -0.1, 1.0], [0.0, 0.1, 1.0]]), (T, 1, 1))

@@ -14,22 +14,22 @@ from jaxsync.optimize import sweep
 
 from jaxsync._errors import ConfigError
 
-# The fast test task (tests/conftest.py) as fixed sweep parameters, 1.2 s rollouts.
+# The tests' task (jaxsync.short_task, tests/conftest.py) as fixed sweep parameters, 1.7 s rollouts.
 FAST = [
     "--param",
     "t_close=0.3",
     "--param",
-    "t_squeeze=0.2",
+    "t_squeeze=0.4",
     "--param",
-    "t_carry=0.4",
+    "t_carry=0.5",
     "--param",
-    "settle_time=0.1",
+    "settle_time=0.3",
     "--param",
-    "lift.x=0",
+    "lift.x=0.02",
     "--param",
-    "lift.z=0.03",
+    "lift.z=0.05",
     "--duration",
-    "1.2",
+    "1.7",
 ]
 GRID = ["--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk", "2", "--no-progress"]
 
@@ -196,7 +196,7 @@ def test_memory_budget_too_small_even_for_one(tmp_path, capsys):
 def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
     out = tmp_path / "sharded"
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
-    code = "import sys; from jaxsync.optimize.sweep import main; sys.exit(main(sys.argv[1:]))"
+    code = "import sys; from jaxsync.cli import main; sys.exit(main(['sweep', *sys.argv[1:]]))"
     proc = subprocess.run(
         [sys.executable, "-c", code, *FAST, *GRID, "--out", str(out)],
         capture_output=True,

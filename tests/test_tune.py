@@ -14,7 +14,8 @@ import pytest
 from jax.flatten_util import ravel_pytree
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
-from jaxsync.optimize.tune import TuneConfig, make_loss, sample_scenarios, training_task, tune
+from jaxsync.optimize.tasks import sample_scenarios
+from jaxsync.optimize.tune import TuneConfig, TuneResult, make_loss, tune
 
 import jaxsync
 from jaxsync import _gains
@@ -74,7 +75,7 @@ def test_spec_sharing_and_errors():
 
 
 def test_scenario_sampling_is_seeded_and_in_range():
-    base = training_task()
+    base = jaxsync.short_task()
     a = sample_scenarios(jax.random.key(3), 16, base)
     b = sample_scenarios(jax.random.key(3), 16, base)
     c = sample_scenarios(jax.random.key(4), 16, base)
@@ -90,7 +91,7 @@ def short_loss(diff_model):
     cfg = TuneConfig(**SHORT)
     spec, base = TuneSpec(), _gains.default_gains()
     loss = make_loss(diff_model, spec, base, cfg, CostWeights())
-    scen = sample_scenarios(jax.random.key(0), cfg.batch, training_task(**dict(cfg.train_task)))
+    scen = sample_scenarios(jax.random.key(0), cfg.batch, jaxsync.short_task(**dict(cfg.train_task)))
     theta = spec.init(base)
     x0, unravel = ravel_pytree(theta)
     value = jax.jit(lambda x: loss(unravel(x), scen)[0])
@@ -132,7 +133,8 @@ def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
     cfg = dataclasses.replace(TuneConfig(**SHORT), validate_every=2)
     spec, base = TuneSpec(), _gains.default_gains()
     kw = dict(progress=False, validate=_fake_validation)
-    full, hist_full, st_full = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
+    r_full = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
+    full, hist_full = r_full.gains, r_full.history
     # Ctrl-C during the second iteration's callback (before its validation): a
     # checkpoint is written, then resume to the end
 
@@ -143,24 +145,25 @@ def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
     with pytest.raises(KeyboardInterrupt):
         tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
     assert (tmp_path / "b" / "checkpoint.pkl").exists()
-    resumed, hist_res, st_res = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
+    r_res = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
+    resumed, hist_res = r_res.gains, r_res.history
     assert len(hist_res) == len(hist_full) == cfg.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert [r["cost"] for r in hist_res] == [r["cost"] for r in hist_full]
     assert hist_full[-1]["cost"] != hist_full[0]["cost"]  # it did move
     # validated at 0, 2, 4 in both runs; the selection is the same
-    assert [v["iteration"] for v in st_full["validation"]] == [0, 2, 4]
-    assert [v["iteration"] for v in st_res["validation"]] == [0, 2, 4]
-    assert st_res["selected"]["iteration"] == st_full["selected"]["iteration"]
+    assert [v["iteration"] for v in r_full.validation] == [0, 2, 4]
+    assert [v["iteration"] for v in r_res.validation] == [0, 2, 4]
+    assert r_res.selected["iteration"] == r_full.selected["iteration"]
     # the returned gains are the selected iterate's, which the fake validation agrees is best allowed
-    scores = {v["iteration"]: v for v in st_full["validation"]}
-    sel = st_full["selected"]
+    scores = {v["iteration"]: v for v in r_full.validation}
+    sel = r_full.selected
     assert _fake_validation(full) == {k: scores[sel["iteration"]][k] for k in _fake_validation(full)}
-    allowed = [v for v in st_full["validation"] if v["grip_force_error_rel"] <= scores[0]["grip_force_error_rel"]]
+    allowed = [v for v in r_full.validation if v["grip_force_error_rel"] <= scores[0]["grip_force_error_rel"]]
     assert sel["settled_peak_resultant_N"] == min(v["settled_peak_resultant_N"] for v in allowed)
     if sel["iteration"] != cfg.iterations:
-        assert _gains.to_dict(st_full["last_gains"]) != _gains.to_dict(full)
+        assert _gains.to_dict(r_full.last_gains) != _gains.to_dict(full)
 
 
 def test_select_iterate_keeps_the_grip_error():
@@ -234,7 +237,7 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
         v0 = {"iteration": 0, **validate(base)}
         last = base._replace(k_rl=0.4)
         history = [{"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1, "term_grip": 1.0}]
-        return base, history, {"validation": [v0], "selected": v0, "last_gains": last}
+        return TuneResult(base, history, [v0], v0, last, None)
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
     from jaxsync.cli import build_parser
@@ -242,7 +245,7 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
     parser = build_parser()
     out = tmp_path / "run"
     args = parser.parse_args(["tune", "--out", str(out), "--weight", "grip=3", "--iterations", "1"])
-    assert tune_mod.cmd_tune(args) == 0
+    assert args.func(args) == 0
     assert calls["weights"].grip == 3.0 and calls["cfg"].task == "full" and calls["cfg"].heldout_batch == 16
     summary = json.loads((out / "summary.json").read_text())
     for key in (

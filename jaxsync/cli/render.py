@@ -6,10 +6,12 @@ import os
 
 import numpy as np
 
+from jaxsync.cli._common import add_model_argument
+
 VIDEO_FPS = 25
 
 
-def cmd_render(args) -> int:
+def run(args) -> int:
     from jaxsync import _io, _render
     from jaxsync._model import load_model
 
@@ -50,11 +52,11 @@ def compare_video(
     return path
 
 
-def add_render_parser(sub) -> None:
+def add_parser(sub) -> None:
     p = sub.add_parser("render", help="a PNG of the model in a keyframe pose (headless)")
     p.add_argument("--out", default="results/render", help="output folder (results/render)")
     p.add_argument("--keyframe", default="grasp", choices=["grasp", "approach"])
     p.add_argument("--width", type=int, default=960)
     p.add_argument("--height", type=int, default=720)
-    p.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
-    p.set_defaults(func=cmd_render)
+    add_model_argument(p)
+    p.set_defaults(func=run)

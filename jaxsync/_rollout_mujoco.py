@@ -1,0 +1,137 @@
+"""The MuJoCo C rollout: the same jitted control law stepping ``mj_step1`` / ``mj_step2``.
+
+One environment, no gradient: a check of MJX against MuJoCo C on the very
+same task (``jaxsync._task``) and controller, and a baseline for speed.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from jaxsync import _controller, _scenario, _task, _trajectory
+from jaxsync._controller import ControllerOptions
+from jaxsync._gains import Gains
+from jaxsync._model import DualArmModel
+from jaxsync._scenario import Scenario
+from jaxsync._sensing import ArmState, compensate_wrist_wrench
+from jaxsync._trajectory import Trajectory
+
+
+def _sense_arm_c(m: mujoco.MjModel, d: mujoco.MjData, arm, raw: np.ndarray, full_m: np.ndarray) -> ArmState:
+    dofs = list(arm.dof_adr)
+    p = d.site_xpos[arm.pad_site].copy()
+    jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+    mujoco.mj_jacSite(m, d, jp, jr, arm.pad_site)
+    djp, djr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+    mujoco.mj_jacDot(m, d, djp, djr, p, arm.ee_body)
+    jac = np.vstack([jp, jr])
+    return ArmState(
+        q=d.qpos[list(arm.qpos_adr)].copy(),
+        qd=d.qvel[dofs].copy(),
+        pad_pos=p,
+        pad_rot=d.site_xmat[arm.pad_site].reshape(3, 3).copy(),
+        pad_vel=jac @ d.qvel,
+        jac=jac[:, dofs],
+        jac_dot_qd=np.concatenate([djp @ d.qvel, djr @ d.qvel]),
+        mass=full_m[np.ix_(dofs, dofs)],
+        bias=d.qfrc_bias[dofs].copy(),
+        wrist_raw=raw,
+        wrench=np.asarray(
+            _compensate_jit(
+                raw,
+                d.site_xmat[arm.ft_site].reshape(3, 3),
+                d.site_xpos[arm.ft_site],
+                d.subtree_com[arm.root_body],
+                d.cinert[arm.ee_body],
+                d.cvel[arm.ee_body],
+                d.cacc[arm.ee_body],
+                p,
+            )
+        ),
+    )
+
+
+_compensate_jit = jax.jit(compensate_wrist_wrench)
+
+
+def _pad_forces_c(m, d, index) -> np.ndarray:
+    out = np.zeros((2, 3))
+    f6 = np.zeros(6)
+    for i, arm in enumerate(index.arms):
+        for c in range(d.ncon):
+            con = d.contact[c]
+            if {con.geom1, con.geom2} == {arm.pad_geom, index.object_geom} and con.efc_address >= 0:
+                mujoco.mj_contactForce(m, d, c, f6)
+                f = con.frame.reshape(3, 3).T @ f6[:3]  # on geom2
+                out[i] += f if con.geom2 == index.object_geom else -f
+    return out
+
+
+def rollout_mujoco(
+    model: DualArmModel,
+    gains: Gains,
+    scenario: Scenario,
+    *,
+    controller: str = "synchronous",
+    duration: float = 4.0,
+    control_substeps: int = 1,
+    cross_term: str = "squeeze",
+) -> Trajectory:
+    """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment."""
+    options = ControllerOptions(kind=controller, cross_term=cross_term)
+    consts = _task.consts(model)
+    m = mujoco.MjModel.from_xml_path(model.path)  # a private copy we can change
+    m.opt.iterations, m.opt.ls_iterations = model.mj_model.opt.iterations, model.mj_model.opt.ls_iterations
+    m.opt.solver, m.opt.cone = model.mj_model.opt.solver, model.mj_model.opt.cone
+    idx = model.index
+    _scenario.apply_to_mj_model(m, scenario, idx)
+    d = mujoco.MjData(m)
+    d.qpos[:] = np.asarray(_task.initial_qpos(model, consts, scenario))
+    mujoco.mj_forward(m, d)
+    # acceleration-stage quantities start as MJX's do: zero
+    d.sensordata[:] = 0.0
+    d.cacc[:] = 0.0
+    pad_start = jnp.asarray(np.stack([d.site_xpos[a.pad_site] for a in idx.arms]))
+    dt = float(m.opt.timestep) * control_substeps
+    n_steps = int(round(duration / dt))
+
+    @jax.jit
+    def control(gains, s, cstate, arms, k):
+        return _task.control(options, gains, s, consts, cstate, arms, pad_start, k * dt, dt)
+
+    noise = jax.jit(lambda s, k: _task.noise(s, consts, k))
+    cstate = _controller.init()
+    full_m = np.zeros((m.nv, m.nv))
+    rows = []
+    for k in range(n_steps):
+        mujoco.mj_step1(m, d)
+        raw_all = d.sensordata + np.asarray(noise(scenario, k))
+        mujoco.mj_fullM(m, d, full_m)
+        arms = tuple(
+            _sense_arm_c(
+                m,
+                d,
+                a,
+                np.concatenate([raw_all[a.force_adr : a.force_adr + 3], raw_all[a.torque_adr : a.torque_adr + 3]]),
+                full_m,
+            )
+            for a in idx.arms
+        )
+        tau, cstate, info, pl = control(gains, scenario, cstate, arms, k)
+        qpos, qvel = d.qpos.copy(), d.qvel.copy()
+        va = idx.object_dof_adr
+        d.ctrl[:] = np.asarray(tau)[consts.act_order]
+        mujoco.mj_step2(m, d)
+        for _ in range(control_substeps - 1):
+            mujoco.mj_step(m, d)
+        obj_pos = qpos[idx.object_qpos_adr : idx.object_qpos_adr + 3]
+        forces = _pad_forces_c(m, d, idx)
+        rows.append(
+            _trajectory.row(
+                k * dt, qpos, qvel, obj_pos, qvel[va : va + 3], pl, arms, forces, tau, info, cstate, np.stack
+            )
+        )
+    return jax.tree_util.tree_map(lambda *x: jnp.asarray(np.stack([np.asarray(v) for v in x])), *rows)

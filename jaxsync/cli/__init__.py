@@ -1,0 +1,71 @@
+"""The ``jaxsync`` command line: the root parser and the entry point.
+
+One module per command (``info``, ``compare``, ``tune``, ``sweep``, ``bench``,
+``render``), each with ``add_parser(subparsers)`` and ``run(args) -> int``.
+Imports run one way: the command line imports the library and
+``jaxsync.optimize``; nothing in them imports the command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+from jaxsync._errors import JaxsyncError
+
+COMMANDS = ("info", "compare", "tune", "sweep", "bench", "render")
+
+
+def _setup_jax(args: argparse.Namespace) -> None:
+    import jax
+
+    from jaxsync._cache import enable_compilation_cache
+
+    jax.config.update("jax_enable_x64", not getattr(args, "float32", False))
+    enable_compilation_cache(getattr(args, "cache_dir", None))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jaxsync",
+        description="Differentiable dual-arm contact-force synchronous control with JAX and MuJoCo MJX.",
+    )
+    parser.add_argument(
+        "--cache-dir",
+        default=None,
+        help="JAX persistent compilation cache (default $JAXSYNC_CACHE_DIR or ~/.cache/jaxsync/xla; 'off').",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in COMMANDS:
+        importlib.import_module(f"jaxsync.cli.{name}").add_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        _setup_jax(args)
+        return args.func(args)
+    except JaxsyncError as err:
+        print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        hint = getattr(args, "interrupted_hint", None)
+        print(f"jaxsync {args.command}: interrupted" + (f" ({hint})" if hint else ""), file=sys.stderr)
+        return 130
+    except Exception as err:  # an unexpected failure: say what, keep the traceback opt-in
+        if os.environ.get("JAXSYNC_DEBUG"):
+            raise
+        print(
+            f"jaxsync {args.command}: internal error: {type(err).__name__}: {err}\n"
+            "(set JAXSYNC_DEBUG=1 for the traceback, and please report it)",
+            file=sys.stderr,
+        )
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())

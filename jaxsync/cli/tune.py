@@ -1,0 +1,217 @@
+"""``jaxsync tune``: gradient-based gain tuning, evaluated on held-out scenarios before and after."""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+
+from jaxsync._errors import ConfigError
+from jaxsync.cli._common import add_model_argument
+from jaxsync.optimize.cost import CostWeights
+
+
+def _weights(items: list[str] | None) -> CostWeights:
+    """``--weight NAME=VALUE`` (repeatable) over the defaults of CostWeights."""
+    w = CostWeights()
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in CostWeights._fields:
+            raise ConfigError(f"--weight must be NAME=VALUE with NAME one of {list(CostWeights._fields)}, got {item!r}")
+        try:
+            v = float(value)
+        except ValueError:
+            raise ConfigError(f"--weight {name}: not a number: {value!r}") from None
+        if not math.isfinite(v) or v < 0 or (name == "peak_temperature" and v <= 0):
+            raise ConfigError(f"--weight {name} must be a finite number >= 0 (temperature > 0), got {v}")
+        w = w._replace(**{name: v})
+    return w
+
+
+def _names(text: str | None) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()] if text else []
+
+
+def run(args) -> int:
+    from jaxsync import _gains, _io
+    from jaxsync._model import load_model
+    from jaxsync.optimize import tasks
+    from jaxsync.optimize import tune as tuning
+    from jaxsync.optimize.params import TUNABLE, TuneSpec
+    from jaxsync.optimize.tune_report import plot_loss
+
+    _io.ensure_writable_dir(args.out)
+    tuned = _names(args.tune) or list(TuneSpec().tuned)
+    frozen = _names(args.freeze)
+    unknown = sorted(set(frozen) - set(TUNABLE))
+    if unknown:
+        raise ConfigError(f"--freeze: unknown parameter(s) {unknown}; tunable: {list(TUNABLE)}")
+    spec = TuneSpec(tuned=tuple(n for n in tuned if n not in frozen), per_arm=args.per_arm, isotropic=args.isotropic)
+    cfg = tuning.TuneConfig(
+        iterations=args.iterations,
+        batch=args.batch,
+        learning_rate=args.lr,
+        optimizer=args.optimizer,
+        schedule=args.schedule,
+        clip_norm=args.clip,
+        seed=args.seed,
+        heldout_seed=args.heldout_seed,
+        heldout_batch=args.heldout_batch,
+        checkpoint_every=args.checkpoint_every,
+        truncate_every=args.truncate_every or None,
+        validate_every=args.validate_every,
+        validation_seed=args.validation_seed,
+        validation_batch=args.validation_batch,
+        task=args.task,
+    ).validate()
+    weights = _weights(args.weight)
+    base = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    if args.resume and not os.path.exists(os.path.join(args.out, "checkpoint.pkl")):
+        raise ConfigError(f"--resume: no checkpoint at {os.path.join(args.out, 'checkpoint.pkl')}")
+    options = {k: v for k, v in vars(args).items() if k != "func"}
+    fingerprint = {k: v for k, v in options.items() if k not in ("resume", "iterations", "out", "cache_dir")}
+
+    t_start = time.perf_counter()
+    accurate = load_model(args.model, solver="accurate")
+    evaluate = tuning.make_evaluator(accurate, cfg.eval_duration)
+    held = tasks.heldout_scenarios(cfg)
+    summary_path = os.path.join(args.out, "summary.json")
+    before = None
+    if args.resume and os.path.exists(os.path.join(args.out, "heldout_before.json")):
+        import json
+
+        with open(os.path.join(args.out, "heldout_before.json")) as f:
+            before = json.load(f)
+    if before is None:
+        print(
+            f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True
+        )
+        before = tuning.eval_summary(evaluate(base, held))
+        _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
+
+    diff_model = load_model(args.model, solver="differentiable")
+    print(
+        f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
+        f"(the first iteration compiles the gradient, minutes on a small CPU)",
+        flush=True,
+    )
+    valid = tasks.validation_scenarios(cfg)
+
+    def validate(g):
+        return tuning.eval_summary(evaluate(g, valid))
+
+    if cfg.validate_every:
+        print(
+            f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
+            f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
+            "worse than the start's)",
+            flush=True,
+        )
+    result = tuning.tune(
+        diff_model,
+        spec,
+        base,
+        cfg,
+        out=args.out,
+        resume=args.resume,
+        fingerprint=fingerprint,
+        validate=validate if cfg.validate_every else None,
+        weights=weights,
+    )
+    gains, history, selected = result.gains, result.history, result.selected
+    if selected is not None:
+        print(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)", flush=True)
+
+    print("held-out evaluation after tuning...", flush=True)
+    after = tuning.eval_summary(evaluate(gains, held))
+    _io.write_json(os.path.join(args.out, "gains.json"), {"gains": _gains.to_dict(gains), "tune": spec.describe()})
+    _io.write_json(
+        os.path.join(args.out, "gains_last.json"),
+        {"gains": _gains.to_dict(result.last_gains), "tune": spec.describe()},
+    )
+    cols = {k: [r[k] for r in history] for k in history[0]} if history else {}
+    if cols:
+        _io.write_csv(os.path.join(args.out, "history.csv"), cols)
+        plot_loss(history, os.path.join(args.out, "loss.png"), result.validation, selected)
+    summary = {
+        "initial_cost": history[0]["cost"] if history else None,
+        "final_cost": history[-1]["cost"] if history else None,
+        "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],
+        "heldout_settled_peak_resultant_N_after": after["settled_peak_resultant_N"],
+        "heldout_grip_force_error_rel_before": before["grip_force_error_rel"],
+        "heldout_grip_force_error_rel_after": after["grip_force_error_rel"],
+        "heldout_before": before,
+        "heldout_after": after,
+        "wall_time_s": time.perf_counter() - t_start,
+        "iterations": len(history),
+        "skipped_steps": int(sum(r["skipped"] for r in history)),
+        "selected_iteration": selected["iteration"] if selected is not None else len(history),
+        "validation": [{k: v for k, v in r.items()} for r in result.validation],
+        "options": options,
+        "weights": weights._asdict(),
+        "tune": spec.describe(),
+    }
+    _io.write_json(summary_path, summary)
+    b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
+    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + (f" ({b / a:.2f}x lower)" if a else ""))
+    print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
+    print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
+    return 0
+
+
+def add_parser(sub) -> None:
+    from jaxsync.optimize.params import TUNABLE
+
+    p = sub.add_parser(
+        "tune",
+        help="tune the synchronisation and impedance gains by gradient through MJX rollouts",
+        description="Gradient-based gain tuning (optax) on batches of randomised scenarios, "
+        "evaluated on held-out scenarios before and after.",
+    )
+    p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
+    p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4)")
+    p.add_argument("--lr", type=float, default=0.05, help="learning rate (0.05)")
+    p.add_argument("--optimizer", default="adam", help="an optax optimiser by name (adam)")
+    p.add_argument("--schedule", default="cosine", choices=["cosine", "constant"])
+    p.add_argument("--clip", type=float, default=1.0, help="global-norm gradient clipping (1.0)")
+    p.add_argument(
+        "--tune", default=None, help=f"comma-separated parameters to tune (default all: {','.join(TUNABLE)})"
+    )
+    p.add_argument("--freeze", default=None, help="comma-separated parameters to keep fixed")
+    p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")
+    p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")
+    p.add_argument("--truncate-every", type=int, default=100, help="truncated backprop window, steps (0: none)")
+    p.add_argument("--seed", type=int, default=0, help="training scenarios seed (0)")
+    p.add_argument("--heldout-seed", type=int, default=1000, help="held-out scenarios seed (1000)")
+    p.add_argument("--heldout-batch", type=int, default=16, help="held-out scenarios (16)")
+    p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period, iterations (5)")
+    p.add_argument(
+        "--validate-every",
+        type=int,
+        default=5,
+        help="evaluate the iterate on validation scenarios every N iterations and keep the best one "
+        "whose grip error is not worse than the start's (5; 0: keep the last iterate)",
+    )
+    p.add_argument("--validation-seed", type=int, default=500, help="validation scenarios seed (500)")
+    p.add_argument("--validation-batch", type=int, default=16, help="validation scenarios (16)")
+    p.add_argument(
+        "--task",
+        default="full",
+        choices=["full", "short"],
+        help="training task: 'short' (2 s, compressed phases) or 'full' (the 4 s default task the held-out "
+        "scenarios use; twice the cost per step of 'short') (full)",
+    )
+    p.add_argument(
+        "--weight",
+        action="append",
+        default=None,
+        metavar="NAME=VALUE",
+        help="a cost weight (repeatable): resultant_ms, resultant_peak, grip, sync, effort, peak_temperature "
+        "(defaults in docs/tuning.md)",
+    )
+    p.add_argument("--gains", default=None, help="start from this gains JSON (default: built-in)")
+    add_model_argument(p)
+    p.add_argument("--out", default="results/tune", help="output folder (results/tune)")
+    p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    p.set_defaults(func=run)

@@ -1,0 +1,63 @@
+"""One optax step, shared by every optimisation loop.
+
+The tuner (``jaxsync.optimize.tune``), the benchmark's tuning step and the
+CMA-ES comparison (``experiments/tune_vs_cmaes.py``) all update their
+parameters here: clip, step, and skip a non-finite step (keep the parameters
+and the optimiser state). Pure: it runs eagerly or inside ``jax.jit``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+
+class Update(NamedTuple):
+    params: object  # the new parameters (the old ones when the step was skipped)
+    opt_state: object
+    grad_norm: jax.Array  # global norm of the gradient, before clipping
+    finite: jax.Array  # bool: the value and the gradient were finite and the step was taken
+
+
+def make_optimizer(
+    learning_rate: float,
+    *,
+    optimizer: str = "adam",
+    schedule: str = "constant",
+    iterations: int | None = None,
+    clip_norm: float | None = None,
+) -> optax.GradientTransformation:
+    """An optax optimiser by name, with an optional cosine schedule (to 10 % over
+    ``iterations``) and global-norm clipping.
+
+    Example:
+      >>> opt = make_optimizer(0.05, schedule="cosine", iterations=60, clip_norm=1.0)
+      >>> state = opt.init({"k": jnp.zeros(())})
+    """
+    lr = optax.cosine_decay_schedule(learning_rate, iterations, alpha=0.1) if schedule == "cosine" else learning_rate
+    opt = getattr(optax, optimizer)(lr)
+    return opt if clip_norm is None else optax.chain(optax.clip_by_global_norm(clip_norm), opt)
+
+
+def apply_update(opt: optax.GradientTransformation, params, opt_state, value, grad) -> Update:
+    """One optimiser step from ``(value, grad)``, skipped when either is not finite.
+
+    Example:
+      >>> opt = optax.adam(0.1)
+      >>> p = {"k": jnp.array(1.0)}
+      >>> u = apply_update(opt, p, opt.init(p), jnp.array(1.0), {"k": jnp.array(2.0)})
+      >>> bool(u.finite), float(u.params["k"]) < 1.0
+      (True, True)
+    """
+    grad_norm = optax.tree.norm(grad)
+    finite = jnp.isfinite(value) & jnp.isfinite(grad_norm)
+    updates, new_state = opt.update(grad, opt_state, params)
+    new_params = optax.apply_updates(params, updates)
+
+    def keep(new, old):
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)
+
+    return Update(keep(new_params, params), keep(new_state, opt_state), grad_norm, finite)

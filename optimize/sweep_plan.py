@@ -1,0 +1,122 @@
+"""A sweep's plan: the parsed parameters, the points and everything that fixes the results.
+
+Its ``fingerprint`` names the sweep in ``plan.json``: a re-run with the same
+plan resumes, a different one needs ``--restart``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+
+import numpy as np
+from jaxsync.optimize.sweep_spec import (
+    PHASE_FIELDS,
+    Param,
+    check_overlaps,
+    make_points,
+    parse_param,
+    validate_values,
+)
+
+from jaxsync import _gains, _scenario
+from jaxsync._controller import CONTROLLERS
+from jaxsync._errors import ConfigError
+from jaxsync._gains import Gains
+from jaxsync._scenario import Scenario, min_duration
+
+PLAN_VERSION = 1
+
+
+@dataclasses.dataclass
+class Plan:
+    params: list[Param]
+    points: np.ndarray
+    samples: int | None
+    seed: int
+    duration: float
+    controller: str
+    solver: str
+    base_gains: Gains
+    base_scenario: Scenario
+    x64: bool
+
+    @property
+    def spec(self) -> dict:
+        return {
+            "version": PLAN_VERSION,
+            "params": [p.describe() for p in self.params],
+            "mode": "grid" if self.samples is None else "samples",
+            "samples": self.samples,
+            "seed": self.seed,
+            "duration_s": self.duration,
+            "controller": self.controller,
+            "solver": self.solver,
+            "x64": self.x64,
+            "base_gains": _gains.to_dict(self.base_gains),
+            "n_points": len(self.points),
+            "points_sha256": hashlib.sha256(np.ascontiguousarray(self.points).tobytes()).hexdigest(),
+        }
+
+    @property
+    def fingerprint(self) -> str:
+        return hashlib.sha256(json.dumps(self.spec, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def make_plan(
+    param_texts: list[str],
+    *,
+    samples: int | None = None,
+    seed: int = 0,
+    duration: float = 4.0,
+    controller: str = "synchronous",
+    solver: str = "accurate",
+    base_gains: Gains | None = None,
+    base_scenario: Scenario | None = None,
+) -> Plan:
+    """Parse and check everything that can be checked without compiling."""
+    import jax
+
+    if not param_texts:
+        raise ConfigError("give at least one --param NAME=VALUES")
+    if samples is not None and samples < 1:
+        raise ConfigError(f"--samples must be a positive number of points, got {samples}")
+    if controller not in CONTROLLERS:
+        raise ConfigError(f"--controller must be one of {', '.join(CONTROLLERS)}, got {controller!r}")
+    if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
+        raise ConfigError(f"--duration must be a positive number of seconds, got {duration}")
+    params = [parse_param(t, random=samples is not None) for t in param_texts]
+    names = [p.name for p in params]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ConfigError(f"parameter(s) {dup} given more than once")
+    base_gains = base_gains if base_gains is not None else _gains.default_gains()
+    base_scenario = base_scenario if base_scenario is not None else _scenario.default_scenario()
+    check_overlaps(params, base_gains, base_scenario)
+    validate_values(params, base_gains, base_scenario)
+    points = make_points(params, samples, seed)
+    # the longest phases of any point need the longest rollout
+    worst = {f: float(np.asarray(getattr(base_scenario, f))) for f in PHASE_FIELDS}
+    for j, p in enumerate(params):
+        if p.target.kind == "scenario" and p.target.field in PHASE_FIELDS:
+            worst[p.target.field] = float(points[:, j].max())
+    need = min_duration(base_scenario._replace(**{k: np.float64(v) for k, v in worst.items()}))
+    if duration < need - 1e-9:
+        raise ConfigError(
+            f"--duration must be at least {need:.2f} s for this sweep (hold start + settling time + 0.2 s "
+            f"of settled window for its longest phases), got {duration:g}"
+        )
+    return Plan(
+        params,
+        points,
+        samples,
+        int(seed),
+        float(duration),
+        controller,
+        solver,
+        base_gains,
+        base_scenario,
+        bool(jax.config.jax_enable_x64),
+    )

@@ -1,0 +1,81 @@
+"""The chunk store of a sweep: finished chunks on disk, so that a re-run resumes.
+
+Each finished chunk is written atomically to ``chunks/chunk_NNNNN.npz`` next
+to ``plan.json`` (the sweep's fingerprint); a re-run with the same plan reads
+finished chunks back instead of recomputing them.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import shutil
+
+import numpy as np
+from jaxsync.optimize.sweep_plan import Plan
+
+from jaxsync import _io
+from jaxsync._errors import ConfigError
+
+
+def _chunk_path(out: str, i: int) -> str:
+    return os.path.join(out, "chunks", f"chunk_{i:05d}.npz")
+
+
+def save_chunk(out: str, i: int, start: int, stop: int, metrics: dict) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, start=start, stop=stop, **metrics)
+    _io.atomic_write_bytes(_chunk_path(out, i), buf.getvalue())
+
+
+def load_chunk(out: str, i: int, start: int, stop: int, fields) -> dict | None:
+    path = _chunk_path(out, i)
+    if not os.path.exists(path):
+        return None
+    try:
+        with np.load(path) as z:
+            if int(z["start"]) != start or int(z["stop"]) != stop:
+                return None
+            got = {k: z[k].copy() for k in fields}
+    except Exception:  # noqa: BLE001 - an unreadable chunk is recomputed
+        return None
+    if any(v.shape != (stop - start,) for v in got.values()):
+        return None
+    return got
+
+
+def prepare_out(out: str, plan: Plan, restart: bool) -> dict | None:
+    """Create the folder; return the stored plan.json when resuming the same sweep."""
+    _io.ensure_writable_dir(out)
+    path = os.path.join(out, "plan.json")
+    stored = None
+    if os.path.exists(path):
+        try:
+            with open(path) as f:
+                stored = json.load(f)
+        except (OSError, json.JSONDecodeError):
+            stored = None
+        if stored is not None and stored.get("fingerprint") != plan.fingerprint and not restart:
+            raise ConfigError(
+                f"output folder {out!r} holds a different sweep (plan.json fingerprint "
+                f"{stored.get('fingerprint')}, this one {plan.fingerprint}); pass --restart to discard it "
+                "or choose another --out"
+            )
+    if restart or stored is None or stored.get("fingerprint") != plan.fingerprint:
+        shutil.rmtree(os.path.join(out, "chunks"), ignore_errors=True)
+        for f in ("results.csv", "summary.json", "heatmap.png", "line.png", "scatter.png", "plan.json"):
+            if os.path.exists(os.path.join(out, f)):
+                os.unlink(os.path.join(out, f))
+        stored = None
+    os.makedirs(os.path.join(out, "chunks"), exist_ok=True)
+    return stored
+
+
+def read_plan(out: str, plan: Plan) -> dict | None:
+    try:
+        with open(os.path.join(out, "plan.json")) as f:
+            stored = json.load(f)
+    except (OSError, json.JSONDecodeError):
+        return None
+    return stored if stored.get("fingerprint") == plan.fingerprint else None

@@ -1,0 +1,64 @@
+"""The scenarios tuning trains, validates and scores on.
+
+Training batches are randomised around the training task (the full default
+task, or the short one) and seeded by the iteration, so a resumed run sees the
+same batches. Validation scenarios (their own seed) pick the iterate; held-out
+scenarios (a third seed) only score it.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxsync import _scenario
+
+
+def training_base(cfg) -> tuple[_scenario.Scenario, float]:
+    """The training scenario family's base and its rollout duration (``cfg``: a TuneConfig)."""
+    if cfg.task == "full":
+        return _scenario.default_scenario(**dict(cfg.train_task)), cfg.eval_duration
+    return _scenario.short_task(**dict(cfg.train_task)), cfg.train_duration
+
+
+def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scenario.Scenario:
+    """A batch of randomised scenarios around ``base``: object mass +-30 % (the
+    controller keeps the nominal estimate), offset along the clamping axis
+    +-5 mm, contact time constant 15-30 ms, friction 0.8-1.2, wrist force
+    noise 0.05-0.15 N, fresh noise keys.
+
+    Example:
+      >>> batch = sample_scenarios(jax.random.key(0), 4, jaxsync.short_task())
+      >>> batch.object_mass.shape
+      (4,)
+    """
+    ks = jax.random.split(key, 7)
+    u = lambda k, lo, hi: jax.random.uniform(k, (n,), minval=lo, maxval=hi, dtype=jnp.float64)  # noqa: E731
+    rep = lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x)))  # noqa: E731
+    batch = jax.tree_util.tree_map(rep, base)
+    offset = jnp.zeros((n, 3)).at[:, 1].set(u(ks[1], -0.005, 0.005))
+    noise_keys = jax.vmap(lambda k: jax.random.key_data(k))(jax.random.split(ks[6], n)).astype(jnp.uint32)
+    return batch._replace(
+        object_mass=base.object_mass * u(ks[0], 0.7, 1.3),
+        object_offset=offset,
+        contact_timeconst=u(ks[2], 0.015, 0.03),
+        friction=u(ks[3], 0.8, 1.2),
+        force_noise=u(ks[4], 0.05, 0.15),
+        noise_key=noise_keys,
+    )
+
+
+def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.Scenario:
+    """The training batch of one iteration (seeded by ``cfg.seed`` and the iteration)."""
+    return sample_scenarios(jax.random.fold_in(jax.random.key(cfg.seed), iteration), cfg.batch, base)
+
+
+def heldout_scenarios(cfg) -> _scenario.Scenario:
+    """Full-task scenarios from the held-out seed (never used for training or selection)."""
+    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, _scenario.default_scenario())
+
+
+def validation_scenarios(cfg) -> _scenario.Scenario:
+    """Full-task scenarios from the validation seed: they pick the iterate, the
+    held-out ones only score it."""
+    return sample_scenarios(jax.random.key(cfg.validation_seed), cfg.validation_batch, _scenario.default_scenario())
