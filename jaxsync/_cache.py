@@ -1,4 +1,4 @@
-"""JAX's persistent compilation cache, for the CLI, scripts and tests.
+"""JAX's persistent compilation cache, and traced functions kept on disk.
 
 Not called at import (no side effects on import); entry points call it.
 """
@@ -20,8 +20,17 @@ def default_cache_dir() -> str:
 def enable_compilation_cache(path: str | None = None) -> str | None:
     """Point JAX's persistent compilation cache at ``path``.
 
-    ``path`` defaults to ``$JAXSYNC_CACHE_DIR`` or ``~/.cache/jaxsync/xla``;
-    the string ``"off"`` disables it. Returns the directory used, or None.
+    A rollout of this model compiles for tens of seconds, its gradient for
+    minutes; with the cache a later process (a script run again, the CLI, the
+    tests) reads the compiled program back instead. Call it once, before the
+    first compile. ``path`` defaults to ``$JAXSYNC_CACHE_DIR`` or
+    ``~/.cache/jaxsync/xla``; the string ``"off"`` disables it. Returns the
+    directory used, or None.
+
+    Example:
+      >>> import jaxsync
+      >>> jaxsync.enable_compilation_cache()  # doctest: +SKIP
+      '/home/me/.cache/jaxsync/xla'
     """
     path = path or os.environ.get(ENV_VAR) or default_cache_dir()
     if path == "off":
@@ -36,19 +45,37 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
 # ------------------------------------------------------------- traced functions
 
 
-def _source_fingerprint() -> str:
-    """Hash of jaxsync's own source files and the versions it traces against:
-    a traced function kept on disk is valid only for exactly this code."""
+# The packages whose code a traced function can run: the library, the tuning
+# code (cost and loss) and the models. In a checkout or an editable install
+# jaxsync.optimize and jaxsync.mjcf live outside jaxsync/, so each is found
+# from its own import location, wherever it was installed from.
+SOURCE_PACKAGES = ("jaxsync", "jaxsync.optimize", "jaxsync.mjcf")
+
+
+def source_files() -> list[str]:
+    """Every source file (``.py``, ``.xml``) of :data:`SOURCE_PACKAGES`, sorted."""
+    import importlib
+
+    files = set()
+    for name in SOURCE_PACKAGES:
+        for root in importlib.import_module(name).__path__:
+            for dirpath, _, names in os.walk(root):
+                files.update(os.path.join(dirpath, f) for f in names if f.endswith((".py", ".xml")))
+    return sorted(os.path.realpath(f) for f in files)
+
+
+def _source_fingerprint(files: list[str] | None = None) -> str:
+    """Hash of jaxsync's source files (the library, ``jaxsync.optimize`` and the
+    packaged models, :func:`source_files`) and of the versions it traces
+    against: a traced function kept on disk is valid only for exactly this
+    code. A model file outside the package is hashed by its caller's key."""
     import hashlib
     import importlib.metadata as md
 
     h = hashlib.sha256()
-    root = os.path.dirname(os.path.abspath(__file__))
-    for dirpath, _, files in sorted(os.walk(root)):
-        for name in sorted(files):
-            if name.endswith((".py", ".xml")):
-                with open(os.path.join(dirpath, name), "rb") as f:
-                    h.update(name.encode() + f.read())
+    for path in source_files() if files is None else files:
+        with open(path, "rb") as f:
+            h.update(path.encode() + b"\0" + f.read())
     for dist in ("jax", "jaxlib", "mujoco", "mujoco-mjx"):
         try:
             h.update(f"{dist}={md.version(dist)}".encode())

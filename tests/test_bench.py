@@ -48,32 +48,3 @@ def test_quick_bench_writes_every_key(tmp_path, capsys):
     assert "cpu_model" in m
     out = capsys.readouterr().out
     assert "gradient / forward" in out and "bench.json" in out
-
-
-def test_traced_function_kept_on_disk(tmp_path):
-    """jaxsync._cache.traced_on_disk: exported once, read back by a later call,
-    same results as plain jit; a different key or shape is a different file."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from jaxsync import _cache
-    from jaxsync._gains import default_gains
-
-    def f(g, x):
-        return {"y": jnp.sin(x) * g.k_rl, "s": jnp.sum(x**2)}
-
-    args = (default_gains(), jnp.arange(3.0))
-    d = str(tmp_path)
-    a = _cache.traced_on_disk(f, args, "k1", cache_dir=d)
-    files = sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin"))
-    assert len(files) == 1
-    b = _cache.traced_on_disk(f, args, "k1", cache_dir=d)  # read back
-    assert sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin")) == files
-    ref = jax.jit(f)(*args)
-    for out in (a(*args), b(*args)):
-        np.testing.assert_array_equal(np.asarray(out["y"]), np.asarray(ref["y"]))
-        assert float(out["s"]) == float(ref["s"])
-    _cache.traced_on_disk(f, args, "k2", cache_dir=d)
-    _cache.traced_on_disk(f, (args[0], jnp.arange(4.0)), "k1", cache_dir=d)
-    assert len(list(tmp_path.glob("jaxsync-export-*.bin"))) == 3

@@ -1,0 +1,71 @@
+"""The persistent caches: traced functions kept on disk, keyed by every source file they depend on."""
+
+from __future__ import annotations
+
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync import _cache
+from jaxsync._gains import default_gains
+
+
+def test_traced_function_kept_on_disk(tmp_path):
+    """jaxsync._cache.traced_on_disk: exported once, read back by a later call,
+    same results as plain jit; a different key or shape is a different file."""
+
+    def f(g, x):
+        return {"y": jnp.sin(x) * g.k_rl, "s": jnp.sum(x**2)}
+
+    args = (default_gains(), jnp.arange(3.0))
+    d = str(tmp_path)
+    a = _cache.traced_on_disk(f, args, "k1", cache_dir=d)
+    files = sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin"))
+    assert len(files) == 1
+    b = _cache.traced_on_disk(f, args, "k1", cache_dir=d)  # read back
+    assert sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin")) == files
+    ref = jax.jit(f)(*args)
+    for out in (a(*args), b(*args)):
+        np.testing.assert_array_equal(np.asarray(out["y"]), np.asarray(ref["y"]))
+        assert float(out["s"]) == float(ref["s"])
+    _cache.traced_on_disk(f, args, "k2", cache_dir=d)
+    _cache.traced_on_disk(f, (args[0], jnp.arange(4.0)), "k1", cache_dir=d)
+    assert len(list(tmp_path.glob("jaxsync-export-*.bin"))) == 3
+
+
+def test_fingerprint_covers_the_cost_the_loss_and_the_model():
+    """The cost and the loss (jaxsync.optimize) and the model (jaxsync.mjcf) are
+    hashed wherever they are installed from: in a checkout or an editable
+    install they live outside jaxsync/ (the bug: only jaxsync/ was hashed)."""
+    import jaxsync.mjcf
+    import jaxsync.optimize.cost
+    import jaxsync.optimize.tune
+
+    files = _cache.source_files()
+    for module in (jaxsync.optimize.cost, jaxsync.optimize.tune, _cache):
+        assert os.path.realpath(module.__file__) in files, module.__name__
+    model = os.path.join(os.path.dirname(jaxsync.mjcf.__file__), "dual_arm.xml")
+    assert os.path.realpath(model) in files
+
+
+def test_editing_the_cost_changes_the_key(tmp_path, monkeypatch):
+    """Edit a copy of the cost's source: the fingerprint, and so the file the
+    traced function is kept in, changes; the unedited copy gives the same key."""
+    import jaxsync.optimize.cost
+
+    copy = tmp_path / "cost.py"
+    copy.write_bytes(open(jaxsync.optimize.cost.__file__, "rb").read())
+    files = [*(f for f in _cache.source_files() if not f.endswith(os.sep + "cost.py")), str(copy)]
+    monkeypatch.setattr(_cache, "source_files", lambda: files)
+    before = _cache._source_fingerprint()
+    assert _cache._source_fingerprint() == before
+    args = (default_gains(), jnp.arange(3.0))
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    _cache.traced_on_disk(lambda g, x: x * g.k_rl, args, "k", cache_dir=str(cache))
+    copy.write_text(copy.read_text().replace("GRIP_SCALE = 0.01", "GRIP_SCALE = 0.02"))
+    assert _cache._source_fingerprint() != before
+    _cache.traced_on_disk(lambda g, x: x * g.k_rl, args, "k", cache_dir=str(cache))
+    assert len(list(cache.glob("jaxsync-export-*.bin"))) == 2
