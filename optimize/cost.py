@@ -21,6 +21,7 @@ class CostWeights(NamedTuple):
 
 
 RESULTANT_SCALE = 0.01  # N
+RESULTANT_FLOOR2 = 1e-12  # N^2, under the root of the resultant's norm (smooth at zero)
 GRIP_SCALE = 0.01  # relative
 GRIP_SMOOTH = 1e-4  # relative: |x| ~ sqrt(x^2 + s^2)
 SYNC_SCALE = 1e-3  # m
@@ -32,7 +33,7 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     mask = _metrics.settled_mask(traj.time, s)
     n = jnp.maximum(mask.sum(), 1.0)
     res = _metrics.resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
-    res_norm = _metrics.safe_norm(res)
+    res_norm = _metrics.safe_norm(res, floor2=RESULTANT_FLOOR2)
     # the metric's grip error: of the window's mean grip force (noise averages out)
     mean_grip = jnp.sum(mask * _metrics.grip_force(traj.pad_forces, traj.pad_pos)) / n
     grip_err = (mean_grip - s.grip_force) / s.grip_force

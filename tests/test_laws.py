@@ -1,0 +1,145 @@
+"""The laws against closed forms: the joint-space law (eqs. 18, 19), the
+absolute error on SO(3) (eq. 12), the synchronous offset (eqs. 13, 14, 16,
+17), and the production gradient path's forward values."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from jaxsync import _joint_space, _so3, _sync, _task
+
+# ------------------------------------------------------- joint-space law
+
+
+@pytest.fixture(scope="module")
+def free_arms(model, forward_sense):
+    """Both arms near the grasp pose, moving, with the object 3 m below the
+    stand: no contact, so the arm dynamics are M ddq + c + g + D dq = tau."""
+    m = model.mj_model
+    rng = np.random.default_rng(3)
+    d = mujoco.MjData(m)
+    d.qpos[:] = model.keyframe_qpos("grasp")
+    d.qpos[:14] += rng.uniform(-0.2, 0.2, 14)
+    qa = model.index.object_qpos_adr
+    d.qpos[qa : qa + 3] = [0.65, 0.0, -2.2]
+    d.qvel[:14] = rng.uniform(-0.5, 0.5, 14)
+    dx, sensed = forward_sense(model.mjx_model, mjx.put_data(m, d, impl="jax"))
+    assert np.abs(np.asarray(sensed.obj.pad_forces)).max() == 0.0
+    return dx, (sensed.right, sensed.left)
+
+
+def test_null_space_projector_leaves_the_task_acceleration_unchanged(free_arms):
+    """tau's posture term acts through N = I - J^+ J: changing the rest posture
+    (lambda) changes the torques but not the pad acceleration J M^-1 tau. The
+    damped pseudo-inverse leaks |J N| <= damping^2 / sigma_min of it (~1e-5)."""
+    _, arms = free_arms
+    rng = np.random.default_rng(0)
+    for arm in arms:
+        jac = np.asarray(arm.jac)
+        null = np.eye(7) - np.asarray(_joint_space.damped_pinv(arm.jac)) @ jac
+        assert np.abs(jac @ null).max() < 1e-5
+        ddx = jnp.asarray(rng.normal(size=6))
+        q_a, q_b = (jnp.asarray(np.asarray(arm.q) + rng.uniform(-0.5, 0.5, 7)) for _ in range(2))
+        tau_a = np.asarray(_joint_space.torques(arm, ddx, q_a, 100.0, 20.0, jnp.zeros(6)))
+        tau_b = np.asarray(_joint_space.torques(arm, ddx, q_b, 100.0, 20.0, jnp.zeros(6)))
+        dq_acc = np.linalg.solve(np.asarray(arm.mass), tau_a - tau_b)  # the joint accelerations differ...
+        assert np.linalg.norm(dq_acc) > 1.0
+        # ...the pad's does not (up to the damped pseudo-inverse's leak, ~1e-5)
+        assert np.linalg.norm(jac @ dq_acc) < 1e-4 * np.linalg.norm(dq_acc)
+
+
+def test_torques_produce_the_commanded_pad_acceleration(model, forward_sense, free_arms):
+    """eqs. 18, 19 on a contact-free arm: apply the law's torques in MJX and the
+    pads accelerate as commanded, J ddq + dJ dq = ddx, up to the joint damping
+    the law does not compensate (-J M^-1 D dq, computed here) and the damped
+    pseudo-inverse (relative 1e-5)."""
+    dx, arms = free_arms
+    m = model.mj_model
+    rng = np.random.default_rng(1)
+    ddx = [jnp.asarray(rng.normal(size=6)) for _ in arms]
+    taus = [
+        _joint_space.torques(arm, a, arm.q + 0.1, 100.0, 20.0, jnp.zeros(6)) for arm, a in zip(arms, ddx, strict=True)
+    ]
+    tau = np.asarray(jnp.concatenate(taus))
+    assert np.all(np.abs(tau) < m.actuator_ctrlrange[:, 1])  # within the actuators' range: no clipping
+    ctrl = tau[_task.consts(model).act_order]
+    stepped, _ = forward_sense(model.mjx_model, dx.replace(ctrl=jnp.asarray(ctrl)))
+    qacc = np.asarray(stepped.qacc)
+    for index, arm, want in zip(model.index.arms, arms, ddx, strict=True):
+        dofs = list(index.dof_adr)
+        got = np.asarray(arm.jac) @ qacc[dofs] + np.asarray(arm.jac_dot_qd)
+        damping = m.dof_damping[dofs] * np.asarray(arm.qd)
+        want = np.asarray(want) - np.asarray(arm.jac) @ np.linalg.solve(np.asarray(arm.mass), damping)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * (1 + np.abs(want).max()))
+
+
+# ------------------------------------------------------------ SO(3), eq. 12
+
+
+def _rodrigues(axis, angle):
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+@pytest.mark.parametrize("angle", [1e-9, 1e-4, 0.3, 2.0, 3.0])
+def test_absolute_error_is_the_rotation_vector_closed_form(angle):
+    """delta = x_d - x (eq. 12): the position difference, and for R_d = Rot(a,
+    angle) R the world-frame rotation vector angle * a (Rodrigues in numpy)."""
+    rng = np.random.default_rng(int(angle * 1000))
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    other = rng.normal(size=3)
+    rot = _rodrigues(other / np.linalg.norm(other), 1.0)
+    rot_d = _rodrigues(axis, angle) @ rot
+    pos, pos_d = rng.normal(size=3), rng.normal(size=3)
+    delta = np.asarray(_sync.absolute_error(jnp.asarray(pos_d), jnp.asarray(rot_d), jnp.asarray(pos), jnp.asarray(rot)))
+    np.testing.assert_allclose(delta[:3], pos_d - pos, atol=1e-15)
+    np.testing.assert_allclose(delta[3:], angle * axis, rtol=1e-9, atol=1e-15)
+    # and it is what rotates rot onto rot_d
+    np.testing.assert_allclose(np.asarray(_so3.exp(jnp.asarray(delta[3:]))) @ rot, rot_d, atol=1e-12)
+
+
+def test_synchronous_offset_closed_form():
+    """x_ik - x_id = k_ik (delta_r - delta_l) + k_il (e_i - e_j) (eqs. 13, 14,
+    16, 17 with the squeeze cross term), by hand for known numbers."""
+    delta = jnp.array([[0.002, -0.001, 0.0, 0.01, 0.0, 0.0], [0.0, 0.001, 0.003, 0.0, -0.02, 0.0]])
+    e = jnp.array([[0.0, 0.004, 0.0, 0.0, 0.0, 0.05], [0.0, -0.002, 0.001, 0.0, 0.0, 0.0]])
+    k_rk, k_lk, k_rl, k_ll = 0.5, -0.25, 0.6, 0.8
+    delta_k = _sync.relative_compensation(delta, jnp.asarray(k_rk), jnp.asarray(k_lk))
+    mapped = _sync.cross_mapped(e, jnp.zeros((2, 3)), "squeeze")
+    out = np.asarray(_sync.synchronous_offset(delta_k, jnp.array([k_rl, k_ll]), mapped))
+    rel = np.array([0.002, -0.002, -0.003, 0.01, 0.02, 0.0])  # delta_r - delta_l
+    e_rl = np.array([0.0, 0.006, -0.001, 0.0, 0.0, 0.05])  # e_r - e_l
+    want = np.stack([k_rk * rel + k_rl * e_rl, k_lk * rel - k_ll * e_rl])
+    np.testing.assert_allclose(out, want, atol=1e-15)
+    # neutral gains (k_rk = k_lk = 0, k_il = 1, no cross term): the classical offset e_i
+    neutral = _sync.synchronous_offset(
+        _sync.relative_compensation(delta, jnp.asarray(0.0), jnp.asarray(0.0)),
+        jnp.ones(2),
+        _sync.cross_mapped(e, jnp.zeros((2, 3)), "none"),
+    )
+    np.testing.assert_array_equal(np.asarray(neutral), np.asarray(e))
+
+
+# --------------------------------------------- the production gradient path
+
+
+def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, rollouts):
+    """What the tuner differentiates (remat=True, truncate_every windows) rolls
+    out exactly the plain rollout: both only change the backward pass. Checked
+    against the session's plain rollout of the test task (grasp, lift, hold)."""
+    from conftest import TEST_DURATION
+
+    from jaxsync import _rollout
+
+    plain = rollouts["synchronous"]
+    fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, truncate_every=100)
+    prod = jax.jit(fn)(rollouts["gains"], rollouts["scenario"])
+    assert np.abs(np.asarray(plain.pad_forces)).max() > 1.0  # in contact: the solve matters
+    for name, a, b in zip(plain._fields, plain, prod, strict=True):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12, err_msg=name)
