@@ -23,7 +23,12 @@ CONTROLLERS = ("classical", "synchronous")
 
 @dataclasses.dataclass(frozen=True)
 class ControllerOptions:
-    """Static choices (changing them recompiles; they are never traced)."""
+    """Static choices (changing them recompiles; they are never traced).
+
+    Example:
+      >>> ControllerOptions(kind="classical")
+      ControllerOptions(kind='classical', cross_term='squeeze')
+    """
 
     kind: str = "synchronous"  # "classical" or "synchronous"
     cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync._sync.CROSS_TERMS
@@ -38,7 +43,16 @@ class ControllerOptions:
 
 
 class Reference(NamedTuple):
-    """The planned pad poses x_id and what the arms should feel, at one instant."""
+    """The planned pad poses x_id and what the arms should feel, at one instant.
+
+    Rollouts build it from the scenario's plan (``jaxsync._task.reference``);
+    a user's own loop can fill it directly.
+
+    Example:
+      >>> ref = Reference(pad_pos=jnp.zeros((2, 3)), pad_rot=jnp.stack([jnp.eye(3)] * 2),
+      ...                 pad_vel=jnp.zeros((2, 6)), pad_acc=jnp.zeros((2, 6)),
+      ...                 wrench=jnp.zeros((2, 6)), q_rest=jnp.zeros((2, 7)))
+    """
 
     pad_pos: jax.Array  # (2, 3)
     pad_rot: jax.Array  # (2, 3, 3)
@@ -61,6 +75,13 @@ class ControlInfo(NamedTuple):
 
 
 def init() -> ControllerState:
+    """The controller's state at rest: both admittance filters at zero offset and rate.
+
+    Example:
+      >>> state = init()
+      >>> state.impedance.offset.shape
+      (2, 6)
+    """
     return ControllerState(impedance=_impedance.init())
 
 
@@ -83,6 +104,13 @@ def step(
       dt: control period, s.
     Returns:
       (14,) joint torques (right arm's 7, then left's), the new state, info.
+
+    Example (one period, from a sensed state ``sensed = jaxsync.sense(...)``):
+      >>> state = init()
+      >>> tau, state, info = step(ControllerOptions(), jaxsync.default_gains(), state,
+      ...                         (sensed.right, sensed.left), ref, dt=0.002)  # doctest: +SKIP
+      >>> tau.shape  # doctest: +SKIP
+      (14,)
     """
     wrench = jnp.stack([a.wrench for a in arms])
     force_error = wrench - ref.wrench

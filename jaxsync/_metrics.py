@@ -142,7 +142,13 @@ def summarize(traj, s: Scenario) -> Metrics:
 
 
 def series(traj, s: Scenario) -> dict[str, jax.Array]:
-    """The curves that plots and CSVs show, keyed by column name."""
+    """The curves that plots and CSVs show, keyed by column name.
+
+    Example:
+      >>> curves = series(traj, s)  # doctest: +SKIP
+      >>> curves["resultant_force_N"].shape  # doctest: +SKIP
+      (T,)
+    """
     fn = normal_forces(traj.pad_forces, traj.pad_normal)
     res = resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
     return {

@@ -52,6 +52,13 @@ def make_rollout(
         backpropagation in windows; the forward values are unchanged).
       start: keyframe the arms start from: "approach" (pads 30 mm off, the
         paper's task) or "grasp" (pads touching: short horizons in contact).
+
+    Example:
+      >>> fn = make_rollout(jaxsync.load_model(), "synchronous", duration=2.0)
+      >>> batch = jax.jit(jax.vmap(fn, in_axes=(None, 0)))  # one gain set, many scenarios
+      >>> traj = batch(jaxsync.default_gains(), scenarios)  # doctest: +SKIP
+      >>> traj.pad_forces.shape  # doctest: +SKIP
+      (B, 1000, 2, 3)
     """
     if start not in (START_KEY, REST_KEY):
         raise ConfigError(f"start must be {START_KEY!r} or {REST_KEY!r}, got {start!r}")
@@ -133,6 +140,12 @@ def rollout(
 
     ``backend="mjx"`` compiles once per static configuration and model;
     ``backend="mujoco"`` steps MuJoCo C with the same jitted control law.
+
+    Example:
+      >>> model, s = jaxsync.load_model(), jaxsync.short_task()
+      >>> traj = rollout(model, jaxsync.default_gains(), s, controller="classical", duration=2.0)
+      >>> traj.torque.shape
+      (1000, 14)
     """
     if backend == "mjx":
         return _jitted(model, controller, float(duration), int(control_substeps), cross_term)(gains, scenario)

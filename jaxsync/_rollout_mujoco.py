@@ -80,7 +80,15 @@ def rollout_mujoco(
     control_substeps: int = 1,
     cross_term: str = "squeeze",
 ) -> Trajectory:
-    """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment."""
+    """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment.
+
+    Example:
+      >>> model, s = jaxsync.load_model(), jaxsync.short_task()
+      >>> c = rollout_mujoco(model, jaxsync.default_gains(), s, duration=2.0)
+      >>> x = jaxsync.rollout(model, jaxsync.default_gains(), s, duration=2.0)
+      >>> float(abs(c.obj_pos - x.obj_pos).max()) < 1e-3  # doctest: +SKIP
+      True
+    """
     options = ControllerOptions(kind=controller, cross_term=cross_term)
     consts = _task.consts(model)
     m = mujoco.MjModel.from_xml_path(model.path)  # a private copy we can change

@@ -12,6 +12,13 @@ from jaxsync import _metrics
 
 
 class CostWeights(NamedTuple):
+    """The weight of each term of the tuning cost (docs/tuning.md).
+
+    Example:
+      >>> w = CostWeights(grip=3.0)
+      >>> total = cost(traj, s, w)  # doctest: +SKIP
+    """
+
     resultant_ms: float = 1.0  # mean square resultant force over the settled window, per (0.01 N)^2
     resultant_peak: float = 1.0  # smooth (log-sum-exp) peak of the resultant, per 0.01 N
     grip: float = 10.0  # |relative error| of the mean grip force (the metric, smoothed at 0.01 %), per 1 %

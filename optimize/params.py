@@ -43,7 +43,13 @@ def _logit(p):
 
 @dataclasses.dataclass(frozen=True)
 class TuneSpec:
-    """Which parameters are tuned (the rest are frozen at ``base``'s values)."""
+    """Which parameters are tuned (the rest are frozen at ``base``'s values).
+
+    Example:
+      >>> spec = TuneSpec(tuned=("k_rk", "k_lk"))
+      >>> theta = spec.init(jaxsync.default_gains())
+      >>> gains = spec.to_gains({k: v + 0.1 for k, v in theta.items()}, jaxsync.default_gains())
+    """
 
     tuned: tuple[str, ...] = DEFAULT_TUNED
     per_arm: bool = False

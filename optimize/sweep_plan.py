@@ -76,7 +76,13 @@ def make_plan(
     base_gains: Gains | None = None,
     base_scenario: Scenario | None = None,
 ) -> Plan:
-    """Parse and check everything that can be checked without compiling."""
+    """Parse and check everything that can be checked without compiling.
+
+    Example:
+      >>> plan = make_plan(["k_rk=-1:1:5", "object_mass=0.5,1"], duration=4.0)
+      >>> plan.points.shape
+      (10, 2)
+    """
     import jax
 
     if not param_texts:

@@ -11,6 +11,7 @@ import os
 import numpy as np
 import pytest
 
+from jaxsync import _gl, _video
 from jaxsync import _render as render
 from jaxsync._errors import ConfigError, JaxsyncError
 
@@ -132,7 +133,7 @@ def test_write_gif_frame_count(tmp_path):
 def test_write_video_falls_back_to_gif(tmp_path, monkeypatch):
     from PIL import Image
 
-    monkeypatch.setattr(render, "mp4_available", lambda: False)
+    monkeypatch.setattr(_video, "mp4_available", lambda: False)
     path = render.write_video(_frames(5), tmp_path / "clip.mp4", fps=10)
     assert path == str(tmp_path / "clip.gif")
     with Image.open(path) as im:
@@ -171,9 +172,9 @@ def test_no_backend_error_names_what_was_tried(monkeypatch):
         tried.append(backend)
         return False, "no display"
 
-    monkeypatch.setattr(render, "_selected_backend", None)
-    monkeypatch.setattr(render, "_failure", None)
-    monkeypatch.setattr(render, "_probe_backend", fake_probe)
+    monkeypatch.setattr(_gl, "_selected_backend", None)
+    monkeypatch.setattr(_gl, "_failure", None)
+    monkeypatch.setattr(_gl, "_probe_backend", fake_probe)
     monkeypatch.delenv("MUJOCO_GL", raising=False)
     with pytest.raises(render.RenderUnavailableError) as err:
         render.select_gl_backend()
@@ -189,10 +190,10 @@ def test_no_backend_error_names_what_was_tried(monkeypatch):
 
 def test_existing_mujoco_gl_is_respected(monkeypatch):
     tried, activated = [], []
-    monkeypatch.setattr(render, "_selected_backend", None)
-    monkeypatch.setattr(render, "_failure", None)
-    monkeypatch.setattr(render, "_probe_backend", lambda b, timeout=0: (tried.append(b), (True, ""))[1])
-    monkeypatch.setattr(render, "_activate", activated.append)
+    monkeypatch.setattr(_gl, "_selected_backend", None)
+    monkeypatch.setattr(_gl, "_failure", None)
+    monkeypatch.setattr(_gl, "_probe_backend", lambda b, timeout=0: (tried.append(b), (True, ""))[1])
+    monkeypatch.setattr(_gl, "_activate", activated.append)
     monkeypatch.setenv("MUJOCO_GL", "osmesa")
     assert render.select_gl_backend() == "osmesa"
     assert tried == ["osmesa"] and activated == ["osmesa"]

@@ -1,0 +1,144 @@
+"""An OpenGL backend for offscreen rendering (headless: EGL or OSMesa).
+
+MuJoCo's ``mujoco.Renderer`` needs an OpenGL context. On a machine without a
+GPU or a display, that is EGL (Mesa's software renderer, llvmpipe) or OSMesa.
+MuJoCo picks the backend from the ``MUJOCO_GL`` environment variable when
+``mujoco`` is first imported; :func:`select_gl_backend` chooses one that works
+(probing each in a subprocess, so a failing backend cannot break this
+process) and, if ``mujoco`` was already imported, switches its context class
+so that the next ``Renderer`` uses the chosen backend. See docs/rendering.md.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+
+from jaxsync._errors import JaxsyncError
+
+# Tried in this order when MUJOCO_GL is not set: both work without a display.
+GL_BACKENDS = ("egl", "osmesa")
+
+# Debian packages that provide each backend (MuJoCo loads them through PyOpenGL).
+SYSTEM_PACKAGES = {
+    "egl": ("libegl1", "libegl-mesa0", "libgl1-mesa-dri", "libopengl0"),
+    "osmesa": ("libosmesa6",),
+}
+
+# The default view: a free camera in front of the robot, a little to its right
+# and above the object, aimed between the shoulders and the object. It shows
+# the torso, both arms, both pads and the clamped ball (which lands near the
+
+
+class RenderUnavailableError(JaxsyncError):
+    """No OpenGL backend for offscreen rendering works on this machine."""
+
+
+_selected_backend: str | None = None
+_failure: tuple[str, str] | None = None  # (MUJOCO_GL at the time, message): not probed twice
+
+_PROBE = """
+import mujoco
+m = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom size="0.1"/></worldbody></mujoco>')
+d = mujoco.MjData(m)
+mujoco.mj_forward(m, d)
+r = mujoco.Renderer(m, 8, 8)
+r.update_scene(d)
+img = r.render()
+r.close()
+assert img.shape == (8, 8, 3), img.shape
+print("ok")
+"""
+
+
+def _probe_backend(backend: str, timeout: float = 120.0) -> tuple[bool, str]:
+    """Render one tiny frame with MUJOCO_GL=backend in a fresh interpreter."""
+    env = dict(os.environ)
+    env["MUJOCO_GL"] = backend
+    env.pop("PYOPENGL_PLATFORM", None)
+    if backend in ("egl", "osmesa"):
+        env["PYOPENGL_PLATFORM"] = backend
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-c", _PROBE],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            close_fds=False,  # lets Python use posix_spawn instead of fork (JAX warns on fork)
+        )
+    except (OSError, subprocess.TimeoutExpired) as err:
+        return False, f"{type(err).__name__}: {err}"
+    if proc.returncode == 0 and proc.stdout.strip().endswith("ok"):
+        return True, ""
+    lines = [ln for ln in (proc.stderr or proc.stdout).strip().splitlines() if ln.strip()]
+    return False, lines[-1] if lines else f"exit code {proc.returncode}"
+
+
+def _activate(backend: str) -> None:
+    """Make this process's next mujoco.Renderer use ``backend``."""
+    os.environ["MUJOCO_GL"] = backend
+    if "mujoco" not in sys.modules:
+        return  # mujoco reads MUJOCO_GL when it is imported
+    gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
+    if getattr(gl_context, "_MUJOCO_GL", None) == backend:
+        return  # mujoco was imported with this backend already
+    if backend not in GL_BACKENDS:
+        raise RenderUnavailableError(
+            f"mujoco was imported before MUJOCO_GL={backend} was set; set it before starting Python"
+        )
+    platform = os.environ.get("PYOPENGL_PLATFORM", "").lower()
+    if "OpenGL" in sys.modules and platform != backend:
+        raise RenderUnavailableError(
+            f"PyOpenGL was already imported for platform {platform or 'default'!r}, so the {backend} "
+            f"backend cannot be switched to; run with MUJOCO_GL={backend} set before starting Python"
+        )
+    try:
+        module = importlib.import_module(f"mujoco.{backend}")
+    except ImportError as err:
+        raise RenderUnavailableError(f"cannot switch mujoco to MUJOCO_GL={backend}: {err}") from None
+    gl_context.GLContext = module.GLContext
+
+
+def select_gl_backend() -> str:
+    """Choose a working OpenGL backend for offscreen rendering and activate it.
+
+    Respects an existing ``MUJOCO_GL`` (checked, not replaced); otherwise tries
+    ``egl`` then ``osmesa``, each by rendering a tiny frame in a subprocess.
+    The choice is cached for the process. Call it before rendering; the
+    rendering functions here call it themselves.
+
+    Returns:
+      The backend name, as put in ``os.environ["MUJOCO_GL"]``.
+
+    Raises:
+      RenderUnavailableError: no backend works; the message names what was
+        tried, why each failed, and the Debian packages to install.
+    """
+    global _selected_backend, _failure
+    if _selected_backend is not None:
+        return _selected_backend
+    requested = os.environ.get("MUJOCO_GL", "").strip().lower()
+    if _failure is not None and _failure[0] == requested:
+        raise RenderUnavailableError(_failure[1])
+    candidates = (requested,) if requested else GL_BACKENDS
+    failures = []
+    for backend in candidates:
+        ok, why = _probe_backend(backend)
+        if ok:
+            _activate(backend)
+            _selected_backend = backend
+            return backend
+        failures.append(f"MUJOCO_GL={backend}: {why}")
+    packages = " ".join(p for b in GL_BACKENDS for p in SYSTEM_PACKAGES[b])
+    hint = f"unset MUJOCO_GL to let jaxsync try {' and '.join(GL_BACKENDS)}, or " if requested else ""
+    message = (
+        "no OpenGL backend for offscreen rendering works here (tried "
+        + "; ".join(failures)
+        + f"). {hint}install the system libraries, e.g. on Debian/Ubuntu: "
+        f"apt-get install -y {packages}"
+    )
+    _failure = (requested, message)
+    raise RenderUnavailableError(message)
