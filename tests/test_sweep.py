@@ -158,6 +158,18 @@ def test_sweep_writes_results_summary_and_heatmap(uninterrupted):
     assert not [p for p in os.listdir(uninterrupted) if p.startswith(".tmp")]
 
 
+def test_sweep_point_equals_the_direct_rollout(uninterrupted, rollouts):
+    """The point k_rk = 0.5, object_mass = 0.5 is the tests' task with the
+    default gains: its metrics, from a vmapped chunk, are those of the single
+    rollout (tests/conftest.py)."""
+    from jaxsync import _metrics
+
+    (row,) = [r for r in _rows(uninterrupted / "results.csv") if (r["k_rk"], r["object_mass"]) == ("0.5", "0.5")]
+    want = _metrics.to_dict(_metrics.summarize(rollouts["synchronous"], rollouts["scenario"]))
+    for k in ("settled_peak_resultant_N", "mean_grip_force_N", "grip_force_error_rel", "sync_error_rms_m"):
+        np.testing.assert_allclose(float(row[k]), want[k], rtol=1e-5, err_msg=k)
+
+
 def test_resume_reads_finished_chunks_back(uninterrupted, tmp_path):
     out = tmp_path / "resumed"
     assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--max-chunks", "1"]) == 0  # "interrupted"

@@ -4,9 +4,6 @@ differences, and a resumed run ending where an uninterrupted one ends."""
 from __future__ import annotations
 
 import dataclasses
-import os
-import subprocess
-import sys
 
 import jax
 import numpy as np
@@ -88,14 +85,25 @@ def test_scenario_sampling_is_seeded_and_in_range():
 
 @pytest.fixture(scope="module")
 def short_loss(diff_model):
+    """The short tuning loss's value and gradient, both from the one program
+    ``tune()`` runs (jit(value_and_grad(loss)), kept on disk by
+    ``traced_on_disk``): compiled once for the gradient check and the resume test."""
+    from jaxsync.optimize import tune as tune_mod
+
     cfg = TuneConfig(**SHORT)
-    spec, base = TuneSpec(), _gains.default_gains()
-    loss = make_loss(diff_model, spec, base, cfg, CostWeights())
+    spec, base, weights = TuneSpec(), _gains.default_gains(), CostWeights()
+    loss = make_loss(diff_model, spec, base, cfg, weights)
     scen = sample_scenarios(jax.random.key(0), cfg.batch, jaxsync.short_task(**dict(cfg.train_task)))
     theta = spec.init(base)
     x0, unravel = ravel_pytree(theta)
-    value = jax.jit(lambda x: loss(unravel(x), scen)[0])
-    grad = jax.jit(jax.grad(lambda x: loss(unravel(x), scen)[0]))
+    value_and_grad = tune_mod._traced_value_and_grad(loss, diff_model, spec, base, cfg, weights, (theta, scen), None)
+
+    def value(x):
+        return float(value_and_grad(unravel(x), scen)[0][0])
+
+    def grad(x):
+        return ravel_pytree(value_and_grad(unravel(x), scen)[1])[0]
+
     return value, grad, x0
 
 
@@ -184,8 +192,9 @@ def test_select_iterate_keeps_the_grip_error():
     assert select_iterate(runs[:2])["iteration"] == 0  # nothing better allowed: the start
 
 
-def test_tune_cli_rejects_bad_input(tmp_path):
-    exe = os.path.join(os.path.dirname(sys.executable), "jaxsync")
+def test_tune_cli_rejects_bad_input(tmp_path, capsys):
+    from jaxsync.cli import main
+
     bad = tmp_path / "g.json"
     bad.write_text('{"k_lk": -2}')
     blocker = tmp_path / "f"
@@ -202,15 +211,10 @@ def test_tune_cli_rejects_bad_input(tmp_path):
         (["--validate-every", "-1"], "validate every must be"),
         (["--validation-seed", "1000"], "seeds must differ"),
     ]
-    for args, msg in cases:
-        r = subprocess.run(
-            [exe, "tune", "--out", str(tmp_path / "o"), *args],
-            capture_output=True,
-            text=True,
-            timeout=600,
-            cwd=tmp_path,
-        )
-        assert r.returncode != 0 and msg in r.stderr and "Traceback" not in r.stderr, (args, r.stderr[-500:])
+    for args, msg in cases:  # in this process (the console script itself: tests/test_model.py)
+        rc = main(["tune", "--out", str(tmp_path / "o"), *args])
+        err = capsys.readouterr().err
+        assert rc == 2 and msg in err and "Traceback" not in err, (args, err[-500:])
 
 
 def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
