@@ -260,6 +260,7 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") 
         contact pairs that jaxsync needs are missing (all are named).
     """
     m = load_mj_model(path, solver)
+    _physics.patch_mjx_elliptic_gradient()
     path = str(path) if path is not None else default_model_path()
     mx = mjx.put_model(m, impl="jax")
     return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=_build_index(m, mx, path))

@@ -67,15 +67,14 @@ def patch_mjx_elliptic_gradient() -> None:
     inf, and inf * 0 made every gradient NaN (measured: the tuning loss's
     gradient on the elliptic cone, NaN without this, finite with it and equal
     to central differences, tests/test_tune.py). Values are unchanged; only
-    the derivative at 0 becomes 0. Applied once, on import, to
+    the derivative at 0 becomes 0. Applied to
     ``mujoco.mjx._src.solver`` (whose ``sqrt`` calls are all in the solver's
-    cost and line search).
+    cost and line search). Called by :func:`jaxsync.load_model`, not at
+    import. Only the unrolled solver needs it: the implicit adjoint
+    (:func:`solve_implicit`) never differentiates the line search.
     """
     if not isinstance(_solver.jp, _JnpSafeSqrt):
         _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
-
-
-patch_mjx_elliptic_gradient()
 
 
 def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
@@ -86,13 +85,83 @@ def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.sensor_vel(m, d)
 
 
+# ------------------------------------------------ implicit adjoint of the solve
+
+
+def constraint_residual(m: mjx.Model, d: mjx.Data, qacc: jax.Array):
+    """MJX's optimality condition of the constraint solve at ``qacc``, and its forces.
+
+    The Newton solver minimises the Gauss cost plus the constraint cost; its
+    gradient is r(qacc) = M qacc - qfrc_smooth - J^T f(J qacc - aref) (MJX's
+    ``ctx.grad``, with M (qacc - qacc_smooth) = M qacc - qfrc_smooth). It is
+    zero at the solution, and its Jacobian in qacc is the Newton Hessian
+    H = M + J^T D_active J (plus the elliptic cone's Hessian in the cone's
+    middle zone). Returns (r (nv,), qfrc_constraint (nv,), efc_force (nefc,)),
+    all differentiable in ``qacc`` and in everything the solve reads (M,
+    qfrc_smooth, efc_J, efc_aref, efc_D, friction).
+    """
+    ctx = _solver.Context.create(m, d.replace(qacc=qacc), grad=False)
+    return ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint, ctx.qfrc_constraint, ctx.efc_force
+
+
+def _tangent_solve(g, y: jax.Array) -> jax.Array:
+    """Solve g(x) = y for the linearised residual g (the Newton Hessian, nv x nv).
+
+    The Hessian is built column by column from ``g`` at zero, so it depends on
+    the primal solution only and the solve stays linear in ``y`` (transposable
+    for reverse mode). H is symmetric positive definite (M plus a positive
+    semi-definite constraint term): Cholesky.
+    """
+    h = jax.jacfwd(g)(jnp.zeros_like(y))
+    h = 0.5 * (h + h.T)
+    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(h), y)
+
+
+def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """``mjx.solve`` (converged, its ``while_loop``) with an implicit adjoint.
+
+    The forward pass is MJX's own solve, to its iterations and tolerance. The
+    derivative is not taken through the iterations (reverse mode cannot pass
+    MJX's ``while_loop``, and unrolling them costs memory and time): by the
+    implicit function theorem at r(qacc*) = 0 (:func:`constraint_residual`),
+    d qacc* = -H^-1 (dr/dp) dp, one nv x nv solve per step
+    (``jax.lax.custom_root``). The constraint forces are then recomputed from
+    qacc* so that their derivatives flow to the contact forces and the
+    wrist sensors. Forward values are exactly MJX's: the recomputed forces
+    only carry derivatives (x + (y - stop_gradient(y)) adds exactly zero).
+    """
+
+    def residual(qacc):
+        return constraint_residual(m, d, qacc)[0]
+
+    def forward(_, guess):
+        dd = mjx.solve(m, d)
+        return dd.qacc, (dd.qfrc_constraint, dd._impl.efc_force)
+
+    qacc, (qfrc_solved, efc_solved) = jax.lax.custom_root(residual, d.qacc, forward, _tangent_solve, has_aux=True)
+    _, qfrc, efc = constraint_residual(m, d, qacc)
+
+    def carry(value, differentiable):
+        return jax.lax.stop_gradient(value) + (differentiable - jax.lax.stop_gradient(differentiable))
+
+    return d.tree_replace(
+        {
+            "qacc": qacc,
+            "qfrc_constraint": carry(qfrc_solved, qfrc),
+            "_impl.efc_force": carry(efc_solved, efc),
+        }
+    )
+
+
 def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int = 1) -> mjx.Data:
     """Actuation, constraint solve, acceleration sensors and integration (mj_step2).
 
-    ``solver_unroll`` > 1 (with ``m.opt.iterations == 1``) runs the one-iteration
-    Newton solve that many times, each warm-started from the last: a fixed
-    number of iterations without MJX's ``while_loop``, so reverse-mode
-    ``jax.grad`` still passes (one iteration alone did not hold the clamp).
+    With ``m.opt.iterations > 1`` (jaxsync's one solver setting) the solve is
+    MJX's converged Newton solve, differentiated implicitly
+    (:func:`solve_implicit`). With ``m.opt.iterations == 1`` (the legacy
+    "unrolled" setting, kept to compare against) the one-iteration solve runs
+    ``solver_unroll`` times, each warm-started from the last, and reverse
+    mode differentiates through the iterations.
     """
     d = d.replace(ctrl=ctrl)
     d = mjx.fwd_actuation(m, d)
@@ -100,7 +169,9 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
     if d._impl.efc_J.size == 0:
         d = d.replace(qacc=d.qacc_smooth)
     else:
-        if solver_unroll > 1:
+        if m.opt.iterations > 1:
+            d = solve_implicit(m, d)
+        elif solver_unroll > 1:
             # a scan traces the solve once (unrolled, the program held three
             # copies; same values to 1e-14, docs/performance.md)
 

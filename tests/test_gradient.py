@@ -1,0 +1,171 @@
+"""Gradient truth: the implicit adjoint of MJX's constraint solve (jaxsync._physics.solve_implicit).
+
+Float64. One physics step in a clamp (both pads and the stand in contact, the
+object sliding so that the elliptic cone's middle zone is active): the
+implicit derivative against reverse mode through 40 unrolled Newton
+iterations (where both have converged) and against central differences. The
+whole 4 s task (approach, first contact, squeeze, lift, carry, hold) at a gain
+point no other test uses, on randomised scenarios: the tuner's loss gradient
+against central differences.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from jaxsync import _physics, _scenario, _task
+
+UNROLLED_ITERATIONS = 40
+
+
+def _clamp_state(model):
+    """A state with both pads pressed 0.5 mm into the object, the object
+    sliding (tangential contact forces), random joint velocities."""
+    s = _scenario.default_scenario(object_offset=[0.0, 0.0, 0.0], object_radius=0.1005)
+    mx = _scenario.apply_to_model(model.mjx_model, s, model.index)
+    c = _task.consts(model, _task.REST_KEY)
+    qpos = np.asarray(_task.initial_qpos(model, c, s))
+    rng = np.random.default_rng(3)
+    qvel = 0.05 * rng.standard_normal(model.mj_model.nv)
+    va = model.index.object_dof_adr
+    qvel[va : va + 3] = [0.01, -0.004, 0.02]
+    d = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
+    d = d.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    ctrl = jnp.asarray(2.0 * rng.standard_normal(model.mj_model.nu))
+    return mx, d, ctrl
+
+
+def _unrolled_model(mx):
+    """The same model with one Newton iteration per ``mjx.solve`` call (the
+    solve is then a plain function, differentiable through its iterations)."""
+    opt = mx.opt.replace(iterations=1)
+    return mx.replace(opt=opt)
+
+
+@pytest.fixture(scope="module")
+def one_step(model):
+    """f(p) = a scalar of one physics step's qacc, constraint forces and wrist
+    sensors, with p entering the velocity, the torques and the friction; and
+    its gradient by the implicit adjoint and through unrolled iterations."""
+    mx, d, ctrl = _clamp_state(model)
+    weights = jnp.asarray(np.random.default_rng(5).standard_normal(20))
+    nv = model.mj_model.nv
+
+    def f(p, unrolled):
+        m = _unrolled_model(mx) if unrolled else mx
+        fr = m.pair_friction.at[:, :2].multiply(1.0 + p[-1])
+        m = m.replace(pair_friction=fr)
+        dd = _physics.before_control(m, d.replace(qvel=d.qvel + p[:nv]))
+        out = _physics.after_control(m, dd, ctrl + p[nv : nv + model.mj_model.nu], UNROLLED_ITERATIONS)
+        return (
+            jnp.dot(weights, out.qacc)
+            + jnp.sum(out._impl.efc_force**2) * 1e-2
+            + jnp.sum(out.sensordata[:12] * weights[:12])
+        )
+
+    p0 = jnp.zeros(nv + model.mj_model.nu + 1)
+    value = jax.jit(f, static_argnums=1)
+    grad = jax.jit(jax.grad(f), static_argnums=1)
+    return {"f": value, "grad": grad, "p0": p0, "mx": mx, "d": d, "ctrl": ctrl}
+
+
+def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
+    """The implicit path changes no value: qacc and forces equal plain
+    mjx.solve's, bit for bit. And the step under test is the hard case: both
+    pads pressed in with a normal force, friction acting (the elliptic cone's
+    middle zone)."""
+    mx, d, ctrl = one_step["mx"], one_step["d"], one_step["ctrl"]
+
+    @jax.jit
+    def both(d, u):
+        d = _physics.before_control(mx, d).replace(ctrl=u)
+        d = mjx.fwd_acceleration(mx, mjx.fwd_actuation(mx, d))
+        return mjx.solve(mx, d), _physics.solve_implicit(mx, d)
+
+    plain, implicit = both(d, ctrl)
+    np.testing.assert_array_equal(np.asarray(plain.qacc), np.asarray(implicit.qacc))
+    np.testing.assert_array_equal(np.asarray(plain._impl.efc_force), np.asarray(implicit._impl.efc_force))
+    r = _physics.constraint_residual(mx, plain, plain.qacc)[0]
+    assert float(jnp.linalg.norm(r)) < 1e-8 * float(jnp.linalg.norm(plain.qfrc_smooth))
+    for arm in model.index.arms:
+        assert float(plain._impl.contact.dist[arm.contact_id]) < -4e-4
+        f = np.asarray(_physics.contact_force_on(mx, plain, arm.contact_id, arm.object_is_geom1))
+        normal = abs(f[1])  # the clamping axis is y
+        assert normal > 1.0
+        assert np.hypot(f[0], f[2]) > 1e-3 * normal  # friction acts
+
+
+def test_implicit_equals_unrolled_where_both_converge(one_step):
+    g_implicit = np.asarray(one_step["grad"](one_step["p0"], False))
+    g_unrolled = np.asarray(one_step["grad"](one_step["p0"], True))
+    assert np.all(np.isfinite(g_implicit))
+    # the converged values agree, so do the derivatives
+    assert abs(float(one_step["f"](one_step["p0"], False) - one_step["f"](one_step["p0"], True))) < 1e-9
+    np.testing.assert_allclose(g_implicit, g_unrolled, rtol=1e-6, atol=1e-6 * np.abs(g_unrolled).max())
+
+
+def test_one_step_gradient_matches_central_differences(one_step):
+    f, p0 = one_step["f"], one_step["p0"]
+    g = np.asarray(one_step["grad"](p0, False))
+    h = 1e-6
+    fd = np.array([(f(p0.at[i].add(h), False) - f(p0.at[i].add(-h), False)) / (2 * h) for i in range(p0.size)])
+    assert np.linalg.norm(fd - g) <= 1e-5 * np.linalg.norm(fd)
+
+
+# ------------------------------------------------------------- the full task
+
+
+def _four_point(fb, flat, h):
+    """Central differences of fb (batched over parameter vectors), O(h^4)."""
+    n = flat.size
+    pts = jnp.stack([flat.at[i].add(c * h) for i in range(n) for c in (-2, -1, 1, 2)])
+    vals = np.concatenate([np.asarray(fb(pts[j : j + 16])) for j in range(0, len(pts), 16)]).reshape(n, 4)
+    return (vals[:, 0] - 8 * vals[:, 1] + 8 * vals[:, 2] - vals[:, 3]) / (12 * h)
+
+
+@pytest.mark.slow
+def test_full_task_gradient_matches_central_differences(full_task_loss):
+    """The exact full-horizon gradient (2000 steps, no truncation) of the tuning
+    loss: cosine >= 0.9999 and relative error <= 1e-4 against central
+    differences, at a gain point no other test uses, on randomised scenarios."""
+    from jax.flatten_util import ravel_pytree
+
+    loss, theta, scen = full_task_loss["loss"], full_task_loss["theta"], full_task_loss["scenarios"]
+    (value, _), grad = full_task_loss["value_and_grad"](theta, scen)
+    g = np.asarray(ravel_pytree(grad)[0])
+    flat, unravel = ravel_pytree(theta)
+    fb = jax.jit(jax.vmap(lambda th: loss(unravel(th), scen)[0]))
+    fd = _four_point(fb, flat, 1e-3)
+    cos = fd @ g / np.linalg.norm(fd) / np.linalg.norm(g)
+    rel = np.linalg.norm(fd - g) / np.linalg.norm(fd)
+    assert np.isfinite(value) and cos >= 0.9999 and rel <= 1e-4, (cos, rel)
+
+
+@pytest.fixture(scope="module")
+def full_task_loss(model):
+    from jaxsync.optimize.cost import CostWeights
+    from jaxsync.optimize.params import TuneSpec
+    from jaxsync.optimize.tasks import sample_scenarios
+    from jaxsync.optimize.tune import TuneConfig, make_loss
+
+    from jaxsync._gains import default_gains
+
+    base = default_gains()
+    spec = TuneSpec()
+    cfg = TuneConfig(batch=2, truncate_every=None)
+    loss = make_loss(model, spec, base, cfg, CostWeights())
+    theta0 = spec.init(base)
+    # a point other than the defaults
+    theta = jax.tree_util.tree_map(lambda x: x + 0.1 * jnp.cos(jnp.arange(x.size).reshape(x.shape) + 1.0), theta0)
+    scen = sample_scenarios(jax.random.key(7), 2, _scenario.default_scenario())
+    return {
+        "loss": loss,
+        "theta": theta,
+        "scenarios": scen,
+        "value_and_grad": jax.jit(jax.value_and_grad(loss, has_aux=True)),
+    }
