@@ -14,6 +14,26 @@ jax.config.update("jax_enable_x64", True)
 enable_compilation_cache()
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _free_compiled_programs():
+    """After each test module, drop the compiled programs it left in memory
+    (JAX's caches and jaxsync's own), so that the process does not hold every
+    program of the session at once (the suite's peak memory). Programs a later
+    module needs again come back from the persistent compilation cache."""
+    yield
+    import gc
+
+    from jaxsync.optimize import sweep_eval
+
+    from jaxsync import _rollout
+
+    _rollout._jitted.cache_clear()
+    sweep_eval._compiled.cache_clear()
+    sweep_eval.evaluator.cache_clear()
+    jax.clear_caches()
+    gc.collect()
+
+
 @pytest.fixture(scope="session")
 def model():
     import jaxsync
