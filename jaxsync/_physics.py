@@ -29,7 +29,7 @@ from mujoco.mjx._src import collision_driver as _collision_driver
 from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
-from mujoco.mjx._src.types import IntegratorType
+from mujoco.mjx._src.types import ConeType, IntegratorType
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -104,41 +104,53 @@ def constraint_residual(m: mjx.Model, d: mjx.Data, qacc: jax.Array):
     return ctx.Ma - d.qfrc_smooth - ctx.qfrc_constraint, ctx.qfrc_constraint, ctx.efc_force
 
 
-def _tangent_solve(g, y: jax.Array) -> jax.Array:
-    """Solve g(x) = y for the linearised residual g (the Newton Hessian, nv x nv).
-
-    The Hessian is built column by column from ``g`` at zero, so it depends on
-    the primal solution only and the solve stays linear in ``y`` (transposable
-    for reverse mode). H is symmetric positive definite (M plus a positive
-    semi-definite constraint term): Cholesky.
-    """
-    h = jax.jacfwd(g)(jnp.zeros_like(y))
-    h = 0.5 * (h + h.T)
-    return jax.scipy.linalg.cho_solve(jax.scipy.linalg.cho_factor(h), y)
+def newton_hessian(m: mjx.Model, d: mjx.Data, qacc: jax.Array) -> jax.Array:
+    """H = dr/dqacc (nv, nv) at ``qacc``: the mass matrix plus J^T C J, with C
+    the active rows' D and the elliptic cone's Hessian blocks (MJX's Newton
+    Hessian, ``solver._update_gradient``), symmetrised."""
+    ctx = _solver.Context.create(m, d.replace(qacc=qacc), grad=False)
+    efc_d = d._impl.efc_D
+    if m.opt.cone == ConeType.ELLIPTIC:
+        cm = jnp.diag(efc_d * ctx.active)
+        contact = d._impl.contact
+        cone = contact.dim > 1
+        for i, (condim, addr) in enumerate(zip(contact.dim[cone], contact.efc_address[cone], strict=True)):
+            cm = cm.at[addr : addr + condim, addr : addr + condim].add(ctx.h[i, :condim, :condim])
+        h = d._impl.efc_J.T @ cm @ d._impl.efc_J
+    else:
+        h = (d._impl.efc_J.T * (efc_d * ctx.active)) @ d._impl.efc_J
+    h = _support.full_m(m, d) + h
+    return 0.5 * (h + h.T)
 
 
 def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
-    """``mjx.solve`` (converged, its ``while_loop``) with an implicit adjoint.
+    """``mjx.solve`` (converged, its ``while_loop``) with an implicit derivative.
 
     The forward pass is MJX's own solve, to its iterations and tolerance. The
     derivative is not taken through the iterations (reverse mode cannot pass
     MJX's ``while_loop``, and unrolling them costs memory and time): by the
     implicit function theorem at r(qacc*) = 0 (:func:`constraint_residual`),
-    d qacc* = -H^-1 (dr/dp) dp, one nv x nv solve per step
-    (``jax.lax.custom_root``). The constraint forces are then recomputed from
-    qacc* so that their derivatives flow to the contact forces and the
-    wrist sensors. Forward values are exactly MJX's: the recomputed forces
-    only carry derivatives (x + (y - stop_gradient(y)) adds exactly zero).
+    d qacc* = -H^-1 (dr/dp) dp with H the Newton Hessian at the solution
+    (:func:`newton_hessian`, factored once per step by Cholesky):
+    ``jax.lax.custom_root``, so forward mode (``jax.jvp``) and reverse mode
+    both work. The constraint forces are then recomputed from qacc* so that
+    their derivatives flow to the contact forces and the wrist sensors.
+    Forward values are exactly MJX's: the recomputed forces only carry
+    derivatives (x + (y - stop_gradient(y)) adds exactly zero).
     """
+    d_const = jax.lax.stop_gradient(d)
+    solved = mjx.solve(m, d_const)
+    chol = jax.scipy.linalg.cho_factor(newton_hessian(m, d_const, solved.qacc))
 
     def residual(qacc):
         return constraint_residual(m, d, qacc)[0]
 
-    def forward(_, guess):
-        dd = mjx.solve(m, d)
-        return dd.qacc, (dd.qfrc_constraint, dd._impl.efc_force)
-
-    qacc, (qfrc_solved, efc_solved) = jax.lax.custom_root(residual, d.qacc, forward, _tangent_solve, has_aux=True)
+    qacc = jax.lax.custom_root(
+        residual,
+        solved.qacc,
+        solve=lambda _, guess: solved.qacc,
+        tangent_solve=lambda _, y: jax.scipy.linalg.cho_solve(chol, y),
+    )
     _, qfrc, efc = constraint_residual(m, d, qacc)
 
     def carry(value, differentiable):
@@ -147,8 +159,8 @@ def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return d.tree_replace(
         {
             "qacc": qacc,
-            "qfrc_constraint": carry(qfrc_solved, qfrc),
-            "_impl.efc_force": carry(efc_solved, efc),
+            "qfrc_constraint": carry(solved.qfrc_constraint, qfrc),
+            "_impl.efc_force": carry(solved._impl.efc_force, efc),
         }
     )
 

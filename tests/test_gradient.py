@@ -169,3 +169,12 @@ def full_task_loss(model):
         "scenarios": scen,
         "value_and_grad": jax.jit(jax.value_and_grad(loss, has_aux=True)),
     }
+
+
+def test_forward_mode_agrees_with_reverse_mode(one_step):
+    """jax.jvp through the implicit solve (custom_root supports both modes)."""
+    f, p0 = one_step["f"], one_step["p0"]
+    v = jnp.asarray(np.random.default_rng(11).standard_normal(p0.size))
+    g = one_step["grad"](p0, False)
+    _, dv = jax.jit(lambda p, v: jax.jvp(lambda q: f(q, False), (p,), (v,)))(p0, v)
+    assert abs(float(dv - g @ v)) <= 1e-9 * float(jnp.linalg.norm(g) * jnp.linalg.norm(v))
