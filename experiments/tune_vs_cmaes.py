@@ -1,8 +1,8 @@
 """Gradient tuning (Adam through MJX) against CMA-ES, for the same wall-clock budget.
 
 Both methods optimise the same parameters (optimize/params.py, unconstrained
-theta), on the same batched rollouts (the training task, the differentiable
-solver setting, batches of randomised scenarios seeded by iteration), and are
+theta), on the same batched rollouts (the training task, jaxsync's one
+solver setting with its exact gradient, batches of randomised scenarios seeded by iteration), and are
 scored on the same held-out scenarios (another seed). Each method gets the
 same optimisation wall time; compile time and the held-out scoring are not
 counted (they are reported). Writes ``tune_vs_cmaes.json`` (each method's
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
     jaxsync.enable_compilation_cache()
     _io.ensure_writable_dir(args.out)
 
-    model = jaxsync.load_model(solver="differentiable")
+    model = jaxsync.load_model()
     spec, base = TuneSpec(), jaxsync.default_gains()
     cfg = TuneConfig(
         batch=args.batch, learning_rate=args.lr, iterations=10_000, schedule="constant", seed=args.seed, task="short"

@@ -21,23 +21,26 @@ from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
 ARMS = ("r", "l")
 JOINTS_PER_ARM = 7
 
-SolverName = Literal["differentiable", "accurate"]
+SolverName = Literal["accurate", "unrolled"]
 
-# Solver settings, both Newton. ``differentiable``: one outer iteration per
-# ``mjx.solve`` call, so MJX runs the solver body instead of a ``while_loop``
-# and reverse-mode ``jax.grad`` can pass through; the call is unrolled
-# ``SOLVER_UNROLL`` times per step, each warm-started from the last (a single
-# iteration launched the clamped ball off the pads; three matched the
-# 20-iteration solve: docs/tuning.md). Both keep the model file's elliptic
-# cone: the pyramidal cone changed the task (grip-force error 4.2 % against
-# 0.5 %), and the NaN gradients MJX's elliptic cone gave are fixed by
-# ``_physics.patch_mjx_elliptic_gradient``. ``accurate``: 20 iterations
-# (reference runs, MuJoCo C comparisons).
+# Solver settings, both Newton on the model file's elliptic cone.
+# ``accurate`` is jaxsync's one physics: MJX's converged solve (20 iterations,
+# its ``while_loop``) for every rollout, compare, sweep, validation and
+# training; gradients through it are implicit (``_physics.solve_implicit``:
+# the implicit function theorem at the solve's optimality condition), exact
+# for the converged physics. ``unrolled`` is the former "differentiable"
+# setting, kept only to compare against (the benchmark's old path): one
+# outer iteration per ``mjx.solve`` call, the call unrolled ``SOLVER_UNROLL``
+# times per step and differentiated through (a single iteration launched the
+# clamped ball off the pads; three matched the converged solve on the default
+# gains). It needs ``_physics.patch_mjx_elliptic_gradient`` for finite
+# gradients; it is a different physics on short in-contact horizons
+# (docs/tuning.md).
 SOLVERS: dict[str, dict[str, int]] = {
-    "differentiable": {"iterations": 1, "ls_iterations": 4},
     "accurate": {"iterations": 20, "ls_iterations": 10},
+    "unrolled": {"iterations": 1, "ls_iterations": 4},
 }
-SOLVER_UNROLL = {"differentiable": 3, "accurate": 1}
+SOLVER_UNROLL = {"unrolled": 3, "accurate": 1}
 
 
 def default_model_path() -> str:
@@ -228,6 +231,11 @@ class DualArmModel:
 def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate") -> mujoco.MjModel:
     """Compile the MJCF file to a MuJoCo C model with the chosen solver settings."""
     path = str(path) if path is not None else default_model_path()
+    if solver == "differentiable":
+        raise ConfigError(
+            "solver 'differentiable' is gone: the 'accurate' solver is differentiable (implicit adjoint of its "
+            "converged solve) and is the one to use; 'unrolled' is the former setting"
+        )
     if solver not in SOLVERS:
         raise ConfigError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
     if not os.path.isfile(path):
@@ -250,9 +258,10 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") 
 
     Args:
       path: an MJCF file; the packaged paper model when ``None``.
-      solver: ``"differentiable"`` (Newton, 1 iteration: reverse-mode
-        ``jax.grad`` through ``mjx.step`` works) or ``"accurate"`` (Newton,
-        20 iterations).
+      solver: ``"accurate"`` (the default and jaxsync's one physics: Newton
+        converged, differentiable by the implicit adjoint) or ``"unrolled"``
+        (the former differentiable setting, three one-iteration solves per
+        step, kept to compare against).
 
     Raises:
       ModelFileError: the file is missing, unreadable or does not compile.

@@ -3,7 +3,9 @@
 Each iteration: sample a batch of randomised scenarios (``tasks``, seeded by
 the iteration, so a resumed run sees the same batches), take
 ``jax.value_and_grad`` of the mean cost (``cost``) through the batched
-closed-loop rollouts on the differentiable solver setting, and take one optax
+closed-loop rollouts (jaxsync's one physics: MJX's converged solve,
+differentiated implicitly; the exact full-horizon gradient unless
+``truncate_every`` is set), and take one optax
 step on the unconstrained parameters (``params``, ``loop``; a non-finite
 gradient skips the step). Validation scenarios pick the iterate; the loop's
 state is a :class:`TuneState`, checkpointed (``checkpoint``) every few
@@ -60,7 +62,7 @@ class TuneConfig:
     heldout_batch: int = 16
     train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
     eval_duration: float = 4.0
-    truncate_every: int | None = 100
+    truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
     checkpoint_every: int = 5
     max_bad_steps: int = 3
     train_start: str = "approach"  # keyframe the training rollouts start from
@@ -107,16 +109,16 @@ class TuneConfig:
 # ------------------------------------------------------------------- the loss
 
 
-def make_loss(diff_model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights):
+def make_loss(model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights):
     """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready.
 
     Example:
-      >>> loss = make_loss(jaxsync.load_model(solver="differentiable"), TuneSpec(),
+      >>> loss = make_loss(jaxsync.load_model(), TuneSpec(),
       ...                  jaxsync.default_gains(), TuneConfig(task="short"), CostWeights())
       >>> value, terms = loss(TuneSpec().init(jaxsync.default_gains()), batch)  # doctest: +SKIP
     """
     fn = make_rollout(
-        diff_model,
+        model,
         "synchronous",
         training_base(cfg)[1],
         remat=True,
@@ -250,12 +252,12 @@ def _validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log) 
     return state._replace(validation=validation, kept=kept)
 
 
-def _traced_value_and_grad(loss, diff_model, spec, base, cfg, weights, args, log):
+def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
     """jit(value_and_grad(loss)), its traced form kept on disk between runs
     (``jaxsync._cache.traced_on_disk``), keyed by everything the loss closes over."""
     import hashlib
 
-    with open(diff_model.path, "rb") as f:
+    with open(model.path, "rb") as f:
         model_hash = hashlib.sha256(f.read()).hexdigest()
     program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
     key = repr(
@@ -265,9 +267,9 @@ def _traced_value_and_grad(loss, diff_model, spec, base, cfg, weights, args, log
             _gains.to_dict(base),
             program,
             tuple(weights),
-            diff_model.path,
+            model.path,
             model_hash,
-            diff_model.solver,
+            model.solver,
         )
     )
     return traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
@@ -303,7 +305,7 @@ def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: Tu
 
 
 def tune(
-    diff_model,
+    model,
     spec: TuneSpec,
     base: _gains.Gains,
     cfg: TuneConfig,
@@ -327,15 +329,15 @@ def tune(
     ends. ``on_iteration(i, theta, row)`` is called after each step.
 
     Example:
-      >>> diff = jaxsync.load_model(solver="differentiable")
-      >>> result = tune(diff, TuneSpec(), jaxsync.default_gains(), TuneConfig(iterations=2, task="short"))
+      >>> cfg = TuneConfig(iterations=2, task="short")
+      >>> result = tune(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(), cfg)
       >>> result.gains.k_rk, result.history[-1]["cost"]  # doctest: +SKIP
     """
     from tqdm import tqdm
 
     cfg.validate()
     weights = weights if weights is not None else CostWeights()
-    loss = make_loss(diff_model, spec, base, cfg, weights)
+    loss = make_loss(model, spec, base, cfg, weights)
     opt = cfg.optimizer_transform()
     train_base = training_base(cfg)[0]
     ckpt = os.path.join(_io.ensure_writable_dir(out), "checkpoint.pkl") if out else None
@@ -353,7 +355,7 @@ def tune(
             scen = training_batch(cfg, i, train_base)
             if value_and_grad is None:
                 value_and_grad = _traced_value_and_grad(
-                    loss, diff_model, spec, base, cfg, weights, (state.theta, scen), bar.write
+                    loss, model, spec, base, cfg, weights, (state.theta, scen), bar.write
                 )
             state, row = _step(state, value_and_grad, opt, scen, cfg, spec, base, bar.write)
             bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")

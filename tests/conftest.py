@@ -42,10 +42,11 @@ def model():
 
 
 @pytest.fixture(scope="session")
-def diff_model():
+def unrolled_model():
+    """The former differentiable setting (one Newton iteration per solve), kept to compare against."""
     import jaxsync
 
-    return jaxsync.load_model(solver="differentiable")
+    return jaxsync.load_model(solver="unrolled")
 
 
 @pytest.fixture(scope="session")

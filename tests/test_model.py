@@ -114,13 +114,16 @@ def test_only_explicit_pairs_collide(model):
     }  # analytic in MJX
 
 
-def test_solver_settings(model, diff_model):
-    assert diff_model.mj_model.opt.iterations == 1
-    # the same physics: elliptic (its MJX gradient made finite by _physics.patch_mjx_elliptic_gradient)
-    assert diff_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
+def test_solver_settings(model, unrolled_model):
+    assert unrolled_model.mj_model.opt.iterations == 1
+    # the same cone: elliptic (its unrolled MJX gradient made finite by _physics.patch_mjx_elliptic_gradient)
+    assert unrolled_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.iterations > 1
-    for mdl in (model, diff_model):
+    assert model.solver == "accurate" and jaxsync.load_model().solver == "accurate"  # the default
+    with pytest.raises(jaxsync.ConfigError, match="'accurate' solver is differentiable"):
+        jaxsync.load_model(solver="differentiable")
+    for mdl in (model, unrolled_model):
         assert mdl.mj_model.opt.solver == mujoco.mjtSolver.mjSOL_NEWTON
     with pytest.raises(jaxsync.ConfigError, match="solver must be one of"):
         jaxsync.load_model(solver="pgs")
@@ -201,10 +204,12 @@ def test_cli_info_prints_versions_and_model(tmp_path):
 
 
 def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
-    """The elliptic-cone fix (jaxsync._physics.patch_mjx_elliptic_gradient) is installed."""
+    """The elliptic-cone fix (jaxsync._physics.patch_mjx_elliptic_gradient) is installed by load_model."""
     from mujoco.mjx._src import solver
 
     from jaxsync._physics import sqrt_zero_safe
+
+    jaxsync.load_model(solver="unrolled")
 
     assert solver.jp.sqrt is sqrt_zero_safe
     assert solver.jp.zeros is jax.numpy.zeros  # everything else is jax.numpy's

@@ -84,7 +84,7 @@ def test_scenario_sampling_is_seeded_and_in_range():
 
 
 @pytest.fixture(scope="module")
-def short_loss(diff_model):
+def short_loss(model):
     """The short tuning loss's value and gradient, both from the one program
     ``tune()`` runs (jit(value_and_grad(loss)), kept on disk by
     ``traced_on_disk``): compiled once for the gradient check and the resume test."""
@@ -92,11 +92,11 @@ def short_loss(diff_model):
 
     cfg = TuneConfig(**SHORT)
     spec, base, weights = TuneSpec(), _gains.default_gains(), CostWeights()
-    loss = make_loss(diff_model, spec, base, cfg, weights)
+    loss = make_loss(model, spec, base, cfg, weights)
     scen = sample_scenarios(jax.random.key(0), cfg.batch, jaxsync.short_task(**dict(cfg.train_task)))
     theta = spec.init(base)
     x0, unravel = ravel_pytree(theta)
-    value_and_grad = tune_mod._traced_value_and_grad(loss, diff_model, spec, base, cfg, weights, (theta, scen), None)
+    value_and_grad = tune_mod._traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), None)
 
     def value(x):
         return float(value_and_grad(unravel(x), scen)[0][0])
@@ -137,11 +137,11 @@ def _fake_validation(g):
     }
 
 
-def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
+def test_resume_ends_where_an_uninterrupted_run_ends(model, tmp_path):
     cfg = dataclasses.replace(TuneConfig(**SHORT), validate_every=2)
     spec, base = TuneSpec(), _gains.default_gains()
     kw = dict(progress=False, validate=_fake_validation)
-    r_full = tune(diff_model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
+    r_full = tune(model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
     full, hist_full = r_full.gains, r_full.history
     # Ctrl-C during the second iteration's callback (before its validation): a
     # checkpoint is written, then resume to the end
@@ -151,9 +151,9 @@ def test_resume_ends_where_an_uninterrupted_run_ends(diff_model, tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
+        tune(model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
     assert (tmp_path / "b" / "checkpoint.pkl").exists()
-    r_res = tune(diff_model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
+    r_res = tune(model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
     resumed, hist_res = r_res.gains, r_res.history
     assert len(hist_res) == len(hist_full) == cfg.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
@@ -236,7 +236,7 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
     monkeypatch.setattr(tune_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
     calls = {}
 
-    def fake_tune(diff_model, spec, base, cfg, weights=None, *, validate=None, **kw):
+    def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, **kw):
         calls["weights"], calls["cfg"] = weights, cfg
         v0 = {"iteration": 0, **validate(base)}
         last = base._replace(k_rl=0.4)

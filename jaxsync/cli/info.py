@@ -72,5 +72,5 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(sub) -> None:
     p = sub.add_parser("info", help="versions, devices and a summary of the model")
     add_model_argument(p)
-    p.add_argument("--solver", default="accurate", choices=["accurate", "differentiable"])
+    p.add_argument("--solver", default="accurate", choices=["accurate", "unrolled"])
     p.set_defaults(func=run)

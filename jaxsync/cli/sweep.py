@@ -33,7 +33,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the random points (0)")
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated per rollout (4)")
     p.add_argument("--controller", default="synchronous", choices=list(CONTROLLERS))
-    p.add_argument("--solver", default="accurate", choices=["accurate", "differentiable"])
+    p.add_argument("--solver", default="accurate", choices=["accurate", "unrolled"])
     p.add_argument("--gains", default=None, help="JSON file of base gains (default: built-in)")
     p.add_argument(
         "--chunk",

@@ -73,8 +73,8 @@ def run(args) -> int:
     fingerprint = {k: v for k, v in options.items() if k not in ("resume", "iterations", "out", "cache_dir")}
 
     t_start = time.perf_counter()
-    accurate = load_model(args.model, solver="accurate")
-    evaluate = tuning.make_evaluator(accurate, cfg.eval_duration)
+    model = load_model(args.model)  # one physics: training, validation and held-out scoring alike
+    evaluate = tuning.make_evaluator(model, cfg.eval_duration)
     held = tasks.heldout_scenarios(cfg)
     summary_path = os.path.join(args.out, "summary.json")
     before = None
@@ -90,7 +90,6 @@ def run(args) -> int:
         before = tuning.eval_summary(evaluate(base, held))
         _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
 
-    diff_model = load_model(args.model, solver="differentiable")
     print(
         f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
         f"(the first iteration compiles the gradient, minutes on a small CPU)",
@@ -109,7 +108,7 @@ def run(args) -> int:
             flush=True,
         )
     result = tuning.tune(
-        diff_model,
+        model,
         spec,
         base,
         cfg,
@@ -181,7 +180,13 @@ def add_parser(sub) -> None:
     p.add_argument("--freeze", default=None, help="comma-separated parameters to keep fixed")
     p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")
     p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")
-    p.add_argument("--truncate-every", type=int, default=100, help="truncated backprop window, steps (0: none)")
+    p.add_argument(
+        "--truncate-every",
+        type=int,
+        default=0,
+        help="truncate backpropagation into windows of this many steps (0, the default: the exact full-horizon "
+        "gradient; truncation changed its direction, docs/tuning.md)",
+    )
     p.add_argument("--seed", type=int, default=0, help="training scenarios seed (0)")
     p.add_argument("--heldout-seed", type=int, default=1000, help="held-out scenarios seed (1000)")
     p.add_argument("--heldout-batch", type=int, default=16, help="held-out scenarios (16)")
