@@ -108,23 +108,21 @@ def short_loss(model):
 
 
 def test_gradient_matches_central_differences(short_loss):
-    """Reverse-mode jax.grad through the closed-loop MJX rollout (125 steps in
-    contact, float64) against central differences, per tuned parameter: each
-    entry within 2 % of the largest entry's magnitude (or 1e-3 relative where it
-    is large), and along a random direction within 1 %."""
+    """The tuner's own gradient program (implicit adjoint through 125 steps in
+    contact, float64) against central differences along three random
+    directions, each within 1e-4 of the gradient's norm (the full task,
+    per parameter: tests/test_gradient.py)."""
     value, grad, x0 = short_loss
     g = np.asarray(grad(x0))
     assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
-    eps = 1e-5
-    fd = np.array(
-        [(float(value(x0.at[i].add(eps))) - float(value(x0.at[i].add(-eps)))) / (2 * eps) for i in range(x0.size)]
-    )
-    scale = np.abs(g).max()
-    np.testing.assert_allclose(g, fd, rtol=1e-3, atol=0.02 * scale)
-    u = np.random.default_rng(1).standard_normal(x0.size)
-    u /= np.linalg.norm(u)
-    dd = (float(value(x0 + eps * u)) - float(value(x0 - eps * u))) / (2 * eps)
-    assert abs(dd - g @ u) <= 0.01 * abs(g @ u) + 1e-3 * scale
+    h = 1e-3
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        u = rng.standard_normal(x0.size)
+        u /= np.linalg.norm(u)
+        f = [float(value(x0 + c * h * u)) for c in (-2, -1, 1, 2)]
+        dd = (f[0] - 8 * f[1] + 8 * f[2] - f[3]) / (12 * h)
+        assert abs(dd - g @ u) <= 1e-4 * np.linalg.norm(g), (dd, g @ u)
 
 
 def _fake_validation(g):
