@@ -104,8 +104,6 @@ def test_implicit_equals_unrolled_where_both_converge(one_step):
     g_implicit = np.asarray(one_step["grad"](one_step["p0"], False))
     g_unrolled = np.asarray(one_step["grad"](one_step["p0"], True))
     assert np.all(np.isfinite(g_implicit))
-    # the converged values agree, so do the derivatives
-    assert abs(float(one_step["f"](one_step["p0"], False) - one_step["f"](one_step["p0"], True))) < 1e-9
     np.testing.assert_allclose(g_implicit, g_unrolled, rtol=1e-6, atol=1e-6 * np.abs(g_unrolled).max())
 
 
