@@ -143,7 +143,7 @@ def gradient_functions(duration: float, remat: bool = True):
     from jaxsync._model import load_model
     from jaxsync._rollout import make_rollout
 
-    fn = make_rollout(load_model(solver="differentiable"), "synchronous", duration, remat=remat)
+    fn = make_rollout(load_model(solver="unrolled"), "synchronous", duration, remat=remat)
 
     def cost(g, s):
         return summarize(fn(g, s), s).rms_resultant_N
@@ -203,7 +203,7 @@ def small_gradient():
     from jaxsync._physics import before_control, put_data
     from jaxsync._sensing import sense
 
-    model = load_model(solver="differentiable")
+    model = load_model(solver="unrolled")
     mx, index = model.mjx_model, model.index
     d = put_data(model.mj_model, mujoco.MjData(model.mj_model))
     q0 = jnp.asarray(model.keyframe_qpos("grasp"))
@@ -284,7 +284,7 @@ def child(mode: str, cfg: dict) -> dict:
         from jaxsync.optimize.loop import apply_update
 
         rss0 = _maxrss_gib()
-        fn = make_rollout(load_model(solver="differentiable"), "synchronous", cfg["duration"], remat=True)
+        fn = make_rollout(load_model(solver="unrolled"), "synchronous", cfg["duration"], remat=True)
         opt = optax.adam(1e-3)
 
         def loss(g, s):
