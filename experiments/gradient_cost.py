@@ -1,0 +1,91 @@
+"""The tuning gradient's cost, old path against new, in one run (issue 12).
+
+old: the former training physics ("unrolled": three one-iteration Newton
+     solves per step, differentiated through) with 100-step truncation;
+new: jaxsync's one physics (MJX's converged solve) with the implicit
+     adjoint, the exact full-horizon gradient.
+Both: the tuning cost of one rollout of the short task (2 s, 1000 steps),
+rematerialised scan, batch 1, float64. Forward and value_and_grad of each
+path are timed alternately (best of N) so that a change in load hits all
+alike; the ratio is gradient / forward of the same physics. Writes
+``gradient_cost.json``.
+
+    python experiments/gradient_cost.py --repeats 5 --out results/gradient_cost
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+from jaxsync.optimize.cost import CostWeights, cost
+
+import jaxsync
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--duration", type=float, default=2.0)
+    p.add_argument("--out", default="results/gradient_cost")
+    args = p.parse_args()
+    jax.config.update("jax_enable_x64", True)
+    jaxsync.enable_compilation_cache()
+    s, g = jaxsync.short_task(), jaxsync.default_gains()
+    paths = {
+        "old (unrolled, truncated 100)": (jaxsync.load_model(solver="unrolled"), 100),
+        "new (converged, implicit, exact)": (jaxsync.load_model(), None),
+    }
+    fns = {}
+    for name, (model, trunc) in paths.items():
+        roll = jaxsync.make_rollout(model, "synchronous", args.duration, remat=True, truncate_every=trunc)
+
+        def loss(gains, s, roll=roll):
+            return cost(roll(gains, s), s, CostWeights())
+
+        t0 = time.perf_counter()
+        fwd = jax.jit(loss)
+        jax.block_until_ready(fwd(g, s))
+        t1 = time.perf_counter()
+        grad = jax.jit(jax.value_and_grad(loss))
+        jax.block_until_ready(grad(g, s))
+        t2 = time.perf_counter()
+        fns[name] = (fwd, grad)
+        print(f"{name}: first forward call {t1 - t0:.1f} s, first gradient call {t2 - t1:.1f} s", flush=True)
+    times = {name: {"forward": [], "gradient": []} for name in fns}
+    for _ in range(args.repeats):
+        for name, (fwd, grad) in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fwd(g, s))
+            t1 = time.perf_counter()
+            jax.block_until_ready(grad(g, s))
+            t2 = time.perf_counter()
+            times[name]["forward"].append(t1 - t0)
+            times[name]["gradient"].append(t2 - t1)
+    result = {"duration_s": args.duration, "repeats": args.repeats, "load_average": os.getloadavg(), "paths": {}}
+    for name, t in times.items():
+        f, gr = min(t["forward"]), min(t["gradient"])
+        value, grad = fns[name][1](g, s)
+        finite = bool(all(jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(grad)))
+        result["paths"][name] = {
+            "forward_s": f,
+            "gradient_s": gr,
+            "gradient_over_forward": gr / f,
+            "cost": float(value),
+            "gradient_finite": finite,
+        }
+        print(f"{name}: forward {f:.3f} s, gradient {gr:.3f} s, ratio {gr / f:.2f}, cost {float(value):.5g}")
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, "gradient_cost.json")
+    with open(path + ".tmp", "w") as fh:
+        json.dump(result, fh, indent=2)
+    os.replace(path + ".tmp", path)
+    print(f"load average after: {os.getloadavg()}; written {path}")
+
+
+if __name__ == "__main__":
+    main()
