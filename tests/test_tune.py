@@ -272,3 +272,11 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
     assert selected["k_rl"] == 0.5 and last["k_rl"] == 0.4
     for f in ("history.csv", "loss.png"):
         assert (out / f).stat().st_size > 0
+
+
+def test_result_line_says_higher_when_tuning_made_it_worse():
+    from jaxsync.cli.tune import change_text
+
+    assert change_text(0.01183, 0.10249) == " (8.66x higher)"
+    assert change_text(0.01062, 0.00390) == " (2.72x lower)"
+    assert change_text(None, 0.1) == "" and change_text(0.1, None) == ""

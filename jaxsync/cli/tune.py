@@ -153,10 +153,19 @@ def run(args) -> int:
     }
     _io.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
-    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + (f" ({b / a:.2f}x lower)" if a else ""))
+    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
     print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
     print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
+
+
+def change_text(before: float | None, after: float | None) -> str:
+    """' (2.73x lower)' or ' (8.66x higher)': the factor always >= 1, the direction in words."""
+    if not before or not after:
+        return ""
+    if after <= before:
+        return f" ({before / after:.2f}x lower)"
+    return f" ({after / before:.2f}x higher)"
 
 
 def add_parser(sub) -> None:
