@@ -120,15 +120,30 @@ def to_dict(g: Gains) -> dict:
     return {k: np.asarray(v).tolist() for k, v in g._asdict().items()}
 
 
+def _is_numbers(v) -> bool:
+    """A number, or a (nested) list of numbers; JSON's true/false are not numbers here."""
+    if isinstance(v, bool | np.bool_):
+        return False
+    if isinstance(v, np.ndarray):
+        return v.size > 0 and (np.issubdtype(v.dtype, np.floating) or np.issubdtype(v.dtype, np.integer))
+    if isinstance(v, int | float | np.floating | np.integer):
+        return True
+    return isinstance(v, list | tuple) and len(v) > 0 and all(_is_numbers(x) for x in v)
+
+
 def from_dict(d: dict, base: Gains | None = None) -> Gains:
     """Gains from a (possibly partial) dict; missing keys keep ``base`` (defaults)."""
     base = base if base is not None else default_gains()
+    if not isinstance(d, dict):
+        raise ConfigError(f"gains must be a JSON object of name: value, got {type(d).__name__} {d!r}")
     unknown = sorted(set(d) - set(Gains._fields))
     if unknown:
         raise ConfigError(f"unknown gain(s) {unknown}; known: {list(Gains._fields)}")
     fields = base._asdict()
     for k, v in d.items():
         ref = np.asarray(fields[k])
+        if not _is_numbers(v):
+            raise ConfigError(f"gain {k!r} must be a number or a list of numbers (not true/false or text), got {v!r}")
         arr = np.asarray(v, dtype=float)
         if arr.shape == () and ref.shape != ():
             arr = np.full(ref.shape, float(arr))  # a scalar for every arm and axis

@@ -75,6 +75,11 @@ class TuneConfig:
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
             raise ConfigError(f"learning rate must be positive, got {self.learning_rate}")
+        if not self.clip_norm > 0 or not math.isfinite(self.clip_norm):
+            raise ConfigError(
+                f"clip (the gradient's global-norm bound) must be a positive number, got {self.clip_norm}: "
+                "0 would zero every update and a negative bound reverse the gradient"
+            )
         for name in ("iterations", "batch", "heldout_batch", "checkpoint_every", "max_bad_steps", "validation_batch"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name.replace('_', ' ')} must be a positive integer, got {getattr(self, name)}")

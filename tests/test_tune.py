@@ -280,3 +280,26 @@ def test_result_line_says_higher_when_tuning_made_it_worse():
     assert change_text(0.01183, 0.10249) == " (8.66x higher)"
     assert change_text(0.01062, 0.00390) == " (2.72x lower)"
     assert change_text(None, 0.1) == "" and change_text(0.1, None) == ""
+
+
+@pytest.mark.parametrize("clip", [0.0, -1.0, float("nan")])
+def test_clip_must_be_positive(clip):
+    with pytest.raises(jaxsync.ConfigError, match="clip"):
+        TuneConfig(clip_norm=clip).validate()
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [({"k_rk": True}, "not true/false"), ({"k_rk": "abc"}, "a number"), (5, "JSON object"), ({"k_rk": []}, "number")],
+)
+def test_gains_values_must_be_numbers(tmp_path, capsys, data, message):
+    import json
+
+    from jaxsync.cli import main
+
+    with pytest.raises(jaxsync.ConfigError, match=message):
+        _gains.from_dict(data)
+    path = tmp_path / "g.json"
+    path.write_text(json.dumps({"gains": data}))
+    assert main(["compare", "--gains", str(path), "--out", str(tmp_path / "out")]) == 2
+    assert message.split()[-1] in capsys.readouterr().err
