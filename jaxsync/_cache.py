@@ -35,7 +35,16 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     path = path or os.environ.get(ENV_VAR) or default_cache_dir()
     if path == "off":
         return None
-    os.makedirs(path, exist_ok=True)
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError as err:
+        from jaxsync._errors import ConfigError
+
+        raise ConfigError(f"compilation cache folder {path}: cannot create it: {err.strerror or err}") from None
+    if not os.access(path, os.W_OK):
+        from jaxsync._errors import ConfigError
+
+        raise ConfigError(f"compilation cache folder {path}: not writable (--cache-dir, $JAXSYNC_CACHE_DIR or 'off')")
     jax.config.update("jax_compilation_cache_dir", path)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

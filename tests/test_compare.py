@@ -121,3 +121,16 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts):
             assert gif.n_frames <= expected and gif.n_frames > expected // 2  # Pillow merges identical frames
             assert gif.size == (2 * 96 + 4, 72)
     assert os.path.getsize(path) > 0
+
+
+def test_infinite_duration_and_bad_cache_dir_are_clear_errors(tmp_path, capsys):
+    from jaxsync.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["compare", "--duration", "inf", "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2 and "finite" in capsys.readouterr().err
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    assert main(["--cache-dir", str(blocker / "xla"), "info"]) == 2
+    err = capsys.readouterr().err
+    assert "compilation cache folder" in err and "Traceback" not in err

@@ -15,6 +15,8 @@ def positive(kind):
             raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
         if not v > 0:
             raise argparse.ArgumentTypeError(f"must be positive, got {text}")
+        if v == float("inf"):
+            raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
         return v
 
     return parse
