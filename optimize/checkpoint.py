@@ -10,9 +10,17 @@ import numpy as np
 from jaxsync import _io
 from jaxsync._errors import ConfigError
 
+# the fields holding JAX arrays; the rest (history rows, validation entries,
+# counters, the options fingerprint) are plain Python and are pickled as they
+# are, so that a resumed run's records equal an uninterrupted run's (turning
+# them into numpy scalars made a resumed run crash at its end: a 0-d array
+# iteration is not a dict key; issue 11)
+ARRAY_FIELDS = ("theta", "opt_state", "kept")
+
 
 def save(path: str, state: dict) -> None:
-    _io.atomic_write_bytes(path, pickle.dumps(jax.tree_util.tree_map(np.asarray, state)))
+    state = {k: jax.tree_util.tree_map(np.asarray, v) if k in ARRAY_FIELDS else v for k, v in state.items()}
+    _io.atomic_write_bytes(path, pickle.dumps(state))
 
 
 def load(path: str) -> dict:

@@ -303,3 +303,23 @@ def test_gains_values_must_be_numbers(tmp_path, capsys, data, message):
     path.write_text(json.dumps({"gains": data}))
     assert main(["compare", "--gains", str(path), "--out", str(tmp_path / "out")]) == 2
     assert message.split()[-1] in capsys.readouterr().err
+
+
+def test_checkpoint_keeps_records_plain(tmp_path):
+    """History rows and validation entries come back as the Python values they
+    were (a 0-d array 'iteration' crashed a resumed run at its end)."""
+    from jaxsync.optimize import checkpoint
+
+    state = {
+        "theta": {"k_rk": jax.numpy.asarray(0.5)},
+        "opt_state": (),
+        "kept": {5: {"k_rk": jax.numpy.asarray(0.4)}},
+        "history": [{"iteration": 0, "cost": 1.25}],
+        "validation": [{"iteration": 5, "settled_peak_resultant_N": 0.01, "per_scenario_peak_N": [0.01]}],
+        "iteration": 5,
+    }
+    checkpoint.save(str(tmp_path / "c.pkl"), state)
+    back = checkpoint.load(str(tmp_path / "c.pkl"))
+    assert back["validation"] == state["validation"] and back["history"] == state["history"]
+    assert type(back["validation"][0]["iteration"]) is int and type(back["history"][0]["cost"]) is float
+    assert back["kept"][back["validation"][0]["iteration"]]["k_rk"] == 0.4
