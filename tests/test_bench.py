@@ -1,7 +1,11 @@
-"""``jaxsync bench --quick``: bench.json has every key, with positive numbers.
+"""``jaxsync bench --quick``: bench.json has every key, with positive numbers,
+for both gradient paths; the table marks every target met or missed.
 
 A benchmark reports; it never fails the suite on speed (targets are printed
-and recorded, not asserted).
+and recorded, not asserted). ``--quick`` runs the benchmark's code with a small
+stand-in for the gradient programs (they compile in minutes each); the
+gradient programs themselves are the tuner's and are tested in test_tune and
+test_gradient.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ KEYS = (
     "grad_compile_warm_s",
     "grad_compile_warm_persistent_cache_only_s",
     "tune_step_peak_rss_gib",
+    "tune_step_peak_rss_warm_gib",
 )
 
 
@@ -42,9 +47,52 @@ def test_quick_bench_writes_every_key(tmp_path, capsys):
     r = json.loads((tmp_path / "bench.json").read_text())
     for key in KEYS:
         assert isinstance(r[key], (int, float)) and r[key] > 0, key
+    assert set(r["paths"]) == {"new", "old"}
+    for p in ("new", "old"):
+        assert r["paths"][p]["grad_s"] > 0 and r["paths"][p]["grad_over_forward"] > 0
+    assert r["grad_s_over_old"] == pytest.approx(r["paths"]["new"]["grad_s"] / r["paths"]["old"]["grad_s"])
+    assert r["details"]["forward_and_gradient"]["new"]["grad_finite"]
+    assert all(t["judged"] is False and isinstance(t["met"], bool) for t in r["targets"].values())
     assert r["mjx_env_steps_per_s"] and all(v > 0 for v in r["mjx_env_steps_per_s"].values())
     m = r["machine"]
     assert m["cpu_cores"] >= 1 and m["jax_backend"] and m["jax"] and m["mujoco"]
     assert "cpu_model" in m
     out = capsys.readouterr().out
     assert "gradient / forward" in out and "bench.json" in out
+
+
+def test_table_marks_missed_targets_also_in_quick_mode():
+    from jaxsync.cli.bench import table, targets
+
+    path = dict(
+        label="x",
+        forward_s=1.0,
+        grad_s=5.0,
+        grad_over_forward=5.0,
+        grad_compile_cold_s=100.0,
+        grad_compile_warm_s=2.0,
+        tune_step_peak_rss_gib=1.0,
+    )
+    old = {**path, "grad_compile_cold_s": None, "grad_compile_warm_s": None, "tune_step_peak_rss_gib": None}
+    r = {
+        "mjx_env_steps_per_s": {"1": 1000.0},
+        "mjx_best_batch": 1,
+        "mujoco_c_env_steps_per_s": 500.0,
+        "bare_mj_step_per_s": 9000.0,
+        "mjx_over_mujoco_c": 2.0,
+        "grad_over_forward": 5.0,
+        "grad_s_over_old": 1.0,
+        "grad_compile_cold_s": 100.0,
+        "grad_compile_warm_s": 2.0,
+        "grad_compile_warm_persistent_cache_only_s": 3.0,
+        "tune_step_peak_rss_gib": 1.0,
+        "tune_step_peak_rss_warm_gib": 0.5,
+        "paths": {"new": path, "old": old},
+    }
+    for judged in (True, False):
+        r["targets"] = targets(r, judged=judged)
+        rows = {line.split("  ")[0]: line for line in table(r).splitlines()}
+        assert "MISSED" in rows["gradient / forward"] and "MISSED" in rows["gradient compile cold, s"]
+        assert "MISSED" in rows["MJX best (batch 1) / MuJoCo C"]
+        assert " met" in rows["gradient compile warm (as the CLI), s"] and " met" in rows["gradient s, new / old"]
+        assert ("not a benchmark" in rows["gradient / forward"]) is (not judged)

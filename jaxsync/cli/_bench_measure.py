@@ -1,10 +1,13 @@
 """The measurements of ``jaxsync bench`` (``jaxsync.cli.bench`` runs them and reports).
 
 Closed-loop MJX environment-steps per second; the same controller stepping
-MuJoCo C; bare ``mj_step``; one forward rollout against its gradient; cold and
-warm compile times of the gradient and the peak memory of one tuning step,
-these two in child processes (a fresh process, and for the cold compile an
-empty cache). The gradient's horizon is the short task (``jaxsync.short_task``).
+MuJoCo C; bare ``mj_step``; and, for the two gradient paths of ``PATHS`` side
+by side (the tuner's, and the former one kept to compare against), one forward
+rollout against its gradient, cold and warm compile times of the gradient and
+the peak memory of one tuning step, these two in child processes (a fresh
+process, and for the cold compile an empty cache). The gradient is the tuning
+cost's over the short task (``jaxsync.short_task``, batch 1); the tuning step is
+``jaxsync tune``'s (the full task, its batch).
 """
 
 from __future__ import annotations
@@ -134,50 +137,116 @@ def bare_mj_step(model, n: int, log) -> float:
     return rate
 
 
-def gradient_functions(duration: float, remat: bool = True):
-    """jit(cost) and jit(value_and_grad(cost)), cost = the rms resultant of one
-    rollout of the short task on the differentiable solver setting."""
-    import jax
+# The two gradient paths the benchmark sets side by side (issue 12): "new" is
+# what ``jaxsync tune`` runs (MJX's converged solve, the implicit adjoint, the
+# exact full-horizon gradient); "old" is the former training physics (three
+# one-iteration Newton solves per step, differentiated through, the gradient
+# truncated every 100 steps), kept only to compare against.
+PATHS = {
+    "new": {
+        "solver": "accurate",
+        "truncate_every": None,
+        "label": "converged solve, implicit adjoint, exact gradient",
+    },
+    "old": {
+        "solver": "unrolled",
+        "truncate_every": 100,
+        "label": "unrolled 1-iteration solves, truncated every 100 steps",
+    },
+}
 
-    from jaxsync._metrics import summarize
-    from jaxsync._model import load_model
-    from jaxsync._rollout import make_rollout
 
-    fn = make_rollout(load_model(solver="unrolled"), "synchronous", duration, remat=remat)
+def tuning_loss(path: str, task: str, batch: int, duration: float | None = None):
+    """The tuner's own loss on ``path``'s physics: ``(loss, args, n_steps)``.
 
-    def cost(g, s):
-        return summarize(fn(g, s), s).rms_resultant_N
-
-    return jax.jit(cost), jax.jit(jax.value_and_grad(cost)), fn.n_steps
-
-
-def forward_and_gradient(duration: float, repeats: int, log) -> dict:
+    ``loss(theta, scenarios) -> (cost, terms)`` is ``optimize.tune.make_loss``
+    with ``jaxsync tune``'s defaults except the task (``"short"``: the 2 s
+    short task, or ``"full"``: the 4 s task), the batch and the path's solver
+    and truncation; ``args`` are the default gains' parameters and a seeded
+    batch of randomised scenarios.
+    """
     import jax
 
     from jaxsync._gains import default_gains
-    from jaxsync._scenario import short_task
+    from jaxsync._model import load_model
+    from jaxsync._rollout import steps_for
+    from jaxsync.optimize.cost import CostWeights
+    from jaxsync.optimize.params import TuneSpec
+    from jaxsync.optimize.tasks import sample_scenarios, training_base
+    from jaxsync.optimize.tune import TuneConfig, make_loss
 
-    fwd, grad, n_steps = gradient_functions(duration)
-    g, s = default_gains(), short_task()
+    p = PATHS[path]
+    over = {"train_duration": duration} if (duration is not None and task == "short") else {}
+    cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
+    model = load_model(solver=p["solver"])
+    base, spec = default_gains(), TuneSpec()
+    loss = make_loss(model, spec, base, cfg, CostWeights())
+    scen_base, dur = training_base(cfg)
+    scen = sample_scenarios(jax.random.key(0), batch, scen_base)
+    return loss, (spec.init(base), scen), steps_for(dur, model)
+
+
+def small_gradient(path: str = "new"):
+    """A small stand-in for ``--quick``: the pad position through one
+    kinematics stage and the sensing (compiles in seconds, not minutes), on
+    ``path``'s model. It does not reach the constraint solve, so the two paths
+    do the same work here: ``--quick`` checks the benchmark runs, it measures
+    nothing about the paths."""
+    import jax.numpy as jnp
+    import mujoco
+
+    from jaxsync._model import load_model
+    from jaxsync._physics import before_control, put_data
+    from jaxsync._sensing import sense
+
+    model = load_model(solver=PATHS[path]["solver"])
+    mx, index = model.mjx_model, model.index
+    d = put_data(model.mj_model, mujoco.MjData(model.mj_model))
+    q0 = jnp.asarray(model.keyframe_qpos("grasp"))
+
+    def f(q):
+        v = jnp.sum(sense(mx, before_control(mx, d.replace(qpos=q)), index).right.pad_pos)
+        return v, v
+
+    return f, (q0,), 1
+
+
+def gradient_functions(path: str, duration: float, small: bool = False):
+    """``(jit(forward), jit(value_and_grad), args, n_steps)`` of the tuning
+    cost of one rollout of the short task (batch 1) on ``path``'s physics."""
+    import jax
+
+    loss, args, n = small_gradient(path) if small else tuning_loss(path, "short", 1, duration)
+    return jax.jit(lambda *a: loss(*a)[0]), jax.jit(jax.value_and_grad(loss, has_aux=True)), args, n
+
+
+def forward_and_gradient(path: str, duration: float, repeats: int, log, small: bool = False) -> dict:
+    """Forward against value_and_grad of the same physics, alternated, best of ``repeats``."""
+    import jax
+
+    fwd, grad, args, n_steps = gradient_functions(path, duration, small)
     t0 = time.perf_counter()
-    jax.block_until_ready(fwd(g, s))
+    jax.block_until_ready(fwd(*args))
     t_fc = time.perf_counter() - t0
     t0 = time.perf_counter()
-    value, gr = jax.block_until_ready(grad(g, s))
+    (value, _), gr = jax.block_until_ready(grad(*args))
     t_gc = time.perf_counter() - t0
     # alternated, so that a change in the machine's load hits both alike; the
     # best of each (the medians are kept in the details)
     tf_all, tg_all = [], []
     for _ in range(repeats):
-        tf_all.append(_timeit(lambda: jax.block_until_ready(fwd(g, s)), 1))
-        tg_all.append(_timeit(lambda: jax.block_until_ready(grad(g, s)), 1))
+        tf_all.append(_timeit(lambda: jax.block_until_ready(fwd(*args)), 1))
+        tg_all.append(_timeit(lambda: jax.block_until_ready(grad(*args)), 1))
     t_f, t_g = min(tf_all), min(tg_all)
     finite = bool(all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(gr)))
     log(
-        f"  forward {t_f:.3f} s, value_and_grad {t_g:.3f} s over {n_steps} steps: ratio {t_g / t_f:.2f} "
-        f"(gradient finite: {finite})"
+        f"  {path} ({PATHS[path]['label']}{'; small stand-in' if small else ''}): forward {t_f:.3f} s, "
+        f"value_and_grad {t_g:.3f} s over {n_steps} steps: ratio {t_g / t_f:.2f} (first calls "
+        f"{t_fc:.1f} s and {t_gc:.1f} s; gradient finite: {finite})"
     )
     return {
+        "path": path,
+        "label": PATHS[path]["label"],
         "forward_s": t_f,
         "grad_s": t_g,
         "grad_over_forward": t_g / t_f,
@@ -190,28 +259,6 @@ def forward_and_gradient(duration: float, repeats: int, log) -> dict:
         "grad_finite": finite,
         "cost_value": float(value),
     }
-
-
-def small_gradient():
-    """A small stand-in for ``--quick``: the gradient of the pad position through
-    one kinematics stage and the sensing (compiles in seconds, not minutes)."""
-    import jax
-    import jax.numpy as jnp
-    import mujoco
-
-    from jaxsync._model import load_model
-    from jaxsync._physics import before_control, put_data
-    from jaxsync._sensing import sense
-
-    model = load_model(solver="unrolled")
-    mx, index = model.mjx_model, model.index
-    d = put_data(model.mj_model, mujoco.MjData(model.mj_model))
-    q0 = jnp.asarray(model.keyframe_qpos("grasp"))
-
-    def f(q):
-        return jnp.sum(sense(mx, before_control(mx, d.replace(qpos=q)), index).right.pad_pos)
-
-    return jax.jit(jax.grad(f)), (q0,)
 
 
 def _have_flatbuffers() -> bool:
@@ -250,72 +297,68 @@ def _maxrss_gib() -> float:
     return kib * (1 if sys.platform != "darwin" else 1 / 1024) / 1024**2
 
 
+def _child_compile(cfg: dict) -> dict:
+    """Trace and XLA-compile the gradient of ``cfg["path"]`` (as the benchmark times it)."""
+    t0 = time.perf_counter()
+    _, grad, args, _ = gradient_functions(cfg["path"], cfg["duration"], cfg.get("small", False))
+    if cfg.get("exported"):  # what the CLI does: the traced function from disk (jax.export)
+        from jaxsync._cache import traced_on_disk
+
+        grad = traced_on_disk(grad, args, f"bench.gradient.{cfg['path']}.{cfg['duration']}.{cfg.get('small')}")
+    t1 = time.perf_counter()
+    lowered = grad.lower(*args)
+    t2 = time.perf_counter()
+    lowered.compile()
+    t3 = time.perf_counter()
+    return {"setup_s": t1 - t0, "trace_s": t2 - t1, "xla_compile_s": t3 - t2, "total_s": t3 - t1}
+
+
+def _child_tune_step(cfg: dict) -> dict:
+    """One tuning step as ``jaxsync tune`` takes it on ``cfg["path"]``: the
+    gradient of the tuning loss over a batch of randomised scenarios of the
+    task, then one optax update; the process's peak memory."""
+    import jax
+
+    from jaxsync.optimize.loop import apply_update
+    from jaxsync.optimize.tune import TuneConfig
+
+    rss0 = _maxrss_gib()
+    if cfg.get("small"):
+        loss, args, _ = small_gradient(cfg["path"])
+    else:
+        loss, args, _ = tuning_loss(cfg["path"], cfg["task"], cfg["batch"])
+    opt = TuneConfig().optimizer_transform()
+    value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    theta = args[0]
+    state = opt.init(theta)
+    t0 = time.perf_counter()
+    compiled = value_and_grad.lower(*args).compile()
+    t_compile = time.perf_counter() - t0
+    rss_compiled = _maxrss_gib()
+    mem = compiled.memory_analysis()
+    t0 = time.perf_counter()
+    (value, _), grad = jax.block_until_ready(compiled(*args))
+    u = jax.block_until_ready(apply_update(opt, theta, state, value, grad))
+    t_step = time.perf_counter() - t0
+    return {
+        "peak_rss_gib": _maxrss_gib(),
+        "peak_rss_after_compile_gib": rss_compiled,
+        "rss_before_gib": rss0,
+        "xla_temp_gib": (mem.temp_size_in_bytes / 1024**3) if mem is not None else None,
+        "compile_s": t_compile,
+        "step_s": t_step,
+        "loss": float(value),
+        "update_finite": bool(u.finite),
+    }
+
+
 def child(mode: str, cfg: dict) -> dict:
     """Run in a fresh process: ``compile`` (trace + XLA-compile the gradient) or ``tune_step``."""
     _child_setup()
-    import jax
-
-    from jaxsync._gains import default_gains
-    from jaxsync._scenario import short_task
-
     if mode == "compile":
-        t0 = time.perf_counter()
-        if cfg.get("small"):
-            grad, args = small_gradient()
-        else:
-            grad = gradient_functions(cfg["duration"])[1]
-            args = (default_gains(), short_task())
-        if cfg.get("exported"):  # what the CLI does: the traced function from disk (jax.export)
-            from jaxsync._cache import traced_on_disk
-
-            grad = traced_on_disk(grad, args, "bench.gradient")
-        t1 = time.perf_counter()
-        lowered = grad.lower(*args)
-        t2 = time.perf_counter()
-        lowered.compile()
-        t3 = time.perf_counter()
-        return {"setup_s": t1 - t0, "trace_s": t2 - t1, "xla_compile_s": t3 - t2, "total_s": t3 - t1}
+        return _child_compile(cfg)
     if mode == "tune_step":
-        import optax
-
-        from jaxsync._metrics import summarize
-        from jaxsync._model import load_model
-        from jaxsync._rollout import make_rollout
-        from jaxsync.optimize.loop import apply_update
-
-        rss0 = _maxrss_gib()
-        fn = make_rollout(load_model(solver="unrolled"), "synchronous", cfg["duration"], remat=True)
-        opt = optax.adam(1e-3)
-
-        def loss(g, s):
-            return jax.vmap(lambda s1: summarize(fn(g, s1), s1).rms_resultant_N)(s).mean()
-
-        @jax.jit
-        def step(g, state, s):
-            value, grad = jax.value_and_grad(loss)(g, s)
-            u = apply_update(opt, g, state, value, grad)
-            return u.params, u.opt_state, value
-
-        g = default_gains()
-        state = opt.init(g)
-        s = jax.tree_util.tree_map(jax.numpy.asarray, _scenarios(short_task(), cfg["batch"]))
-        t0 = time.perf_counter()
-        compiled = step.lower(g, state, s).compile()
-        t_compile = time.perf_counter() - t0
-        rss_compiled = _maxrss_gib()
-        mem = compiled.memory_analysis()
-        t0 = time.perf_counter()
-        g2, state, value = jax.block_until_ready(compiled(g, state, s))
-        t_step = time.perf_counter() - t0
-        return {
-            "peak_rss_gib": _maxrss_gib(),
-            "peak_rss_after_compile_gib": rss_compiled,
-            "rss_before_gib": rss0,
-            "xla_temp_gib": (mem.temp_size_in_bytes / 1024**3) if mem is not None else None,
-            "compile_s": t_compile,
-            "step_s": t_step,
-            "loss": float(value),
-        }
+        return _child_tune_step(cfg)
     raise ValueError(mode)
 
 
@@ -341,38 +384,55 @@ def _run_child(mode: str, cfg: dict, cache_dir: str | None) -> dict:
     raise RuntimeError(f"benchmark child '{mode}' failed (exit {proc.returncode}): {proc.stderr[-2000:]}")
 
 
-def compile_times(duration: float, small: bool, log) -> dict:
+def compile_times(path: str, duration: float, small: bool, log, exported: bool = True) -> dict:
     """Cold: a fresh process and an empty persistent cache. Warm: a second fresh
     process on the same cache (what a user's second run sees). With the
-    ``flatbuffers`` package, also warm with the traced function kept on disk
-    (``jax.export``), which skips the tracing the persistent cache cannot save."""
-    cfg = {"duration": duration, "small": small}
-    out = {"function": "small stand-in (--quick)" if small else f"value_and_grad of a {duration:g} s rollout"}
+    ``flatbuffers`` package (and ``exported``), also warm with the traced
+    function kept on disk (``jax.export``), which skips the tracing the
+    persistent cache cannot save: what ``jaxsync tune`` does."""
+    cfg = {"path": path, "duration": duration, "small": small}
+    what = "small stand-in (--quick)" if small else f"value_and_grad of the tuning cost, {duration:g} s rollout"
+    out = {"path": path, "function": what}
     with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
         out["cold"] = cold = _run_child("compile", cfg, cache)
         out["warm"] = warm = _run_child("compile", cfg, cache)
-        if _have_flatbuffers():
-            exported = {**cfg, "exported": True}
-            _run_child("compile", exported, cache)  # trace, export, compile the wrapper
-            out["warm_exported"] = _run_child("compile", exported, cache)
+        if exported and _have_flatbuffers():
+            exp = {**cfg, "exported": True}
+            _run_child("compile", exp, cache)  # trace, export, compile the wrapper
+            out["warm_exported"] = _run_child("compile", exp, cache)
     log(
-        f"  gradient compile cold {cold['total_s']:.1f} s (trace {cold['trace_s']:.1f} + XLA "
+        f"  {path}: gradient compile cold {cold['total_s']:.1f} s (trace {cold['trace_s']:.1f} + XLA "
         f"{cold['xla_compile_s']:.1f}), warm {warm['total_s']:.1f} s (trace {warm['trace_s']:.1f} + "
         f"cache {warm['xla_compile_s']:.1f})" + (" [small stand-in]" if small else "")
     )
     if "warm_exported" in out:
-        log(f"  warm with the traced function on disk (jax.export): {out['warm_exported']['total_s']:.1f} s")
+        log(f"  {path}: warm with the traced function on disk (jax.export): {out['warm_exported']['total_s']:.1f} s")
     return out
 
 
-def tune_step_memory(batch: int, duration: float, cache_dir: str | None, log) -> dict:
-    r = _run_child("tune_step", {"batch": batch, "duration": duration}, cache_dir)
-    log(
-        f"  tuning step (batch {batch}, {duration:g} s): peak RSS {r['peak_rss_gib']:.2f} GiB "
-        f"(after compiling {r['peak_rss_after_compile_gib']:.2f} GiB; XLA temporaries "
-        f"{r['xla_temp_gib'] or float('nan'):.3f} GiB), step {r['step_s']:.1f} s"
-    )
-    return r
+def warm_compile_s(comp: dict) -> float:
+    """The warm compile time as ``jaxsync tune`` sees it (traced on disk where measured)."""
+    return (comp["warm_exported"] if "warm_exported" in comp else comp["warm"])["total_s"]
+
+
+def tune_step_memory(path: str, batch: int, task: str, small: bool, log, warm: bool = True) -> dict:
+    """Peak memory of a fresh process taking one tuning step: cold (an empty
+    persistent cache, so the process compiles the step: a first ``jaxsync
+    tune``) and, with ``warm``, again on the filled cache (a later run)."""
+    cfg = {"path": path, "batch": batch, "task": task, "small": small}
+    what = "small stand-in" if small else f"batch {batch}, {task} task"
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
+        for kind in ("cold", "warm") if warm else ("cold",):
+            out[kind] = r = _run_child("tune_step", cfg, cache)
+            log(
+                f"  {path}: tuning step ({what}), {kind} cache: peak RSS {r['peak_rss_gib']:.2f} GiB "
+                f"(after compiling {r['peak_rss_after_compile_gib']:.2f} GiB; XLA temporaries "
+                f"{r['xla_temp_gib'] or float('nan'):.3f} GiB), compile {r['compile_s']:.1f} s, "
+                f"step {r['step_s']:.1f} s"
+            )
+    out["peak_rss_gib"] = max(r["peak_rss_gib"] for r in out.values())
+    return out
 
 
 # ----------------------------------------------------------------- machine

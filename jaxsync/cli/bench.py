@@ -21,9 +21,10 @@ from jaxsync._errors import ConfigError
 TARGETS = {
     "mjx_over_mujoco_c": (">=", 3.0),
     "grad_over_forward": ("<=", 4.0),
+    "grad_s_over_old": ("<=", 1.0),
     "grad_compile_cold_s": ("<=", 45.0),
     "grad_compile_warm_s": ("<=", 5.0),
-    "tune_step_peak_rss_gib": ("<=", 6.0),
+    "tune_step_peak_rss_gib": ("<=", 2.0),
 }
 
 FULL = dict(
@@ -32,33 +33,42 @@ FULL = dict(
     c_duration=4.0,
     bare_steps=4000,
     grad_duration=2.0,
-    tune_batch=8,
-    tune_duration=2.0,
+    tune_batch=4,
+    tune_task="full",
     repeats=2,
     grad_repeats=7,
+    small=False,
+    old_children=True,
 )
+# --quick checks that the benchmark runs: the gradient parts use a small
+# stand-in (kinematics and sensing, no constraint solve) and the former path's
+# child processes are skipped; its figures measure nothing about the paths
 QUICK = dict(
-    batch_sizes=(1, 2),
+    batch_sizes=(1,),
     mjx_duration=0.05,
     c_duration=0.05,
     bare_steps=200,
     grad_duration=0.1,
     tune_batch=2,
-    tune_duration=0.1,
+    tune_task="short",
     repeats=1,
     grad_repeats=1,
+    small=True,
+    old_children=False,
 )
 
 
 def targets(r: dict, judged: bool = True) -> dict:
-    """Each target with its value and whether it was met (None: a --quick run, not judged)."""
+    """Each target with its value and whether it was met; ``judged`` False for
+    a --quick run (met or missed is still computed and shown, marked as not a
+    benchmark)."""
     out = {}
     for key, (op, bound) in TARGETS.items():
         v = r.get(key)
         if v is None:
             continue
         met = v >= bound if op == ">=" else v <= bound
-        out[key] = {"value": v, "target": f"{op} {bound:g}", "met": bool(met) if judged else None}
+        out[key] = {"value": v, "target": f"{op} {bound:g}", "met": bool(met), "judged": judged}
     return out
 
 
@@ -68,11 +78,11 @@ def _log(msg: str) -> None:
 
 def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dict:
     """Every measurement, in one run; writes ``out/bench.json`` and returns its content."""
-    import jax
 
     from jaxsync import _io
     from jaxsync._model import load_model
     from jaxsync.cli._bench_measure import (
+        PATHS,
         _have_flatbuffers,
         bare_mj_step,
         compile_times,
@@ -81,6 +91,7 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
         mjx_throughput,
         mujoco_c_throughput,
         tune_step_memory,
+        warm_compile_s,
     )
 
     cfg = dict(QUICK if quick else FULL)
@@ -93,7 +104,7 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
         f"jaxsync bench{' --quick' if quick else ''} on {info['cpu_model']} ({info['cpu_cores']} cores), "
         f"JAX {info['jax']} {info['jax_backend']}"
     )
-    cache_dir = jax.config.jax_compilation_cache_dir
+    small = cfg["small"]
     model = load_model(solver="accurate")
     log("[1/6] MJX closed loop, default scenario")
     mjx = mjx_throughput(model, cfg["batch_sizes"], cfg["mjx_duration"], cfg["repeats"], log)
@@ -101,13 +112,30 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     mjc = mujoco_c_throughput(model, cfg["c_duration"], log)
     log("[3/6] bare mj_step")
     bare = bare_mj_step(model, cfg["bare_steps"], log)
-    log("[4/6] forward rollout and its gradient (differentiable solver, rematerialised scan)")
-    fg = forward_and_gradient(cfg["grad_duration"], cfg["grad_repeats"], log)
+    log("[4/6] forward rollout against its gradient, the tuner's path (new) and the former one (old)")
+    fg = {p: forward_and_gradient(p, cfg["grad_duration"], cfg["grad_repeats"], log, small) for p in PATHS}
     log("[5/6] gradient compile time, cold (empty cache) and warm (persistent cache), in fresh processes")
-    comp = compile_times(cfg["grad_duration"], quick, log)
-    log("[6/6] peak memory of one tuning step, in a fresh process")
-    tune = tune_step_memory(cfg["tune_batch"], cfg["tune_duration"], cache_dir, log)
+    comp = {"new": compile_times("new", cfg["grad_duration"], small, log, exported=not small)}
+    if cfg["old_children"]:
+        comp["old"] = compile_times("old", cfg["grad_duration"], small, log, exported=False)
+    log("[6/6] peak memory of one tuning step, in fresh processes (cold cache: it compiles; warm: from the cache)")
+    tune = {"new": tune_step_memory("new", cfg["tune_batch"], cfg["tune_task"], small, log)}
+    if cfg["old_children"]:
+        tune["old"] = tune_step_memory("old", cfg["tune_batch"], cfg["tune_task"], small, log, warm=False)
     best_b = max(mjx["rates"], key=mjx["rates"].get)
+
+    def path_figures(p: str) -> dict:
+        return {
+            "label": PATHS[p]["label"],
+            "forward_s": fg[p]["forward_s"],
+            "grad_s": fg[p]["grad_s"],
+            "grad_over_forward": fg[p]["grad_over_forward"],
+            "grad_compile_cold_s": comp[p]["cold"]["total_s"] if p in comp else None,
+            "grad_compile_warm_s": warm_compile_s(comp[p]) if p in comp else None,
+            "tune_step_peak_rss_gib": tune[p]["peak_rss_gib"] if p in tune else None,
+        }
+
+    new = path_figures("new")
     result = {
         "mjx_env_steps_per_s": mjx["rates"],
         "mjx_best_batch": int(best_b),
@@ -115,16 +143,20 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
         "mujoco_c_env_steps_per_s_including_setup": mjc["rate_including_setup"],
         "bare_mj_step_per_s": bare,
         "mjx_over_mujoco_c": mjx["rates"][best_b] / mjc["rate"],
-        "forward_s": fg["forward_s"],
-        "grad_s": fg["grad_s"],
-        "grad_over_forward": fg["grad_over_forward"],
-        "grad_compile_cold_s": comp["cold"]["total_s"],
+        # the tuner's path (new) at the top level, the former one beside it
+        "forward_s": new["forward_s"],
+        "grad_s": new["grad_s"],
+        "grad_over_forward": new["grad_over_forward"],
+        "grad_s_over_old": new["grad_s"] / fg["old"]["grad_s"],
+        "grad_compile_cold_s": new["grad_compile_cold_s"],
         # what `jaxsync tune` does on a second run: the traced function from disk
         # (jax.export) and the XLA executable from the persistent cache; the
         # persistent cache alone (tracing again) is reported next to it
-        "grad_compile_warm_s": (comp["warm_exported"] if "warm_exported" in comp else comp["warm"])["total_s"],
-        "grad_compile_warm_persistent_cache_only_s": comp["warm"]["total_s"],
-        "tune_step_peak_rss_gib": tune["peak_rss_gib"],
+        "grad_compile_warm_s": new["grad_compile_warm_s"],
+        "grad_compile_warm_persistent_cache_only_s": comp["new"]["warm"]["total_s"],
+        "tune_step_peak_rss_gib": new["tune_step_peak_rss_gib"],
+        "tune_step_peak_rss_warm_gib": tune["new"]["warm"]["peak_rss_gib"],
+        "paths": {p: path_figures(p) for p in PATHS},
         "details": {
             "mjx": mjx,
             "mujoco_c": mjc,
@@ -141,37 +173,72 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     return result
 
 
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else format(v, spec)
+
+
 def table(r: dict) -> str:
-    rates = r["mjx_env_steps_per_s"]
-    rows = [(f"MJX closed loop, env-steps/s, batch {b}", f"{v:,.0f}") for b, v in rates.items()]
+    """The benchmark as a table: the tuner's path (new) beside the former one
+    (old), each figure's target and whether it was met."""
+    new, old = r["paths"]["new"], r["paths"]["old"]
+    rows = [
+        (f"MJX closed loop, env-steps/s, batch {b}", f"{v:,.0f}", "", None) for b, v in r["mjx_env_steps_per_s"].items()
+    ]
     rows += [
-        ("MuJoCo C + same controller, env-steps/s", f"{r['mujoco_c_env_steps_per_s']:,.0f}"),
-        ("bare mj_step, steps/s", f"{r['bare_mj_step_per_s']:,.0f}"),
-        (f"MJX best (batch {r['mjx_best_batch']}) / MuJoCo C", f"{r['mjx_over_mujoco_c']:.2f}"),
-        ("forward rollout, s", f"{r['forward_s']:.3f}"),
-        ("value_and_grad, s", f"{r['grad_s']:.3f}"),
-        ("gradient / forward", f"{r['grad_over_forward']:.2f}"),
-        ("gradient compile cold, s", f"{r['grad_compile_cold_s']:.1f}"),
-        ("gradient compile warm (as the CLI: traced on disk + cache), s", f"{r['grad_compile_warm_s']:.1f}"),
-        ("gradient compile warm, persistent cache only, s", f"{r['grad_compile_warm_persistent_cache_only_s']:.1f}"),
-        ("tuning step peak RSS, GiB", f"{r['tune_step_peak_rss_gib']:.2f}"),
+        ("MuJoCo C + same controller, env-steps/s", f"{r['mujoco_c_env_steps_per_s']:,.0f}", "", None),
+        ("bare mj_step, steps/s", f"{r['bare_mj_step_per_s']:,.0f}", "", None),
+        (
+            f"MJX best (batch {r['mjx_best_batch']}) / MuJoCo C",
+            f"{r['mjx_over_mujoco_c']:.2f}",
+            "",
+            "mjx_over_mujoco_c",
+        ),
+        ("forward rollout, s", f"{new['forward_s']:.3f}", f"{old['forward_s']:.3f}", None),
+        ("value_and_grad, s", f"{new['grad_s']:.3f}", f"{old['grad_s']:.3f}", None),
+        (
+            "gradient / forward",
+            f"{new['grad_over_forward']:.2f}",
+            f"{old['grad_over_forward']:.2f}",
+            "grad_over_forward",
+        ),
+        ("gradient s, new / old", f"{r['grad_s_over_old']:.2f}", "", "grad_s_over_old"),
+        (
+            "gradient compile cold, s",
+            _fmt(new["grad_compile_cold_s"], ".1f"),
+            _fmt(old["grad_compile_cold_s"], ".1f"),
+            "grad_compile_cold_s",
+        ),
+        (
+            "gradient compile warm (as the CLI), s",
+            _fmt(new["grad_compile_warm_s"], ".1f"),
+            _fmt(old["grad_compile_warm_s"], ".1f"),
+            "grad_compile_warm_s",
+        ),
+        (
+            "gradient compile warm, persistent cache only, s",
+            f"{r['grad_compile_warm_persistent_cache_only_s']:.1f}",
+            "",
+            None,
+        ),
+        (
+            "tuning step peak RSS (compiling it), GiB",
+            _fmt(new["tune_step_peak_rss_gib"], ".2f"),
+            _fmt(old["tune_step_peak_rss_gib"], ".2f"),
+            "tune_step_peak_rss_gib",
+        ),
+        ("tuning step peak RSS (from the cache), GiB", f"{r['tune_step_peak_rss_warm_gib']:.2f}", "", None),
     ]
     tg = r.get("targets", {})
-    keymap = {
-        "MJX best": "mjx_over_mujoco_c",
-        "gradient / forward": "grad_over_forward",
-        "gradient compile cold": "grad_compile_cold_s",
-        "gradient compile warm (as": "grad_compile_warm_s",
-        "tuning step peak": "tune_step_peak_rss_gib",
-    }
-    w = max(len(a) for a, _ in rows)
-    lines = [f"{'measure':<{w}}  {'value':>12}  target"]
-    for name, val in rows:
-        key = next((k for p, k in keymap.items() if name.startswith(p)), None)
+    w = max(len(a) for a, *_ in rows)
+    lines = [f"{'measure':<{w}}  {'new':>12}  {'old':>8}  target"]
+    for name, val, val_old, key in rows:
         t = tg.get(key)
-        verdict = "(--quick)" if t and t["met"] is None else "met" if t and t["met"] else "MISSED"
-        mark = f"{t['target']:<8} {verdict}" if t else ""
-        lines.append(f"{name:<{w}}  {val:>12}  {mark}")
+        mark = ""
+        if t:
+            verdict = "met" if t["met"] else "MISSED"
+            mark = f"{t['target']:<8} {verdict}" + ("" if t["judged"] else " (--quick: not a benchmark)")
+        lines.append(f"{name:<{w}}  {val:>12}  {val_old:>8}  {mark}".rstrip())
+    lines.append(f"new: {new['label']}; old: {old['label']}")
     return "\n".join(lines)
 
 
