@@ -35,8 +35,13 @@ SYNC_SCALE = 1e-3  # m
 EFFORT_SCALE = 10.0  # N m
 
 
-def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
-    """Each weighted term (scalars). ``traj`` a Trajectory, ``s`` its Scenario."""
+SYNC_FLOOR2 = 1e-18  # m^2, under the root of the smooth rms synchronisation error
+
+
+def _settled(traj, s):
+    """What the cost and the smooth metrics read off one rollout: the settled
+    window's mask and size, the resultant's norm, the relative error of the
+    window's mean grip force and the synchronisation error."""
     mask = _metrics.settled_mask(traj.time, s)
     n = jnp.maximum(mask.sum(), 1.0)
     res = _metrics.resultant_force(traj.pad_forces, traj.plan_obj_acc, s.object_mass)
@@ -44,7 +49,25 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     # the metric's grip error: of the window's mean grip force (noise averages out)
     mean_grip = jnp.sum(mask * _metrics.grip_force(traj.pad_forces, traj.pad_pos)) / n
     grip_err = (mean_grip - s.grip_force) / s.grip_force
-    sync = _metrics.sync_error(traj.delta)
+    return mask, n, res_norm, grip_err, _metrics.sync_error(traj.delta)
+
+
+def smooth_metrics(traj, s, temperature: float = CostWeights().peak_temperature) -> dict[str, jax.Array]:
+    """The headline metrics of one rollout in the smooth forms the cost uses
+    (differentiable everywhere): the settled peak resultant (log-sum-exp peak
+    at ``temperature``, N), the grip-force error (sqrt(e^2 + s^2), relative)
+    and the rms synchronisation error over the settled window (m)."""
+    mask, n, res_norm, grip_err, sync = _settled(traj, s)
+    return {
+        "settled_peak_resultant_N": _metrics.smooth_max(res_norm, mask, temperature),
+        "grip_force_error_rel": jnp.sqrt(grip_err**2 + GRIP_SMOOTH**2),
+        "sync_error_rms_m": jnp.sqrt(jnp.sum(mask * sync**2) / n + SYNC_FLOOR2),
+    }
+
+
+def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
+    """Each weighted term (scalars). ``traj`` a Trajectory, ``s`` its Scenario."""
+    mask, n, res_norm, grip_err, sync = _settled(traj, s)
     return {
         "resultant_ms": w.resultant_ms * jnp.sum(mask * res_norm**2) / n / RESULTANT_SCALE**2,
         "resultant_peak": w.resultant_peak * _metrics.smooth_max(res_norm, mask, w.peak_temperature) / RESULTANT_SCALE,

@@ -23,11 +23,12 @@ def _free_compiled_programs():
     yield
     import gc
 
-    from jaxsync.optimize import sweep_eval
+    from jaxsync.optimize import sensitivity, sweep_eval
 
     from jaxsync import _rollout
 
     _rollout._jitted.cache_clear()
+    sensitivity.program.cache_clear()
     sweep_eval._compiled.cache_clear()
     sweep_eval.evaluator.cache_clear()
     jax.clear_caches()

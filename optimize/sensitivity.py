@@ -1,0 +1,183 @@
+"""Sensitivities of the headline metrics to every gain, from reverse passes.
+
+At given gains, the derivative of each headline metric (settled peak
+resultant, grip-force error, synchronisation error; the smooth forms of
+``cost.smooth_metrics``), averaged over a batch of randomised scenarios, with
+respect to every entry of the gains pytree. One forward rollout of the batch,
+then one reverse pass per metric (``jax.vjp``, its pullback vmapped over the
+three metrics). Reported as elasticities: d log metric / d log gain for the
+positive gains (impedance and inner-loop gains: the percent change of the
+metric per percent change of the gain), and d log metric / d k for the signed
+synchronisation factors k_rk, k_lk, k_rl, k_ll (the relative change of the
+metric per unit of k).
+
+Example:
+  >>> from jaxsync.optimize.sensitivity import sensitivity
+  >>> s = sensitivity(jaxsync.load_model(), jaxsync.default_gains(), batch=4)  # doctest: +SKIP
+  >>> s.rows()[0]  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxsync.optimize.cost import smooth_metrics
+
+from jaxsync import _gains
+from jaxsync._rollout import make_rollout
+
+METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
+SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll")  # elasticity per unit k, not per log k
+_AXES = ("x", "y", "z", "rx", "ry", "rz")
+_ARMS = ("right", "left")
+
+
+def entry_names() -> list[str]:
+    """One name per scalar entry of the gains pytree, in ``ravel`` order
+    (per-arm arrays: ``imp_stiffness[right,z]``)."""
+    g = _gains.default_gains()
+    names = []
+    for field, v in zip(g._fields, g, strict=True):
+        shape = np.shape(v)
+        if shape == ():
+            names.append(field)
+        elif shape == (2, 6):
+            names += [f"{field}[{a},{x}]" for a in _ARMS for x in _AXES]
+        else:  # pragma: no cover - a new gains shape
+            names += [f"{field}[{i}]" for i in range(int(np.prod(shape)))]
+    return names
+
+
+def metrics_function(model, duration: float, start: str | None = None):
+    """``f(gains, scenarios) -> (3,)``: each smooth metric's mean over the batch."""
+    kw = {} if start is None else {"start": start}
+    fn = make_rollout(model, "synchronous", duration, remat=True, **kw)
+
+    def one(g, s):
+        m = smooth_metrics(fn(g, s), s)
+        return jnp.stack([m[k] for k in METRICS])
+
+    def f(g, scenarios):
+        return jax.vmap(one, in_axes=(None, 0))(g, scenarios).mean(0)
+
+    return f
+
+
+def derivatives_function(f):
+    """jit: ``(gains, scenarios) -> (values (3,), d value_i / d gains (pytree, leading axis 3))``:
+    one forward pass and one reverse pass per metric."""
+
+    def run(g, scenarios):
+        values, pullback = jax.vjp(lambda g: f(g, scenarios), g)
+        (grads,) = jax.vmap(pullback)(jnp.eye(len(METRICS), dtype=values.dtype))
+        return values, grads
+
+    return jax.jit(run)
+
+
+@functools.lru_cache(maxsize=8)
+def program(model, duration: float, start: str | None = None):
+    """The jitted derivatives of one configuration, built once per process
+    (the command line and the library share it)."""
+    return derivatives_function(metrics_function(model, duration, start))
+
+
+class Sensitivity(NamedTuple):
+    """Metric values (3,), gains entries (n,), derivatives and elasticities (3, n)."""
+
+    names: list
+    gains: np.ndarray
+    values: np.ndarray
+    derivative: np.ndarray  # d metric / d gain
+    elasticity: np.ndarray  # d log metric / d log gain (d log metric / d k for SIGNED)
+
+    def rows(self) -> list[dict]:
+        """One dict per gain entry: its value, then each metric's elasticity and derivative."""
+        out = []
+        for j, name in enumerate(self.names):
+            row = {"gain": name, "value": float(self.gains[j])}
+            for i, m in enumerate(METRICS):
+                row[f"elasticity_{m}"] = float(self.elasticity[i, j])
+                row[f"derivative_{m}"] = float(self.derivative[i, j])
+            out.append(row)
+        return out
+
+
+def elasticities(names, gains_flat, values, derivative) -> np.ndarray:
+    """d log m / d log g = g / m dm/dg for the positive gains; d log m / d k = 1 / m dm/dk for the signed k's."""
+    signed = np.array([n in SIGNED for n in names])
+    scale = np.where(signed, 1.0, gains_flat)[None, :]
+    return derivative * scale / values[:, None]
+
+
+def sensitivity(model, gains, scenarios, duration: float, start: str | None = None) -> Sensitivity:
+    """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading axis)."""
+    from jax.flatten_util import ravel_pytree
+
+    values, grads = jax.block_until_ready(program(model, float(duration), start)(gains, scenarios))
+    flat, _ = ravel_pytree(gains)
+    deriv = np.stack(
+        [np.asarray(ravel_pytree(jax.tree_util.tree_map(lambda x, i=i: x[i], grads))[0]) for i in range(3)]
+    )
+    names = entry_names()
+    values, flat = np.asarray(values), np.asarray(flat)
+    return Sensitivity(names, flat, values, deriv, elasticities(names, flat, values, deriv))
+
+
+# ----------------------------------------------------------------- report
+
+_LABELS = {
+    "settled_peak_resultant_N": "settled peak resultant",
+    "grip_force_error_rel": "grip-force error",
+    "sync_error_rms_m": "synchronisation error",
+}
+
+
+def table(s: Sensitivity) -> str:
+    """The elasticities as a text table, one row per gain entry."""
+    head = f"{'gain':<26} {'value':>10}  " + "  ".join(f"{_LABELS[m]:>22}" for m in METRICS)
+    lines = [head]
+    for j, name in enumerate(s.names):
+        cells = "  ".join(f"{s.elasticity[i, j]:>22.4g}" for i in range(len(METRICS)))
+        lines.append(f"{name:<26} {s.gains[j]:>10.4g}  {cells}")
+    vals = "  ".join(f"{v:>22.4g}" for v in s.values)
+    lines.append(f"{'metric (smooth form)':<26} {'':>10}  {vals}")
+    return "\n".join(lines)
+
+
+def plot(s: Sensitivity, path: str, title: str = "") -> None:
+    """One panel per metric: a horizontal bar per gain entry (its elasticity)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxsync import _io
+
+    n = len(s.names)
+    fig, axes = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 0.22 * n + 1.6), sharey=True)
+    y = np.arange(n)
+    signed = np.array([nm in SIGNED for nm in s.names])
+    for i, (ax, m) in enumerate(zip(axes, METRICS, strict=True)):
+        e = s.elasticity[i]
+        ax.barh(y[~signed], e[~signed], color=np.where(e[~signed] >= 0, "C3", "C0"), height=0.7)
+        ax.barh(y[signed], e[signed], color="0.4", height=0.7)
+        ax.axvline(0, color="k", lw=0.6)
+        ax.set_title(f"{_LABELS[m]}\n(value {s.values[i]:.4g})", fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+        ax.set_xlabel("elasticity")
+    axes[0].set_yticks(y)
+    axes[0].set_yticklabels(s.names, fontsize=7)
+    axes[0].invert_yaxis()
+    fig.suptitle(
+        (title + "\n" if title else "")
+        + "d log metric / d log gain (red: raising the gain raises the metric); grey: d log metric / d k",
+        fontsize=9,
+    )
+    fig.tight_layout()
+    _io.save_figure(fig, path)
+    plt.close(fig)

@@ -1,0 +1,110 @@
+"""``jaxsync sensitivity``: reverse-mode elasticities against central
+differences, and the command's files and errors (one compiled program shared
+by the library test and the command)."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync import _gains
+
+DURATION = 1.7  # the short task's shortest horizon with a settled window
+BATCH = 2
+
+
+@pytest.fixture(scope="module")
+def computed(model):
+    from jaxsync.optimize.sensitivity import sensitivity
+    from jaxsync.optimize.tasks import sample_scenarios
+
+    scen = sample_scenarios(jax.random.key(0), BATCH, jaxsync.short_task())  # the command's --seed 0
+    return scen, sensitivity(model, _gains.default_gains(), scen, DURATION)
+
+
+def test_elasticities_match_central_differences(model, computed):
+    """Seven gain entries (three signed k's, four positive gains of both arms
+    and the inner loop), each metric: 4-point central differences in log gain
+    (in k for the signed factors) against the reverse-mode elasticities,
+    relative error at most 1e-4 per metric over the entries. The step is
+    1e-4: at 1e-3 the differences themselves drift by up to 4e-4 (measured)."""
+    from jax.flatten_util import ravel_pytree
+    from jaxsync.optimize.sensitivity import METRICS, metrics_function
+
+    scen, s = computed
+    assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 44)
+    assert np.all(np.isfinite(s.elasticity)) and np.all(s.values > 0)
+    f = jax.jit(metrics_function(model, DURATION))
+    flat, unravel = ravel_pytree(_gains.default_gains())
+    np.testing.assert_array_equal(np.asarray(f(unravel(flat), scen)), s.values)  # same forward values
+    checked = ["k_rk", "k_lk", "k_rl", "imp_stiffness[right,z]", "imp_damping[left,z]", "imp_mass[right,x]", "kp_pos"]
+    cols = [s.names.index(name) for name in checked]
+    h = 1e-4
+    fd = []
+    for name, j in zip(checked, cols, strict=True):
+        signed = name.startswith("k_")
+
+        def at(c, j=j, signed=signed):
+            x = flat.at[j].add(c * h) if signed else flat.at[j].multiply(np.exp(c * h))
+            return np.log(np.asarray(f(unravel(x), scen)))
+
+        fd.append((at(-2) - 8 * at(-1) + 8 * at(1) - at(2)) / (12 * h))  # d log m / d log g (d k)
+    fd = np.array(fd).T  # (3 metrics, entries)
+    for i, m in enumerate(METRICS):
+        e = s.elasticity[i, cols]
+        assert np.linalg.norm(fd[i] - e) <= 1e-4 * np.linalg.norm(fd[i]), (m, fd[i], e)
+    # a real effect, not noise: the peak and the grip error respond to the synchronisation factor k_rl
+    assert abs(s.elasticity[0, s.names.index("k_rl")]) > 1 and abs(s.elasticity[1, s.names.index("k_rl")]) > 1
+
+
+def test_elasticity_scaling():
+    from jaxsync.optimize.sensitivity import elasticities
+
+    names = ["k_rk", "kp_pos"]
+    e = elasticities(names, np.array([0.5, 200.0]), np.array([2.0]), np.array([[3.0, 0.01]]))
+    np.testing.assert_allclose(e, [[1.5, 1.0]])  # k: (1/m) dm/dk; positive gain: (g/m) dm/dg
+
+
+def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monkeypatch, capsys):
+    from jaxsync import _model
+    from jaxsync.cli import main
+
+    monkeypatch.setattr(_model, "load_model", lambda *a, **k: model)  # the fixture's compiled program
+    out = tmp_path / "sens"
+    argv = ["sensitivity", "--task", "short", "--duration", str(DURATION), "--batch", str(BATCH), "--out", str(out)]
+    assert main(argv) == 0
+    _, s = computed
+    r = json.loads((out / "sensitivity.json").read_text())
+    assert [row["gain"] for row in r["rows"]] == s.names
+    np.testing.assert_array_equal([r["metrics"][m] for m in r["metrics"]], s.values)
+    np.testing.assert_array_equal([row["elasticity_settled_peak_resultant_N"] for row in r["rows"]], s.elasticity[0])
+    header = (out / "sensitivity.csv").read_text().splitlines()[0].split(",")
+    assert header[:2] == ["gain", "value"] and len(header) == 2 + 2 * 3
+    assert (out / "sensitivity.png").stat().st_size > 10_000
+    text = capsys.readouterr().out
+    assert "imp_stiffness[right,z]" in text and "sensitivity.png" in text
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--batch", "0"], "--batch"),
+        (["--task", "short", "--duration", "1.0"], "--duration must be at least 1.7 s"),
+        (["--gains", "/nonexistent/gains.json"], "gains"),
+    ],
+)
+def test_command_rejects_bad_input_before_writing(tmp_path, capsys, extra, message):
+    from jaxsync.cli import main
+
+    out = tmp_path / "never"
+    try:
+        code = main(["sensitivity", "--out", str(out), *extra])
+    except SystemExit as e:  # argparse's own checks
+        code = e.code
+    assert code == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
