@@ -98,3 +98,37 @@ def rollouts(model):
         "synchronous": run(g, controller="synchronous"),
         "neutral": run(classical_equivalent(g), controller="synchronous", cross_term="none"),
     }
+
+
+@pytest.fixture(scope="session")
+def tuning_program(model):
+    """``jaxsync tune``'s own gradient program, compiled once for the session:
+    its defaults (the full 4 s task, 2000 steps, the exact full-horizon
+    gradient), batch 2, through ``_traced_value_and_grad`` as ``tune()`` builds
+    it, so that a ``tune()`` call in a test with the same configuration gets the
+    same program back (traced form from disk, executable from the persistent
+    cache). Used by the full-task gradient check (test_gradient) and the
+    resumed-run test (test_tune)."""
+    from jaxsync.optimize import tune as tune_mod
+    from jaxsync.optimize.cost import CostWeights
+    from jaxsync.optimize.params import TuneSpec
+    from jaxsync.optimize.tasks import sample_scenarios, training_base
+
+    from jaxsync._gains import default_gains
+
+    cfg = tune_mod.TuneConfig(batch=2)
+    spec, base, weights = TuneSpec(), default_gains(), CostWeights()
+    loss = tune_mod.make_loss(model, spec, base, cfg, weights)
+    scen = sample_scenarios(jax.random.key(7), cfg.batch, training_base(cfg)[0])
+    theta0 = spec.init(base)
+    value_and_grad = tune_mod._traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta0, scen), None)
+    return {
+        "cfg": cfg,
+        "spec": spec,
+        "base": base,
+        "weights": weights,
+        "loss": loss,
+        "theta0": theta0,
+        "scenarios": scen,
+        "value_and_grad": value_and_grad,
+    }
