@@ -1,5 +1,7 @@
-"""Gain tuning: constraints by construction, gradients against finite
-differences, and a resumed run ending where an uninterrupted one ends."""
+"""Gain tuning: constraints by construction, a resumed run ending where an
+uninterrupted one ends (on jaxsync tune's own program, whose gradient
+tests/test_gradient.py checks against central differences), the command's
+plumbing and errors."""
 
 from __future__ import annotations
 
@@ -8,34 +10,19 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-from jax.flatten_util import ravel_pytree
-from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
 from jaxsync.optimize.tasks import sample_scenarios
-from jaxsync.optimize.tune import TuneConfig, TuneResult, make_loss, tune
+from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 
 import jaxsync
 from jaxsync import _gains
 
-# A short task in contact from the first step: start at the grasp keyframe,
-# hold from 0.15 s, 0.25 s in all (125 steps).
-SHORT = dict(
-    iterations=4,
-    batch=2,
-    learning_rate=0.05,
-    checkpoint_every=2,
-    task="short",
-    train_duration=0.25,
-    truncate_every=None,
-    train_start="grasp",
-    train_task=(
-        ("t_close", 0.02),
-        ("t_squeeze", 0.08),
-        ("t_carry", 0.05),
-        ("settle_time", 0.0),
-        ("lift", (0.0, 0.0, 0.002)),
-    ),
-)
+# The resumed-run test tunes with jaxsync tune's defaults (the full task, the
+# exact gradient) at batch 2: the program of the session fixture
+# ``tuning_program``, whose gradient tests/test_gradient.py checks against
+# central differences in every parameter. Four iterations, a checkpoint every
+# two.
+RESUME = dict(iterations=4, checkpoint_every=2, validate_every=2)
 
 
 def test_parametrisation_is_constrained_and_round_trips():
@@ -83,48 +70,6 @@ def test_scenario_sampling_is_seeded_and_in_range():
     assert np.abs(np.asarray(a.object_offset)[:, 1]).max() <= 0.005
 
 
-@pytest.fixture(scope="module")
-def short_loss(model):
-    """The short tuning loss's value and gradient, both from the one program
-    ``tune()`` runs (jit(value_and_grad(loss)), kept on disk by
-    ``traced_on_disk``): compiled once for the gradient check and the resume test."""
-    from jaxsync.optimize import tune as tune_mod
-
-    cfg = TuneConfig(**SHORT)
-    spec, base, weights = TuneSpec(), _gains.default_gains(), CostWeights()
-    loss = make_loss(model, spec, base, cfg, weights)
-    scen = sample_scenarios(jax.random.key(0), cfg.batch, jaxsync.short_task(**dict(cfg.train_task)))
-    theta = spec.init(base)
-    x0, unravel = ravel_pytree(theta)
-    value_and_grad = tune_mod._traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), None)
-
-    def value(x):
-        return float(value_and_grad(unravel(x), scen)[0][0])
-
-    def grad(x):
-        return ravel_pytree(value_and_grad(unravel(x), scen)[1])[0]
-
-    return value, grad, x0
-
-
-def test_gradient_matches_central_differences(short_loss):
-    """The tuner's own gradient program (implicit adjoint through 125 steps in
-    contact, float64) against central differences along three random
-    directions, each within 1e-4 of the gradient's norm (the full task,
-    per parameter: tests/test_gradient.py)."""
-    value, grad, x0 = short_loss
-    g = np.asarray(grad(x0))
-    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
-    h = 1e-3
-    rng = np.random.default_rng(1)
-    for _ in range(3):
-        u = rng.standard_normal(x0.size)
-        u /= np.linalg.norm(u)
-        f = [float(value(x0 + c * h * u)) for c in (-2, -1, 1, 2)]
-        dd = (f[0] - 8 * f[1] + 8 * f[2] - f[3]) / (12 * h)
-        assert abs(dd - g @ u) <= 1e-4 * np.linalg.norm(g), (dd, g @ u)
-
-
 def _fake_validation(g):
     """A cheap stand-in for the held-out-style evaluation: a smooth function of the gains."""
     return {
@@ -135,9 +80,9 @@ def _fake_validation(g):
     }
 
 
-def test_resume_ends_where_an_uninterrupted_run_ends(model, tmp_path):
-    cfg = dataclasses.replace(TuneConfig(**SHORT), validate_every=2)
-    spec, base = TuneSpec(), _gains.default_gains()
+def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_path):
+    cfg = dataclasses.replace(tuning_program["cfg"], **RESUME)
+    spec, base = tuning_program["spec"], tuning_program["base"]
     kw = dict(progress=False, validate=_fake_validation)
     r_full = tune(model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
     full, hist_full = r_full.gains, r_full.history
