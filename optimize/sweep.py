@@ -131,13 +131,16 @@ def run(
     chunk: int | None = None,
     budget_gib: float = DEFAULT_BUDGET_GIB,
     restart: bool = False,
+    resume: bool = False,
     progress: bool = True,
     max_chunks: int | None = None,
     plot_metrics=DEFAULT_PLOT_METRICS,
     log=lambda m: print(m, file=sys.stderr, flush=True),
 ) -> dict:
     """Evaluate the plan into ``out``; returns summary.json's content (``complete`` False
-    when ``max_chunks`` stopped it early).
+    when ``max_chunks`` stopped it early). A sweep already in ``out`` is
+    continued with ``resume`` (the same plan's finished chunks are read back),
+    discarded with ``restart``, and an error with neither.
 
     Example:
       >>> plan = make_plan(["k_rk=-0.5:0.5:3", "object_mass=0.5,0.7"], duration=4.0)
@@ -151,7 +154,7 @@ def run(
     _check(chunk, budget_gib, plot_metrics, n_dev)
     t_start = time.perf_counter()
     main_proc = jax.process_index() == 0
-    stored = prepare_out(out, plan, restart) if main_proc else None
+    stored = prepare_out(out, plan, restart, resume) if main_proc else None
     if jax.process_count() > 1:  # every process reads the same finished chunks (a shared --out)
         from jax.experimental import multihost_utils
 
@@ -192,7 +195,7 @@ def run(
     if len(results) < n_chunks:
         log(
             f"stopped after {computed} new chunk(s) (--max-chunks): {len(results)} of {n_chunks} done; "
-            "run the same command again to finish"
+            "run the same command again with --resume to finish"
         )
         return {"complete": False, "chunks_done": len(results), "n_chunks": n_chunks, "timing": timing}
     metrics = {k: np.concatenate([results[i][k] for i in range(n_chunks)]) for k in _metrics.Metrics._fields}

@@ -1,7 +1,7 @@
 """A sweep's plan: the parsed parameters, the points and everything that fixes the results.
 
 Its ``fingerprint`` names the sweep in ``plan.json``: a re-run with the same
-plan resumes, a different one needs ``--restart``.
+plan continues with ``--resume``, a different one needs ``--restart``.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
-"""The chunk store of a sweep: finished chunks on disk, so that a re-run resumes.
+"""The chunk store of a sweep: finished chunks on disk, so that a run can be resumed.
 
 Each finished chunk is written atomically to ``chunks/chunk_NNNNN.npz`` next
-to ``plan.json`` (the sweep's fingerprint); a re-run with the same plan reads
-finished chunks back instead of recomputing them.
+to ``plan.json`` (the sweep's fingerprint); a re-run of the same plan with
+``--resume`` reads finished chunks back instead of recomputing them.
 """
 
 from __future__ import annotations
@@ -45,9 +45,17 @@ def load_chunk(out: str, i: int, start: int, stop: int, fields) -> dict | None:
     return got
 
 
-def prepare_out(out: str, plan: Plan, restart: bool) -> dict | None:
-    """Create the folder; return the stored plan.json when resuming the same sweep."""
-    _io.ensure_writable_dir(out)
+def prepare_out(out: str, plan: Plan, restart: bool, resume: bool = False) -> dict | None:
+    """Check what ``out`` holds, then create it; return the stored plan.json when resuming.
+
+    A folder holding a sweep (plan.json) is continued (``resume``: the same
+    sweep's finished chunks are read back) or discarded (``restart``), never
+    silently taken over: with neither, it is a ConfigError naming both flags,
+    as ``jaxsync tune`` does with a checkpoint. Nothing is created or removed
+    before these checks pass.
+    """
+    if resume and restart:
+        raise ConfigError("--resume continues the sweep in --out and --restart discards it: give one of them")
     path = os.path.join(out, "plan.json")
     stored = None
     if os.path.exists(path):
@@ -56,20 +64,41 @@ def prepare_out(out: str, plan: Plan, restart: bool) -> dict | None:
                 stored = json.load(f)
         except (OSError, json.JSONDecodeError):
             stored = None
-        if stored is not None and stored.get("fingerprint") != plan.fingerprint and not restart:
+    if stored is not None and not restart:
+        if stored.get("fingerprint") != plan.fingerprint:
             raise ConfigError(
                 f"output folder {out!r} holds a different sweep (plan.json fingerprint "
                 f"{stored.get('fingerprint')}, this one {plan.fingerprint}); pass --restart to discard it "
                 "or choose another --out"
             )
-    if restart or stored is None or stored.get("fingerprint") != plan.fingerprint:
+        if not resume:
+            raise ConfigError(
+                f"output folder {out!r} holds this sweep ({_progress(out, stored)}): pass --resume to continue "
+                "it (finished chunks are read back), --restart to discard it and start over, or choose another --out"
+            )
+    if resume and stored is None:
+        raise ConfigError(f"--resume: no sweep to continue in {out!r} (no readable plan.json)")
+    _io.ensure_writable_dir(out)
+    if restart or stored is None:  # --restart, or a new sweep: any old state goes
+        stored = None
         shutil.rmtree(os.path.join(out, "chunks"), ignore_errors=True)
         for f in ("results.csv", "summary.json", "heatmap.png", "line.png", "scatter.png", "plan.json"):
             if os.path.exists(os.path.join(out, f)):
                 os.unlink(os.path.join(out, f))
-        stored = None
     os.makedirs(os.path.join(out, "chunks"), exist_ok=True)
     return stored
+
+
+def _progress(out: str, stored: dict) -> str:
+    """'3 of 8 chunks done' or 'finished', from the chunk files on disk."""
+    try:
+        done = sum(1 for f in os.listdir(os.path.join(out, "chunks")) if f.endswith(".npz"))
+    except OSError:
+        done = 0
+    n = stored.get("n_chunks")
+    if n and done >= n:
+        return "finished"
+    return f"{done} of {n} chunks done" if n else f"{done} chunks done"
 
 
 def read_plan(out: str, plan: Plan) -> dict | None:

@@ -257,6 +257,51 @@ def _validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log) 
     return state._replace(validation=validation, kept=kept)
 
 
+# What a tuning run writes to its folder (checkpoint.pkl by tune(), the rest by
+# jaxsync tune): removed together when a run starts over (--restart).
+RUN_FILES = (
+    "checkpoint.pkl",
+    "heldout_before.json",
+    "gains.json",
+    "gains_last.json",
+    "history.csv",
+    "loss.png",
+    "summary.json",
+)
+
+
+def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> None:
+    """Check what ``out`` holds before a run writes there; reads, never creates.
+
+    A folder holding a tuning run is continued (``resume``) or discarded
+    (``restart``: its RUN_FILES are removed), never silently overwritten: with
+    neither, a checkpoint or a former run's results are a ConfigError naming
+    both flags.
+    """
+    if resume and restart:
+        raise ConfigError("--resume continues the run in --out and --restart discards it: give one of them")
+    ckpt = os.path.join(out, "checkpoint.pkl")
+    if resume:
+        if not os.path.exists(ckpt):
+            raise ConfigError(f"--resume: no checkpoint at {ckpt}")
+        return
+    found = [f for f in RUN_FILES if os.path.exists(os.path.join(out, f))]
+    if restart:
+        for f in found:
+            os.unlink(os.path.join(out, f))
+        return
+    if "checkpoint.pkl" in found:
+        raise ConfigError(
+            f"output folder {out!r} holds a tuning run ({', '.join(found)}): pass --resume to continue it, "
+            "--restart to discard it and start over, or choose another --out"
+        )
+    if found:
+        raise ConfigError(
+            f"output folder {out!r} holds a tuning run's results ({', '.join(found)}) and no checkpoint to "
+            "--resume from: pass --restart to discard them and start over, or choose another --out"
+        )
+
+
 def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
     """jit(value_and_grad(loss)), its traced form kept on disk between runs
     (``jaxsync._cache.traced_on_disk``), keyed by everything the loss closes over."""
@@ -318,6 +363,7 @@ def tune(
     *,
     out: str | None = None,
     resume: bool = False,
+    restart: bool = False,
     fingerprint: dict | None = None,
     progress: bool = True,
     on_iteration: Callable | None = None,
@@ -331,7 +377,10 @@ def tune(
     the last iterate's. Checkpoints (``out/checkpoint.pkl``) every
     ``cfg.checkpoint_every`` iterations and on Ctrl-C; ``resume`` continues
     from the last one and ends where an uninterrupted run with the same seed
-    ends. ``on_iteration(i, theta, row)`` is called after each step.
+    ends; a checkpoint already in ``out`` is an error unless ``resume`` or
+    ``restart`` (start over, overwriting it) is given (``jaxsync tune``
+    checks the whole folder first: :func:`prepare_out`).
+    ``on_iteration(i, theta, row)`` is called after each step.
 
     Example:
       >>> cfg = TuneConfig(iterations=2, task="short")
@@ -345,9 +394,14 @@ def tune(
     loss = make_loss(model, spec, base, cfg, weights)
     opt = cfg.optimizer_transform()
     train_base = training_base(cfg)[0]
-    ckpt = os.path.join(_io.ensure_writable_dir(out), "checkpoint.pkl") if out else None
+    ckpt = os.path.join(out, "checkpoint.pkl") if out else None
+    if ckpt and not resume and not restart and os.path.exists(ckpt):
+        prepare_out(out)  # the error naming --resume and --restart
+    if out:
+        _io.ensure_writable_dir(out)
     state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt)
     every = cfg.validate_every if validate is not None else 0
+
     bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress, unit="it", dynamic_ncols=True)
     value_and_grad = None  # traced at the first step, from its arguments
     try:

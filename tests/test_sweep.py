@@ -125,6 +125,29 @@ def test_bad_input_is_a_clear_error(tmp_path, capsys, args, message):
     assert rc != 0, args
     assert message in err, (args, err)
     assert "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_folder_holding_a_sweep_needs_resume_or_restart(tmp_path, capsys):
+    """As with jaxsync tune's checkpoint: a sweep already in --out is continued
+    (--resume) or discarded (--restart), never taken over silently; checked
+    before anything is compiled or removed."""
+    out = tmp_path / "o"
+    out.mkdir()
+    plan = sweep.make_plan(["k_rk=0,1"], duration=4.0)
+    (out / "plan.json").write_text(json.dumps({"fingerprint": plan.fingerprint, "chunk": 2, "n_chunks": 1}))
+    (out / "results.csv").write_text("x\n")
+    for extra, message in [
+        ([], "pass --resume to continue it"),
+        (["--resume", "--restart"], "give one of them"),
+    ]:
+        assert run_cli(["sweep", "--param", "k_rk=0,1", "--out", str(out), *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err and "--restart" in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1
+    assert (out / "results.csv").exists() and (out / "plan.json").exists()  # nothing removed
+    assert run_cli(["sweep", "--param", "k_rk=0,1", "--out", str(tmp_path / "new"), "--resume"]) == 2
+    assert "no sweep to continue" in capsys.readouterr().err
 
 
 # ----------------------------------------------------------------- compiled runs
@@ -176,13 +199,13 @@ def test_resume_reads_finished_chunks_back(uninterrupted, tmp_path):
     assert os.listdir(out / "chunks") == ["chunk_00000.npz"]
     assert not (out / "results.csv").exists()
     first = (out / "chunks" / "chunk_00000.npz").stat().st_mtime_ns
-    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out)]) == 0
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--resume"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["timing"]["chunks_loaded"] == 1 and summary["timing"]["chunks_computed"] == 1
     assert (out / "chunks" / "chunk_00000.npz").stat().st_mtime_ns == first  # read, not recomputed
     assert (out / "results.csv").read_bytes() == (uninterrupted / "results.csv").read_bytes()
     # a finished sweep re-run recomputes nothing
-    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out)]) == 0
+    assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--resume"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["timing"]["chunks_computed"] == 0 and summary["timing"]["compile_s"] == 0
 

@@ -101,7 +101,10 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
     assert len(hist_res) == len(hist_full) == cfg.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert [r["cost"] for r in hist_res] == [r["cost"] for r in hist_full]
+    # the same records, keys in the same order (history.csv's columns), timing aside
+    assert [list(r) for r in hist_res] == [list(r) for r in hist_full]
+    untimed = lambda h: [{k: v for k, v in r.items() if k != "seconds"} for r in h]  # noqa: E731
+    assert untimed(hist_res) == untimed(hist_full)
     assert hist_full[-1]["cost"] != hist_full[0]["cost"]  # it did move
     # validated at 0, 2, 4 in both runs; the selection is the same
     assert [v["iteration"] for v in r_full.validation] == [0, 2, 4]
@@ -158,14 +161,15 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         rc = main(["tune", "--out", str(tmp_path / "o"), *args])
         err = capsys.readouterr().err
         assert rc == 2 and msg in err and "Traceback" not in err, (args, err[-500:])
+        assert not (tmp_path / "o").exists() and not (tmp_path / "empty").exists(), args  # no folder left
 
 
-def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
-    """The command's plumbing (files, summary keys, selected vs last gains), with
-    the optimisation loop and the held-out rollouts replaced by stand-ins (both
-    are tested above; compiling them here would cost minutes)."""
+@pytest.fixture
+def fake_tuning(monkeypatch):
+    """The optimisation loop and the held-out rollouts replaced by stand-ins
+    (both are tested above; compiling them for a CLI test would cost minutes).
+    Returns the dict the fake loop records its arguments in."""
     import collections
-    import json
 
     from jaxsync.optimize import tune as tune_mod
 
@@ -180,13 +184,24 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
     calls = {}
 
     def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, **kw):
-        calls["weights"], calls["cfg"] = weights, cfg
+        calls["weights"], calls["cfg"], calls["kw"] = weights, cfg, kw
         v0 = {"iteration": 0, **validate(base)}
         last = base._replace(k_rl=0.4)
-        history = [{"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1, "term_grip": 1.0}]
+        # the row's keys in another order than an uninterrupted run's (as a
+        # resumed run's once came back from the checkpoint): the header is fixed
+        row = {"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1, "term_grip": 1.0}
+        history = [dict(sorted(row.items()))]
         return TuneResult(base, history, [v0], v0, last, None)
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
+    return calls
+
+
+def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
+    """The command's plumbing (files, summary keys, selected vs last gains)."""
+    import json
+
+    calls = fake_tuning
     from jaxsync.cli import build_parser
 
     parser = build_parser()
@@ -217,6 +232,41 @@ def test_tune_cli_writes_its_results(tmp_path, monkeypatch):
     assert selected["k_rl"] == 0.5 and last["k_rl"] == 0.4
     for f in ("history.csv", "loss.png"):
         assert (out / f).stat().st_size > 0
+    header = (out / "history.csv").read_text().splitlines()[0]
+    assert header == "iteration,cost,grad_norm,skipped,seconds,term_grip"
+
+
+def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_tuning):
+    """A checkpoint in --out without --resume is refused (naming --resume and
+    --restart), before anything is evaluated or written; --restart starts over
+    and leaves none of the old run's files behind."""
+    import json
+
+    from jaxsync.cli import main
+
+    out = tmp_path / "run"
+    out.mkdir()
+    old = {"checkpoint.pkl": "old", "gains.json": '{"gains": {"k_rl": 0.1}}', "summary.json": "{}"}
+    for name, text in old.items():
+        (out / name).write_text(text)
+    for extra, message in [
+        ([], "pass --resume to continue it, --restart to discard it"),
+        (["--resume", "--restart"], "give one of them"),
+    ]:
+        assert main(["tune", "--out", str(out), "--iterations", "1", *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+        assert "cfg" not in fake_tuning  # refused before tuning
+    assert {p.name: p.read_text() for p in out.iterdir()} == old  # nothing touched
+    (out / "checkpoint.pkl").unlink()  # results without a checkpoint: only --restart
+    assert main(["tune", "--out", str(out), "--iterations", "1"]) == 2
+    assert "no checkpoint to --resume from: pass --restart" in capsys.readouterr().err
+    (out / "checkpoint.pkl").write_text("old")
+    assert main(["tune", "--out", str(out), "--iterations", "1", "--restart"]) == 0
+    assert fake_tuning["kw"]["resume"] is False
+    assert not (out / "checkpoint.pkl").exists()  # the old run's (the stand-in loop writes none)
+    assert json.loads((out / "gains.json").read_text())["gains"]["k_rl"] == 0.5
+    assert json.loads((out / "summary.json").read_text())["iterations"] == 1
 
 
 def test_result_line_says_higher_when_tuning_made_it_worse():

@@ -16,7 +16,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="batched parameter study over gains and scenario parameters (grid or random samples)",
         description="Evaluate the metrics of many rollouts, one per point of a Cartesian grid (or of "
         "--samples random points) over named gain and scenario parameters; batched with vmap, sharded over "
-        "all JAX devices, resumable. Writes results.csv, summary.json, a heatmap (2 swept parameters) or a "
+        "all JAX devices, resumable (--resume). Writes results.csv, summary.json, a heatmap (2 swept parameters) or a "
         "line plot (1) to --out. See docs/sweep.md.",
     )
     p.add_argument(
@@ -50,7 +50,17 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help=f"memory per device for one chunk, GiB ({DEFAULT_BUDGET_GIB:g})",
     )
     p.add_argument("--out", default="results/sweep", help="output folder (results/sweep)")
-    p.add_argument("--restart", action="store_true", help="discard a different or finished sweep in --out")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the same sweep in --out (its finished chunks are read back)",
+    )
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="discard the sweep in --out and start over; without --resume or --restart, a folder holding a "
+        "sweep is an error",
+    )
     p.add_argument(
         "--plot-metric",
         action="append",
@@ -59,7 +69,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
-    p.set_defaults(func=run, interrupted_hint="finished chunks are kept; run again to resume")
+    p.set_defaults(func=run, interrupted_hint="finished chunks are kept; run again with --resume to continue")
     return p
 
 
@@ -83,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         chunk=args.chunk,
         budget_gib=args.memory_budget_gib,
         restart=args.restart,
+        resume=args.resume,
         progress=not args.no_progress,
         max_chunks=args.max_chunks,
         plot_metrics=tuple(args.plot_metric or DEFAULT_PLOT_METRICS),

@@ -41,7 +41,6 @@ def run(args) -> int:
     from jaxsync.optimize.params import TUNABLE, TuneSpec
     from jaxsync.optimize.tune_report import plot_loss
 
-    _io.ensure_writable_dir(args.out)
     tuned = _names(args.tune) or list(TuneSpec().tuned)
     frozen = _names(args.freeze)
     unknown = sorted(set(frozen) - set(TUNABLE))
@@ -67,10 +66,12 @@ def run(args) -> int:
     ).validate()
     weights = _weights(args.weight)
     base = _gains.load(args.gains) if args.gains else _gains.default_gains()
-    if args.resume and not os.path.exists(os.path.join(args.out, "checkpoint.pkl")):
-        raise ConfigError(f"--resume: no checkpoint at {os.path.join(args.out, 'checkpoint.pkl')}")
-    options = {k: v for k, v in vars(args).items() if k != "func"}
-    fingerprint = {k: v for k, v in options.items() if k not in ("resume", "iterations", "out", "cache_dir")}
+    # the input is checked; now the folder: continue (--resume) or discard
+    # (--restart) a run there, never overwrite one silently; created only now
+    tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
+    _io.ensure_writable_dir(args.out)
+    options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
+    fingerprint = {k: v for k, v in options.items() if k not in ("resume", "restart", "iterations", "out", "cache_dir")}
 
     t_start = time.perf_counter()
     model = load_model(args.model)  # one physics: training, validation and held-out scoring alike
@@ -129,7 +130,7 @@ def run(args) -> int:
         os.path.join(args.out, "gains_last.json"),
         {"gains": _gains.to_dict(result.last_gains), "tune": spec.describe()},
     )
-    cols = {k: [r[k] for r in history] for k in history[0]} if history else {}
+    cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
         _io.write_csv(os.path.join(args.out, "history.csv"), cols)
         plot_loss(history, os.path.join(args.out, "loss.png"), result.validation, selected)
@@ -157,6 +158,18 @@ def run(args) -> int:
     print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
     print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
+
+
+# history.csv's leading columns, then the cost terms (term_*) by name: a fixed
+# order, whatever order a row's keys came in (a resumed run's rows came back
+# from the checkpoint in another order once; issue 11)
+HISTORY_COLUMNS = ("iteration", "cost", "grad_norm", "skipped", "seconds")
+
+
+def history_columns(history: list[dict]) -> list[str]:
+    """history.csv's header: HISTORY_COLUMNS, then any other keys sorted."""
+    keys = {k for r in history for k in r}
+    return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
 
 
 def change_text(before: float | None, after: float | None) -> str:
@@ -228,4 +241,10 @@ def add_parser(sub) -> None:
     add_model_argument(p)
     p.add_argument("--out", default="results/tune", help="output folder (results/tune)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="discard the tuning run in --out (checkpoint and results) and start over; without --resume or "
+        "--restart, a folder holding a run is an error",
+    )
     p.set_defaults(func=run)
