@@ -402,7 +402,22 @@ def tune(
     state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt)
     every = cfg.validate_every if validate is not None else 0
 
-    bar = tqdm(total=cfg.iterations, initial=state.iteration, disable=not progress, unit="it", dynamic_ncols=True)
+    def progress_bar(first: bool):
+        # the run's first iteration traces and compiles the gradient (minutes
+        # cold, seconds warm): it gets a bar of its own, replaced after it by
+        # one whose clock starts then, so that the rate and the ETA come from
+        # the iterations after it (issue 11: an ETA of 08:45 for seconds per step)
+        return tqdm(
+            total=cfg.iterations,
+            initial=state.iteration,
+            disable=not progress,
+            unit="it",
+            dynamic_ncols=True,
+            leave=not first,
+            desc="first iteration (compiles unless cached)" if first else None,
+        )
+
+    bar = progress_bar(first=True)
     value_and_grad = None  # traced at the first step, from its arguments
     try:
         start = state.iteration
@@ -417,8 +432,11 @@ def tune(
                     loss, model, spec, base, cfg, weights, (state.theta, scen), bar.write
                 )
             state, row = _step(state, value_and_grad, opt, scen, cfg, spec, base, bar.write)
-            bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")
             bar.update(1)
+            if i == start:
+                bar.close()
+                bar = progress_bar(first=False)
+            bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")
             if on_iteration is not None:
                 on_iteration(i, state.theta, row)
             if every and ((i + 1) % every == 0 or i + 1 == cfg.iterations):

@@ -318,3 +318,44 @@ def test_checkpoint_keeps_records_plain(tmp_path):
     assert back["validation"] == state["validation"] and back["history"] == state["history"]
     assert type(back["validation"][0]["iteration"]) is int and type(back["history"][0]["cost"]) is float
     assert back["kept"][back["validation"][0]["iteration"]]["k_rk"] == 0.4
+
+
+def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
+    """The progress bar's rate and ETA come from the iterations after the
+    first, which traces and compiles the gradient (an ETA of 08:45 for a run
+    then taking seconds per step). The gradient is a stand-in whose first
+    call takes 1 s ("compiling") and later ones next to nothing."""
+    import time
+
+    import tqdm as tqdm_module
+    from jaxsync.optimize import tune as tune_mod
+
+    etas = []
+
+    class RecordingBar(tqdm_module.tqdm):
+        def update(self, n=1):
+            shown = super().update(n)
+            d = self.format_dict
+            rate = d["rate"] or ((d["n"] - d["initial"]) / d["elapsed"] if d["elapsed"] else None)
+            etas.append((d["n"], (d["total"] - d["n"]) / rate if rate else None))
+            return shown
+
+    monkeypatch.setattr(tqdm_module, "tqdm", RecordingBar)
+    calls = []
+
+    def fake_traced(loss, model, spec, base, cfg, weights, args, log):
+        def value_and_grad(theta, scenarios):
+            calls.append(1)
+            if len(calls) == 1:
+                time.sleep(1.0)
+            zeros = jax.tree_util.tree_map(jax.numpy.zeros_like, theta)
+            return (jax.numpy.asarray(1.0), {"grip": jax.numpy.asarray(1.0)}), zeros
+
+        return value_and_grad
+
+    monkeypatch.setattr(tune_mod, "_traced_value_and_grad", fake_traced)
+    cfg = TuneConfig(iterations=4, batch=1, validate_every=0, task="short")
+    tune(model, TuneSpec(), _gains.default_gains(), cfg, progress=True)
+    assert len(calls) == 4
+    (eta,) = [e for n, e in etas if n == 2]
+    assert eta is not None and eta < 0.75, etas  # 2 iterations left; counting the first: 2 s or more

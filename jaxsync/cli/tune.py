@@ -93,7 +93,8 @@ def run(args) -> int:
 
     print(
         f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
-        f"(the first iteration compiles the gradient, minutes on a small CPU)",
+        "(the first iteration traces and compiles the gradient: minutes on a small CPU, seconds when the "
+        "compilation cache holds it; the ETA leaves it out)",
         flush=True,
     )
     valid = tasks.validation_scenarios(cfg)
