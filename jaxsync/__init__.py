@@ -33,11 +33,17 @@ import contextlib
 import importlib
 import io
 
+from jaxsync._gl import import_mujoco
+
+# mujoco without OpenGL: a MUJOCO_GL backend that is not installed must not
+# break commands that do not render (the first Renderer loads it; jaxsync._gl)
+import_mujoco()
+
 # MJX prints "Failed to import warp" to stdout when the optional warp backend is
 # absent (harmless: jaxsync uses impl="jax"). Keep it out of users' output.
 with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx as _mjx  # noqa: F401
-del contextlib, io
+del contextlib, io, import_mujoco
 
 from jaxsync._cache import enable_compilation_cache
 from jaxsync._controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step

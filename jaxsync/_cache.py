@@ -51,6 +51,61 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     return path
 
 
+# ------------------------------------------------------------- compiling, measured
+
+
+_COMPILE_EVENT = "/jax/core/compile/backend_compile_duration"  # a compile, or a read from the cache
+_RETRIEVAL_EVENT = "/jax/compilation_cache/cache_retrieval_time_sec"  # a read from the cache
+
+
+class CompileWatch:
+    """What JAX compiled inside a ``with compile_watch() as w:`` block:
+    ``w.compile_s`` seconds of XLA compiling of programs big enough for the
+    persistent cache (at least its minimum compile time; the many small
+    programs of eager operations are left out, they are compiled again in
+    every process), and ``w.cache_hits`` programs read back from that cache."""
+
+    def __init__(self):
+        self.compile_s = 0.0
+        self.cache_hits = 0
+        self._read_s = 0.0  # the cache read inside the compile event that follows it
+        self._min_s = max(float(jax.config.jax_persistent_cache_min_compile_time_secs), 0.1)
+
+    def _on_duration(self, event, seconds, **_):
+        if event == _RETRIEVAL_EVENT:
+            self.cache_hits += 1
+            self._read_s += seconds
+        elif event == _COMPILE_EVENT:
+            compiling = seconds - self._read_s
+            self._read_s = 0.0
+            if compiling >= self._min_s:
+                self.compile_s += compiling
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self._on_duration)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self._on_duration)
+        return False
+
+    def describe(self) -> str:
+        """' (12.3 s of it compiling)', ' (compiled program read from the cache)' or ''."""
+        if self.compile_s:
+            cached = jax.config.jax_compilation_cache_dir
+            return f" ({self.compile_s:.1f} s of it compiling" + (
+                "; the compilation cache keeps it for later runs)" if cached else ")"
+            )
+        if self.cache_hits:
+            return " (compiled program read from the compilation cache)"
+        return ""
+
+
+def compile_watch() -> CompileWatch:
+    """Measure compiling in a block: ``with compile_watch() as w: ...; w.compile_s``."""
+    return CompileWatch()
+
+
 # ------------------------------------------------------------- traced functions
 
 

@@ -2,11 +2,14 @@
 
 MuJoCo's ``mujoco.Renderer`` needs an OpenGL context. On a machine without a
 GPU or a display, that is EGL (Mesa's software renderer, llvmpipe) or OSMesa.
-MuJoCo picks the backend from the ``MUJOCO_GL`` environment variable when
-``mujoco`` is first imported; :func:`select_gl_backend` chooses one that works
-(probing each in a subprocess, so a failing backend cannot break this
-process) and, if ``mujoco`` was already imported, switches its context class
-so that the next ``Renderer`` uses the chosen backend. See docs/rendering.md.
+MuJoCo loads the backend named by the ``MUJOCO_GL`` environment variable when
+``mujoco`` is first imported, and a backend that is not installed (or a name
+it does not know) makes ``import mujoco`` itself fail. ``import jaxsync``
+therefore imports ``mujoco`` through :func:`import_mujoco`, which defers the
+OpenGL part to the first ``Renderer``: only rendering needs OpenGL.
+:func:`select_gl_backend` chooses a backend that works (probing each in a
+subprocess, so a failing backend cannot break this process) and activates it
+for the next ``Renderer``. See docs/rendering.md.
 """
 
 from __future__ import annotations
@@ -34,6 +37,66 @@ SYSTEM_PACKAGES = {
 
 class RenderUnavailableError(JaxsyncError):
     """No OpenGL backend for offscreen rendering works on this machine."""
+
+
+# MUJOCO_GL values that turn MuJoCo's rendering off, and the module of each backend.
+_DISABLED = ("disable", "disabled", "off", "false", "0")
+_BACKEND_MODULES = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw"}
+
+
+def _backend_module(value: str) -> str:
+    """The mujoco module whose GLContext MUJOCO_GL=value uses on Linux (as
+    mujoco.rendering.classic.gl_context picks it)."""
+    value = value.strip().lower()
+    if value in _BACKEND_MODULES:
+        return _BACKEND_MODULES[value]
+    if value in ("", "enable", "enabled", "on", "true", "1", "glx"):
+        return "mujoco.glfw"
+    raise RenderUnavailableError(
+        f"MUJOCO_GL={value} is not an OpenGL backend MuJoCo knows: unset it to let jaxsync try "
+        f"{' and '.join(GL_BACKENDS)}, or set MUJOCO_GL=egl (on Debian/Ubuntu: apt-get install -y "
+        f"{' '.join(SYSTEM_PACKAGES['egl'])}) or MUJOCO_GL=osmesa (apt-get install -y "
+        f"{' '.join(SYSTEM_PACKAGES['osmesa'])})"
+    )
+
+
+class _DeferredGLContext:
+    """Stands in for mujoco's GLContext until the first ``mujoco.Renderer``:
+    then loads the backend ``MUJOCO_GL`` names (as ``import mujoco`` would have)
+    and puts its GLContext in place."""
+
+    def __new__(cls, *args, **kwargs):
+        gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
+        real = importlib.import_module(_backend_module(os.environ.get("MUJOCO_GL", ""))).GLContext
+        gl_context.GLContext = real
+        sys.modules["mujoco"].GLContext = real
+        return real(*args, **kwargs)
+
+
+def import_mujoco():
+    """``import mujoco`` without loading OpenGL: whatever ``MUJOCO_GL`` says
+    (a backend that is not installed, a name MuJoCo does not know), the import
+    works, and the backend is loaded by the first ``mujoco.Renderer``
+    (:class:`_DeferredGLContext`). If ``mujoco`` is already imported, nothing
+    changes. Returns the module."""
+    if "mujoco" in sys.modules:
+        return sys.modules["mujoco"]
+    requested = os.environ.get("MUJOCO_GL")
+    os.environ["MUJOCO_GL"] = "disable"
+    try:
+        import mujoco
+    finally:
+        if requested is None:
+            del os.environ["MUJOCO_GL"]
+        else:
+            os.environ["MUJOCO_GL"] = requested
+    value = (requested or "").strip().lower()
+    gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
+    gl_context._MUJOCO_GL = value
+    if value not in _DISABLED:
+        gl_context.GLContext = _DeferredGLContext
+        mujoco.GLContext = _DeferredGLContext
+    return mujoco
 
 
 _selected_backend: str | None = None
@@ -83,6 +146,9 @@ def _activate(backend: str) -> None:
     if "mujoco" not in sys.modules:
         return  # mujoco reads MUJOCO_GL when it is imported
     gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
+    if getattr(gl_context, "GLContext", None) is _DeferredGLContext:
+        gl_context._MUJOCO_GL = backend
+        return  # the first Renderer loads it (import_mujoco)
     if getattr(gl_context, "_MUJOCO_GL", None) == backend:
         return  # mujoco was imported with this backend already
     if backend not in GL_BACKENDS:
@@ -123,6 +189,8 @@ def select_gl_backend() -> str:
     requested = os.environ.get("MUJOCO_GL", "").strip().lower()
     if _failure is not None and _failure[0] == requested:
         raise RenderUnavailableError(_failure[1])
+    if requested and requested not in GL_BACKENDS:
+        _backend_module(requested)  # a name MuJoCo does not know: say so, with what to set
     candidates = (requested,) if requested else GL_BACKENDS
     failures = []
     for backend in candidates:
@@ -132,7 +200,7 @@ def select_gl_backend() -> str:
             _selected_backend = backend
             return backend
         failures.append(f"MUJOCO_GL={backend}: {why}")
-    packages = " ".join(p for b in GL_BACKENDS for p in SYSTEM_PACKAGES[b])
+    packages = " ".join(SYSTEM_PACKAGES.get(requested) or [p for b in GL_BACKENDS for p in SYSTEM_PACKAGES[b]])
     hint = f"unset MUJOCO_GL to let jaxsync try {' and '.join(GL_BACKENDS)}, or " if requested else ""
     message = (
         "no OpenGL backend for offscreen rendering works here (tried "

@@ -14,16 +14,49 @@ import tempfile
 
 from jaxsync._errors import ConfigError
 
+# The outermost folder each ensure_writable_dir call created, so that a run
+# that then fails can remove what it created and left empty
+# (remove_created_dirs; jaxsync.cli.main does): a rejected run leaves no empty
+# output folder behind (issue 11).
+_created: list[str] = []
+
 
 def ensure_writable_dir(path: str) -> str:
     """Create ``path`` if needed and check that files can be written there."""
     try:
-        os.makedirs(path, exist_ok=True)
+        top = None
+        probe = os.path.abspath(path)
+        while not os.path.lexists(probe):
+            top, probe = probe, os.path.dirname(probe)
+        try:
+            os.makedirs(path, exist_ok=True)
+        finally:
+            if top is not None and os.path.isdir(top):
+                _created.append(top)
         with tempfile.NamedTemporaryFile(dir=path, prefix=".jaxsync-probe-"):
             pass
     except OSError as err:
         raise ConfigError(f"output folder {path!r} cannot be written: {err.strerror or err}") from None
     return path
+
+
+def forget_created_dirs() -> None:
+    """Start a new run's record of created folders."""
+    _created.clear()
+
+
+def remove_created_dirs() -> list[str]:
+    """Remove the empty folders ensure_writable_dir created since
+    forget_created_dirs (and empty folders inside them); a folder holding a
+    file is kept. Returns the folders removed."""
+    removed = []
+    while _created:
+        top = _created.pop()
+        for root, _, _ in os.walk(top, topdown=False):
+            with contextlib.suppress(OSError):
+                os.rmdir(root)
+                removed.append(root)
+    return removed
 
 
 @contextlib.contextmanager

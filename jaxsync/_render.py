@@ -244,6 +244,7 @@ def render_trajectory(
     forces=None,
     points=None,
     camera=None,
+    progress=None,
 ) -> list[np.ndarray]:
     """Render a trajectory as video frames, subsampled to the output frame rate.
 
@@ -258,6 +259,7 @@ def render_trajectory(
       overlay: contact forces to draw (a :class:`ForceOverlay`); or pass
         ``forces`` and ``points`` directly (shortcut for the same thing).
       camera: as for :func:`render_pose`; the same camera for every frame.
+      progress: ``progress(done, total)``, called after each frame.
 
     Returns:
       A list of ``(height, width, 3)`` uint8 frames. With a force overlay each
@@ -280,6 +282,8 @@ def render_trajectory(
     frames = []
     with _Session(mj_model, width, height, camera) as s:
         for i in idx:
+            if progress is not None and frames:
+                progress(len(frames), len(idx))
             if overlay is None:
                 frames.append(s.frame(qpos_traj[i]))
                 continue
@@ -292,4 +296,6 @@ def render_trajectory(
             if overlay.caption:
                 text = f"{overlay.caption}\n{text}"
             frames.append(_draw_text(img, text, (8, 6)))
+    if progress is not None:
+        progress(len(frames), len(idx))
     return frames

@@ -57,6 +57,16 @@ def summarize_sweep(plan: Plan, metrics: dict) -> dict:
     return out
 
 
+NOTHING_TO_PLOT = (
+    "every point dropped the object or went non-finite:\nno settled metric to plot (results.csv has them all)"
+)
+
+
+def _nothing_to_plot(ax) -> None:
+    """A note in place of an empty plot (every point dropped)."""
+    ax.text(0.5, 0.5, NOTHING_TO_PLOT, transform=ax.transAxes, ha="center", va="center", fontsize=9, color="r")
+
+
 def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
     """heatmap.png (2 swept grid parameters), line.png (1), scatter.png (random samples)."""
     import matplotlib
@@ -86,6 +96,8 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
                 ax.set_ylabel(k)
             ax.set_xlabel(plan.params[axes_j[0]].name)
             ax.set_title(f"{k}, {len(x)} random points")
+            if not ok.any():
+                _nothing_to_plot(ax)
     elif len(axes_j) == 1:
         name = "line.png"
         j = axes_j[0]
@@ -98,8 +110,12 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
             ax.plot(xs, ys, "o-")
             ax.set_xlabel(plan.params[j].name)
             ax.set_ylabel(k)
-            ax.set_title(f"{k}{note}", fontsize=9)
+            gaps = " (gaps: dropped)" if np.isnan(ys).any() else ""
+            ax.set_title(f"{k}{note}{gaps}", fontsize=9)
             ax.grid(alpha=0.3)
+            if np.isnan(ys).all():
+                ax.set_xlim(xs.min() - 0.5 * (np.ptp(xs) or 1), xs.max() + 0.5 * (np.ptp(xs) or 1))
+                _nothing_to_plot(ax)
     else:
         name = "heatmap.png"
         ja, jb = axes_j
@@ -120,6 +136,8 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
             ax.set_ylabel(plan.params[jb].name)
             blank = " (blank: dropped)" if np.isnan(grid).any() else ""
             ax.set_title(f"{k}{note}{blank}", fontsize=9)
+            if np.isnan(grid).all():
+                _nothing_to_plot(ax)
     fig.suptitle(f"{plan.controller} controller, {plan.duration:g} s rollouts", fontsize=10)
     fig.tight_layout()
     _io.save_figure(fig, os.path.join(out, name))

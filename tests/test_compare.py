@@ -92,11 +92,13 @@ def test_compare_rejects_bad_input(tmp_path, capsys):
         assert rc == 2, args
         assert message in err, (args, err)
         assert "Traceback" not in err, args
+        assert not (tmp_path / "o").exists(), args  # a rejected run creates no output folder
 
 
-def test_render_cli_and_compare_video(tmp_path, model, rollouts):
+def test_render_cli_and_compare_video(tmp_path, model, rollouts, capsys):
     """``jaxsync render`` writes a non-blank PNG; the comparison video has one
-    frame per 1/25 s of slowed-down rollout (skipped without an OpenGL backend)."""
+    frame per 1/25 s of slowed-down rollout, its rendering counted on stderr
+    (skipped without an OpenGL backend)."""
     from jaxsync import _render
     from jaxsync.cli.render import VIDEO_FPS, compare_video
 
@@ -116,6 +118,9 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts):
     path = compare_video(model, results, s, str(tmp_path), speed=2.0, width=96, height=72)
     n_states = len(rollouts["classical"].time)
     expected = len(_render.frame_indices(n_states, VIDEO_FPS, 0.002, 2.0))
+    err = capsys.readouterr().err
+    for k, name in enumerate(("classical", "synchronous")):
+        assert f"[video {k + 1}/2] rendering {name}: frame {expected}/{expected}" in err, err
     if path.endswith(".gif"):
         with Image.open(path) as gif:
             assert gif.n_frames <= expected and gif.n_frames > expected // 2  # Pillow merges identical frames
@@ -134,3 +139,103 @@ def test_infinite_duration_and_bad_cache_dir_are_clear_errors(tmp_path, capsys):
     assert main(["--cache-dir", str(blocker / "xla"), "info"]) == 2
     err = capsys.readouterr().err
     assert "compilation cache folder" in err and "Traceback" not in err
+
+
+def _dropped(m, t=1.25):
+    """These metrics as if the object had been lost at ``t``."""
+    return m._replace(dropped=np.asarray(True), drop_time_s=np.asarray(t))
+
+
+def test_a_drop_is_marked_not_measured(tmp_path, rollouts, monkeypatch):
+    """When a controller drops the object its settled peak and the ratio mean
+    nothing: the progress line and the table say when it dropped, the ratio
+    is null, and the plot marks the drop (no settled peak line)."""
+    from jaxsync import _io
+
+    s = rollouts["scenario"]
+    results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
+    results["classical"] = (results["classical"][0], _dropped(results["classical"][1]))
+    figures = {}
+    save = _io.save_figure
+    monkeypatch.setattr(
+        _io, "save_figure", lambda fig, path: (figures.update({os.path.basename(path): fig}), save(fig, path))
+    )
+    summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {}, 1.0)
+    assert summary["resultant_ratio"] is None
+    assert json.loads((tmp_path / "summary.json").read_text())["resultant_ratio"] is None
+    assert _compare.outcome(results["classical"][1]) == "dropped the object at t=1.250 s"
+    assert _compare.outcome(results["synchronous"][1]).startswith("settled peak resultant 0.00")
+    lines = _compare.table(summary)
+    peak_row = next(line for line in lines if line.startswith("settled_peak_resultant_N"))
+    assert "dropped at t=1.25 s" in peak_row and peak_row.count("dropped") == 1
+    assert lines[-1] == "resultant_ratio: n/a (the classical controller dropped the object)"
+
+    def marks(fig):
+        return [
+            line.get_label()
+            for ax in fig.axes
+            for line in ax.get_lines()
+            if "dropped" in line.get_label() or "settled peak" in line.get_label()
+        ]
+
+    assert marks(figures["forces_classical.png"]) == ["dropped at t=1.25 s"]
+    assert list(figures["forces_classical.png"].axes[1].get_lines()[-1].get_xdata()) == [1.25, 1.25]
+    assert marks(figures["forces_synchronous.png"])[0].startswith("settled peak")
+
+
+def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, monkeypatch, capsys):
+    """jaxsync compare with a dropped object: the files are written, exit
+    status 4, no settled peak quoted for the dropped controller; the video
+    (rendering replaced by a stand-in) is listed in the last line. The
+    rollouts are the session's (no compiling)."""
+    from jaxsync import _gl
+    from jaxsync.cli import main, render
+
+    trajs = {id(rollouts[n]): n for n in ("classical", "synchronous")}
+    monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
+    summarize = _metrics.summarize
+    monkeypatch.setattr(
+        _metrics,
+        "summarize",
+        lambda traj, s: _dropped(summarize(traj, s)) if trajs.get(id(traj)) == "classical" else summarize(traj, s),
+    )
+    monkeypatch.setattr(_gl, "select_gl_backend", lambda: "egl")
+    monkeypatch.setattr(render, "compare_video", lambda model, results, s, out, speed: os.path.join(out, "compare.mp4"))
+    out = tmp_path / "o"
+    assert main(["compare", "--out", str(out), "--video"]) == 4
+    captured = capsys.readouterr()
+    progress = [line for line in captured.err.splitlines() if line.startswith("[1/2] classical: done")]
+    assert progress and "dropped the object at t=1.250 s" in progress[0] and "settled peak" not in progress[0]
+    assert "(the first run compiles)" not in captured.err
+    assert "resultant_ratio: n/a" in captured.out and "dropped at t=1.25 s" in captured.out
+    assert captured.out.strip().splitlines()[-1].endswith("forces_synchronous.png, compare.mp4")
+    assert "exit status 4" in captured.err.strip().splitlines()[-1]
+    assert json.loads((out / "summary.json").read_text())["resultant_ratio"] is None
+    for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
+        assert (out / f).stat().st_size > 0
+
+
+def test_compile_watch_tells_compiling_from_a_cache_read():
+    """The progress line says what happened: compiling, a program read back
+    from the persistent cache, or neither (already compiled in this process;
+    only small eager programs compiled, which the cache does not keep). The
+    events as jax reports them (a cache read is timed inside its compile event)."""
+    from jaxsync._cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
+
+    with compile_watch() as w:  # a big program read back from the cache
+        jax.monitoring.record_event_duration_secs(_RETRIEVAL_EVENT, 2.9)
+        jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 3.0)
+    assert w.cache_hits == 1 and w.compile_s == 0
+    assert w.describe() == " (compiled program read from the compilation cache)"
+    with compile_watch() as w:
+        jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 42.0)
+        for _ in range(20):  # eager operations: small programs, compiled in every process
+            jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 0.1)
+    assert w.describe() == " (42.0 s of it compiling; the compilation cache keeps it for later runs)"
+    f = jax.jit(lambda x: x * 3.0 + 1.0)
+    f(1.0)
+    with compile_watch() as w:  # already compiled here: nothing to say
+        f(2.0)
+    assert w.compile_s == 0 and w.cache_hits == 0 and w.describe() == ""
+    jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 5.0)  # outside the block: not counted
+    assert w.compile_s == 0

@@ -197,3 +197,51 @@ def test_existing_mujoco_gl_is_respected(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "osmesa")
     assert render.select_gl_backend() == "osmesa"
     assert tried == ["osmesa"] and activated == ["osmesa"]
+
+
+def test_a_mujoco_gl_that_cannot_load_breaks_only_rendering(tmp_path):
+    """MUJOCO_GL naming a backend MuJoCo does not know (or one not installed)
+    made ``import mujoco``, and with it every command, fail. Now only the
+    render commands need OpenGL, and they say what to set and install (one
+    line, exit 2, no folder created); --help and info work. One interpreter."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+from jaxsync.cli import main
+try:
+    main(["--help"])
+except SystemExit as exit_:
+    print("help:", exit_.code)
+print("info:", main(["info"]))
+print("render:", main(["render", "--out", sys.argv[1]]))
+print("video:", main(["compare", "--video", "--out", sys.argv[2]]))
+"""
+    out = tmp_path / "r"
+    env = dict(os.environ, MUJOCO_GL="bogus", JAXSYNC_CACHE_DIR="off")
+    env.pop("PYOPENGL_PLATFORM", None)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(out), str(tmp_path / "c")],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    assert "help: 0" in proc.stdout and "usage: jaxsync" in proc.stdout
+    assert "info: 0" in proc.stdout and "joints_per_arm" in proc.stdout
+    assert "render: 2" in proc.stdout and "video: 2" in proc.stdout  # the video: before any rollout
+    errors = proc.stderr.strip().splitlines()
+    assert len(errors) == 2, errors
+    for line in errors:
+        assert "MUJOCO_GL=bogus" in line and "apt-get install -y libegl1" in line, line
+    assert not out.exists() and not (tmp_path / "c").exists()
+
+
+def test_mujoco_gl_names_a_backend_module():
+    """The backend the first Renderer loads (import_mujoco defers it), as MuJoCo picks it."""
+    assert _gl._backend_module("egl") == "mujoco.egl" and _gl._backend_module("") == "mujoco.glfw"
+    with pytest.raises(render.RenderUnavailableError, match="apt-get install -y libegl1"):
+        _gl._backend_module("bogus")

@@ -150,6 +150,28 @@ def test_a_folder_holding_a_sweep_needs_resume_or_restart(tmp_path, capsys):
     assert "no sweep to continue" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("params", [["k_rk=0,0.5,1"], ["k_rk=0,1", "object_mass=0.5,0.6"]], ids=["line", "heatmap"])
+def test_a_plot_where_every_point_dropped_says_so(tmp_path, monkeypatch, params):
+    """Not an empty plot: a note that every point dropped the object."""
+    from jaxsync.optimize import sweep_report
+
+    from jaxsync import _io, _metrics
+
+    plan = sweep.make_plan(params, duration=4.0)
+    n = len(plan.points)
+    metrics = {k: np.full(n, np.nan) if k.endswith("_time_s") else np.ones(n) for k in _metrics.Metrics._fields}
+    metrics.update(dropped=np.ones(n, bool), nonfinite=np.zeros(n, bool), drop_time_s=np.full(n, 1.5))
+    figures = []
+    monkeypatch.setattr(_io, "save_figure", lambda fig, path: figures.append(fig))
+    name = sweep_report.plot(str(tmp_path), plan, metrics, sweep.DEFAULT_PLOT_METRICS)
+    assert name == ("line.png" if len(params) == 1 else "heatmap.png")
+    (fig,) = figures
+    panels = [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    assert len(panels) == len(sweep.DEFAULT_PLOT_METRICS)
+    for ax in panels:
+        assert any("every point dropped the object" in t.get_text() for t in ax.texts), ax.get_title()
+
+
 # ----------------------------------------------------------------- compiled runs
 
 
@@ -225,6 +247,7 @@ def test_memory_budget_too_small_even_for_one(tmp_path, capsys):
     rc = run_cli(["sweep", *FAST, *GRID, "--out", str(tmp_path / "o"), "--memory-budget-gib", "1e-6"])
     err = capsys.readouterr().err
     assert rc == 2
+    assert not (tmp_path / "o").exists()  # a rejected run leaves no empty output folder
     assert "exceed --memory-budget-gib 1e-06 even in chunks of one" in err
 
 

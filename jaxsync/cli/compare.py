@@ -28,33 +28,51 @@ def scenario_from_args(args: argparse.Namespace):
     return default_scenario(**overrides)
 
 
+# the exit status when a controller dropped the object: the files are written,
+# but the run did not show what compare measures (a settled grasp)
+EXIT_DROPPED = 4
+
+
 def run(args: argparse.Namespace) -> int:
+    import os
+    import sys
     import time
 
     from jaxsync import _compare, _gains
     from jaxsync._io import ensure_writable_dir
     from jaxsync._model import load_model
 
-    ensure_writable_dir(args.out)
     gains = _gains.load(args.gains) if args.gains else _gains.default_gains()
     scenario = scenario_from_args(args)
+    _compare.check_duration(scenario, args.duration)
     model = load_model(args.model, solver="accurate")
+    if args.video:  # say now, not after the rollouts, when no OpenGL backend can render it
+        from jaxsync._gl import select_gl_backend
+
+        select_gl_backend()
+    ensure_writable_dir(args.out)  # the input is checked: only now the folder
     t0 = time.perf_counter()
     results = _compare.run(model, gains, scenario, duration=args.duration, backend=args.backend)
     options = {k: v for k, v in vars(args).items() if k not in ("func",)}
     summary = _compare.write_results(args.out, results, scenario, gains, options, time.perf_counter() - t0)
+    files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"]
     if args.video:
         from jaxsync.cli.render import compare_video
 
-        compare_video(model, results, scenario, args.out, speed=args.video_speed)
-    print(f"{'':28}{'classical':>14}{'synchronous':>14}")
-    for k in _compare.SUMMARY_KEYS:
-        a, b = summary["classical"][k], summary["synchronous"][k]
-        fmt = (lambda v: f"{str(v):>14}") if isinstance(a, bool) else (lambda v: f"{v:>14.5g}")
-        print(f"{k:<28}{fmt(a)}{fmt(b)}")
-    ratio = summary["resultant_ratio"]
-    print(f"resultant_ratio (classical / synchronous): {ratio:.3f}" if ratio else "resultant_ratio: n/a")
-    print(f"results in {args.out}: summary.json, series.csv, forces_classical.png, forces_synchronous.png")
+        files.append(os.path.basename(compare_video(model, results, scenario, args.out, speed=args.video_speed)))
+    for line in _compare.table(summary):
+        print(line)
+    print(f"results in {args.out}: {', '.join(files)}")
+    dropped = {n: _compare.drop_time(summary[n]) for n in results if _compare.drop_time(summary[n]) is not None}
+    if dropped:
+        print(
+            "jaxsync compare: "
+            + "; ".join(f"the {n} controller dropped the object at t={t:.3f} s" for n, t in dropped.items())
+            + ": the settled metrics of a dropped object do not apply and there is no resultant ratio "
+            f"(exit status {EXIT_DROPPED})",
+            file=sys.stderr,
+        )
+        return EXIT_DROPPED
     return 0
 
 
@@ -64,6 +82,9 @@ def add_parser(sub) -> None:
         help="the paper's comparison: classical vs synchronous controller on one scenario",
         description="Roll out the classical impedance and the synchronous controller with the same "
         "impedance parameters on the same scenario; write summary.json, series.csv and force plots.",
+        epilog=f"Exit status: 0 done; 2 bad input; {EXIT_DROPPED} a controller dropped the object (the files are "
+        "written, the drop marked in the table and plots, resultant_ratio null in summary.json); 3 internal error; "
+        "130 interrupted.",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     p.add_argument("--grip-force", type=positive(float), default=None, help="desired grip force f_d, N (10)")

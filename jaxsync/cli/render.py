@@ -15,9 +15,9 @@ def run(args) -> int:
     from jaxsync import _io, _render
     from jaxsync._model import load_model
 
-    _io.ensure_writable_dir(args.out)
     backend = _render.select_gl_backend()
     model = load_model(args.model)
+    _io.ensure_writable_dir(args.out)  # the input is checked: only now the folder
     image = _render.render_pose(model.mj_model, model.keyframe_qpos(args.keyframe), args.width, args.height)
     path = _render.save_png(image, os.path.join(args.out, f"{args.keyframe}.png"))
     print(f"wrote {path} ({args.width}x{args.height}, OpenGL backend: {backend})")
@@ -31,25 +31,61 @@ def compare_video(
     computed (MJX states drawn by MuJoCo's renderer), with each pad's contact
     force on the object as an arrow; ``speed`` < 1 is slow motion."""
     from jaxsync import _render
+    from jaxsync._compare import drop_time
     from jaxsync._metrics import summarize
 
     _render.select_gl_backend()
     dt = float(np.asarray(results["classical"][0].time[1] - results["classical"][0].time[0]))
     frames = {}
-    for name, (traj, _) in results.items():
-        peak = float(summarize(traj, scenario).settled_peak_resultant_N)
+    for k, (name, (traj, _)) in enumerate(results.items()):
+        m = summarize(traj, scenario)
+        t_drop = drop_time(m)
+        what = (
+            f"dropped the object at t={t_drop:.2f} s"
+            if t_drop is not None
+            else f"settled peak resultant {float(m.settled_peak_resultant_N) * 1000:.1f} mN"
+        )
         overlay = _render.ForceOverlay(
             forces=np.asarray(traj.pad_forces),
             points=np.asarray(traj.pad_pos),
-            caption=f"{name}: settled peak resultant {peak * 1000:.1f} mN (x{speed:g} speed)",
+            caption=f"{name}: {what} (x{speed:g} speed)",
         )
         frames[name] = _render.render_trajectory(
-            model.mj_model, np.asarray(traj.qpos), VIDEO_FPS, dt, speed, width, height, overlay
+            model.mj_model,
+            np.asarray(traj.qpos),
+            VIDEO_FPS,
+            dt,
+            speed,
+            width,
+            height,
+            overlay,
+            progress=FrameCounter(f"[video {k + 1}/{len(results)}] rendering {name}"),
         )
     combined = _render.side_by_side(frames["classical"], frames["synchronous"])
     path = _render.write_video(combined, os.path.join(out, "compare.mp4"), VIDEO_FPS)
     print(f"video: {path} ({len(combined)} frames at {VIDEO_FPS} fps, {speed:g}x speed)")
     return path
+
+
+class FrameCounter:
+    """A frame counter on stderr: one line rewritten in place on a terminal,
+    else a line at every tenth of the frames (a log stays short)."""
+
+    def __init__(self, label: str, stream=None):
+        import sys
+
+        self.label, self.stream = label, stream or sys.stderr
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.shown = -1
+
+    def __call__(self, done: int, total: int) -> None:
+        line = f"{self.label}: frame {done}/{total}"
+        if self.tty:
+            self.stream.write("\r" + line + ("\n" if done == total else ""))
+        elif done == total or done * 10 // total > self.shown:
+            self.shown = done * 10 // total
+            self.stream.write(line + "\n")
+        self.stream.flush()
 
 
 def add_parser(sub) -> None:
