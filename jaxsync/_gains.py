@@ -153,8 +153,9 @@ def from_dict(d: dict, base: Gains | None = None) -> Gains:
     return validate(_as_arrays(Gains(**fields)))
 
 
-def load(path: str | os.PathLike) -> Gains:
-    """Read a gains JSON (written by :func:`save` or ``jaxsync tune``)."""
+def load(path: str | os.PathLike):
+    """Read a gains JSON (written by :func:`save` or ``jaxsync tune``): :class:`Gains`,
+    or a :class:`jaxsync._schedule.Schedule` when the file holds ``{"schedule": ...}``."""
     try:
         with open(path) as f:
             data = json.load(f)
@@ -166,6 +167,12 @@ def load(path: str | os.PathLike) -> Gains:
         raise ConfigError(f"gains file {path}: expected a JSON object of gains")
     data = data.get("gains", data)
     try:
+        if isinstance(data, dict) and "schedule" in data:  # per-phase gains (jaxsync._schedule)
+            from jaxsync import _schedule
+
+            if set(data) != {"schedule"}:
+                raise ConfigError(f"a schedule file holds only 'schedule', got also {sorted(set(data) - {'schedule'})}")
+            return _schedule.from_dict(data["schedule"])
         return from_dict(data)
     except ConfigError as err:
         raise ConfigError(f"gains file {path}: {err}") from None

@@ -12,6 +12,10 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
 Impedance parameters are shared by both arms or per arm (``per_arm``), and
 per axis (6 values: the pad frame's x, y, z and rotations about them) or
 isotropic (``isotropic``: one value for translations, one for rotations).
+With ``schedule`` every tuned parameter has one value per task phase (close,
+squeeze, carry, hold; ``jaxsync._schedule``) and the gains are a
+:class:`~jaxsync._schedule.Schedule`: per arm and per axis that is
+4 x (4 + 3 x 2 x 6) = 160 parameters.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxsync import _schedule
 from jaxsync._errors import ConfigError
 from jaxsync._gains import Gains
 
@@ -54,6 +59,7 @@ class TuneSpec:
     tuned: tuple[str, ...] = DEFAULT_TUNED
     per_arm: bool = False
     isotropic: bool = False
+    schedule: bool = False  # one value per task phase (jaxsync._schedule.PHASES)
 
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
@@ -78,8 +84,22 @@ class TuneSpec:
             v = jnp.concatenate([jnp.repeat(v[:, :1], 3, axis=1), jnp.repeat(v[:, 1:], 3, axis=1)], axis=1)
         return jnp.broadcast_to(v, (2, 6))
 
-    def init(self, base: Gains) -> dict:
-        """theta such that ``to_gains(theta, base)`` reproduces ``base`` (up to sharing)."""
+    def init(self, base) -> dict:
+        """theta such that ``to_gains(theta, base)`` reproduces ``base`` (up to sharing).
+
+        ``base``: constant gains, or (with ``schedule``) a schedule."""
+        if isinstance(base, _schedule.Schedule):
+            if not self.schedule:
+                raise ConfigError("the base gains are a schedule: tune them with a schedule (--schedule)")
+            per = [self._init_constant(_schedule.phase(base, i)) for i in range(len(_schedule.PHASES))]
+            return jax.tree_util.tree_map(lambda *v: jnp.stack(v), *per)
+        theta = self._init_constant(base)
+        if self.schedule:
+            n = len(_schedule.PHASES)
+            theta = jax.tree_util.tree_map(lambda v: jnp.broadcast_to(v, (n,) + v.shape), theta)
+        return theta
+
+    def _init_constant(self, base: Gains) -> dict:
         theta = {}
         for name in self.tuned:
             if name in SYNC:
@@ -93,8 +113,18 @@ class TuneSpec:
                 theta[name] = jnp.asarray(_logit((self._reduce(zeta) - ZETA_MIN) / (ZETA_MAX - ZETA_MIN)))
         return theta
 
-    def to_gains(self, theta: dict, base: Gains) -> Gains:
-        """Valid gains from theta (differentiable)."""
+    def to_gains(self, theta: dict, base):
+        """Valid gains from theta (differentiable): :class:`Gains`, or a
+        :class:`~jaxsync._schedule.Schedule` when ``schedule`` is set."""
+        if not self.schedule:
+            if isinstance(base, _schedule.Schedule):
+                raise ConfigError("the base gains are a schedule: tune them with a schedule (--schedule)")
+            return self._to_constant(theta, base)
+        if not isinstance(base, _schedule.Schedule):
+            base = _schedule.constant(base)
+        return _schedule.Schedule(jax.vmap(self._to_constant)(theta, base.phases))
+
+    def _to_constant(self, theta: dict, base: Gains) -> Gains:
         g = base._asdict()
         for name in SYNC:
             if name in theta:
@@ -109,11 +139,20 @@ class TuneSpec:
         g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
         return Gains(**g)
 
+    def size(self) -> int:
+        """How many scalars are tuned."""
+        arms = 2 if self.per_arm else 1
+        axes = 2 if self.isotropic else 6
+        n = sum(1 if name in SYNC else arms * axes for name in self.tuned)
+        return n * (len(_schedule.PHASES) if self.schedule else 1)
+
     def describe(self) -> dict:
         return {
             "tuned": list(self.tuned),
             "per_arm": self.per_arm,
             "isotropic": self.isotropic,
+            "schedule": list(_schedule.PHASES) if self.schedule else None,
+            "parameters": self.size(),
             "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
             "k_range": [-1, 1],
         }
