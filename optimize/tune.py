@@ -23,14 +23,16 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 from jaxsync.optimize import checkpoint
 from jaxsync.optimize.cost import CostWeights, cost, cost_terms
 from jaxsync.optimize.loop import apply_update, make_optimizer
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tasks import training_base, training_batch
 
-from jaxsync import _gains, _io, _metrics
+from jaxsync import _gains, _io, _metrics, _schedule
 from jaxsync._cache import traced_on_disk
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync._rollout import make_rollout
@@ -71,6 +73,8 @@ class TuneConfig:
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500
     validation_batch: int = 16
+    method: str = "adam"  # optimize.methods.METHODS; "adam" is the optax loop above, the others take a fixed batch
+    popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
 
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
@@ -96,6 +100,12 @@ class TuneConfig:
             )
         if self.task not in ("short", "full"):
             raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")
+        from jaxsync.optimize.methods import METHODS
+
+        if self.method not in METHODS:
+            raise ConfigError(f"method must be one of {list(METHODS)}, got {self.method!r}")
+        if self.popsize < 2:
+            raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         return self
@@ -208,8 +218,11 @@ class TuneResult(NamedTuple):
     state: TuneState
 
 
-def _fresh(spec: TuneSpec, base, opt) -> TuneState:
+def _fresh(spec: TuneSpec, base, opt, method=None, seed: int = 0) -> TuneState:
     theta = spec.init(base)
+    if opt is None:  # an optimize.methods method on the flat parameters
+        x0 = np.asarray(ravel_pytree(theta)[0])
+        return TuneState(theta, method.init(x0, seed), 0, 0, (), (), {})
     return TuneState(theta, opt.init(theta), 0, 0, (), (), {})
 
 
@@ -220,11 +233,15 @@ def _resumed(path: str, fingerprint, spec: TuneSpec, base, opt) -> TuneState:
             f"--resume: {path} was written by a run with other options; its options: {saved.get('fingerprint')}"
         )
     theta = jax.tree_util.tree_map(jnp.asarray, saved["theta"])
-    template = jax.tree_util.tree_structure(opt.init(theta))
-    opt_state = jax.tree_util.tree_unflatten(template, jax.tree_util.tree_leaves(saved["opt_state"]))
+    if opt is None:  # an optimize.methods state: plain Python and numpy, kept as saved
+        opt_state = saved["opt_state"]
+    else:
+        template = jax.tree_util.tree_structure(opt.init(theta))
+        opt_state = jax.tree_util.tree_unflatten(template, jax.tree_util.tree_leaves(saved["opt_state"]))
+        opt_state = jax.tree_util.tree_map(jnp.asarray, opt_state)
     return TuneState(
         theta=theta,
-        opt_state=jax.tree_util.tree_map(jnp.asarray, opt_state),
+        opt_state=opt_state,
         iteration=int(saved["iteration"]),
         bad=int(saved["bad"]),
         history=tuple(saved["history"]),
@@ -314,7 +331,7 @@ def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
         (
             "tune.value_and_grad",
             spec.describe(),
-            _gains.to_dict(base),
+            _schedule.to_file_dict(base),
             program,
             tuple(weights),
             model.path,
@@ -323,6 +340,16 @@ def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
         )
     )
     return traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
+
+
+def _method_options(cfg: TuneConfig) -> dict:
+    if cfg.method == "cmaes":
+        return {"popsize": cfg.popsize}
+    if cfg.method == "cmaes-lbfgs":
+        from jaxsync.optimize.methods import CMAES
+
+        return {"cmaes": CMAES(popsize=cfg.popsize)}
+    return {}
 
 
 def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: TuneSpec, base, log):
@@ -336,7 +363,7 @@ def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: Tu
     if not finite:
         log(f"iteration {i}: non-finite cost or gradient (cost {float(value)}, |grad| {gnorm}); step skipped")
         if bad >= cfg.max_bad_steps:
-            g = _gains.to_dict(spec.to_gains(state.theta, base))
+            g = _schedule.to_file_dict(spec.to_gains(state.theta, base))
             raise TuneError(
                 f"{bad} non-finite gradients in a row, the last at iteration {i}; stopping. Gains at that point: {g}"
             )
@@ -351,6 +378,52 @@ def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: Tu
     state = state._replace(
         theta=u.params, opt_state=u.opt_state, iteration=i + 1, bad=bad, history=(*state.history, row)
     )
+    return state, row
+
+
+class _MethodOracle:
+    """The fixed-batch objective of a non-Adam method (``optimize.methods``) over
+    the flat parameters, built on the tuner's traced gradient and, for CMA-ES,
+    one batched forward pass of the population."""
+
+    def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig):
+        from jaxsync.optimize.methods import Oracle
+
+        _, self.unravel = ravel_pytree(theta)
+        self.scen = scen
+
+        def vg(x):  # traced (or read from disk) at its first use: CMA-ES alone never needs it
+            (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), scen)
+            return float(value), np.asarray(ravel_pytree(grad)[0])
+
+        pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
+        self.oracle = Oracle(value_and_grad=vg, values=lambda X: pop(jnp.asarray(X), scen))
+
+
+def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
+    """One iteration of an ``optimize.methods`` method; the history row as Adam's (no cost terms)."""
+    t0 = time.perf_counter()
+    i = state.iteration
+    calls0, pop0 = oracle.oracle.gradient_calls, oracle.oracle.forward_rollouts
+    mstate, r = method.step(state.opt_state, oracle.oracle)
+    x = method.incumbent(mstate)
+    finite = bool(r.get("accepted", 1)) and bool(np.all(np.isfinite(x)))
+    bad = 0 if finite else state.bad + 1
+    if not finite:
+        log(f"iteration {i}: no step taken ({cfg.method}: cost {r.get('train_cost')})")
+        if bad >= cfg.max_bad_steps:
+            raise TuneError(f"{cfg.method}: {bad} iterations in a row without a step, the last at iteration {i}")
+    row = {
+        "iteration": i,
+        "cost": float(r["train_cost"]),
+        "grad_norm": float(r.get("grad_norm", float("nan"))),
+        "skipped": int(not finite),
+        "seconds": time.perf_counter() - t0,
+        "gradient_calls": oracle.oracle.gradient_calls - calls0,
+        "population_rollouts": (oracle.oracle.forward_rollouts - pop0) * cfg.batch,
+    }
+    theta = oracle.unravel(jnp.asarray(x)) if np.all(np.isfinite(x)) else state.theta
+    state = state._replace(theta=theta, opt_state=mstate, iteration=i + 1, bad=bad, history=(*state.history, row))
     return state, row
 
 
@@ -392,14 +465,17 @@ def tune(
     cfg.validate()
     weights = weights if weights is not None else CostWeights()
     loss = make_loss(model, spec, base, cfg, weights)
-    opt = cfg.optimizer_transform()
+    from jaxsync.optimize import methods as _methods
+
+    method = None if cfg.method == "adam" else _methods.get(cfg.method, **_method_options(cfg))
+    opt = cfg.optimizer_transform() if method is None else None
     train_base = training_base(cfg)[0]
     ckpt = os.path.join(out, "checkpoint.pkl") if out else None
     if ckpt and not resume and not restart and os.path.exists(ckpt):
         prepare_out(out)  # the error naming --resume and --restart
     if out:
         _io.ensure_writable_dir(out)
-    state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt)
+    state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt, method, cfg.seed)
     every = cfg.validate_every if validate is not None else 0
 
     def progress_bar(first: bool):
@@ -425,13 +501,22 @@ def tune(
             state = _validated(state._replace(iteration=0), validate, spec, base, bar.write)._replace(iteration=start)
         elif every and (start % every == 0 or start == cfg.iterations) and state.validation[-1]["iteration"] != start:
             state = _validated(state, validate, spec, base, bar.write)  # interrupted between a step and its validation
+        oracle = None
         for i in range(start, cfg.iterations):
-            scen = training_batch(cfg, i, train_base)
-            if value_and_grad is None:
-                value_and_grad = _traced_value_and_grad(
-                    loss, model, spec, base, cfg, weights, (state.theta, scen), bar.write
-                )
-            state, row = _step(state, value_and_grad, opt, scen, cfg, spec, base, bar.write)
+            # Adam: a fresh batch every iteration; the other methods: one fixed batch (a deterministic objective)
+            scen = training_batch(cfg, i if method is None else 0, train_base)
+
+            def get_value_and_grad(scen=scen, theta=state.theta, write=bar.write):
+                nonlocal value_and_grad
+                if value_and_grad is None:
+                    value_and_grad = _traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), write)
+                return value_and_grad
+
+            if method is None:
+                state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, bar.write)
+            else:
+                oracle = oracle or _MethodOracle(loss, get_value_and_grad, state.theta, scen, cfg)
+                state, row = _method_step(state, method, oracle, cfg, spec, base, bar.write)
             bar.update(1)
             if i == start:
                 bar.close()

@@ -145,6 +145,8 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
     bad.write_text('{"k_lk": -2}')
     blocker = tmp_path / "f"
     blocker.write_text("")
+    schedule_file = tmp_path / "sched.json"
+    schedule_file.write_text('{"gains": {"schedule": {"hold": {"k_rk": 0.1}}}}')
     cases = [
         (["--lr", "0"], "learning rate must be positive"),
         (["--batch", "0"], "batch must be a positive integer"),
@@ -156,6 +158,8 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         (["--resume", "--out", str(tmp_path / "empty")], "no checkpoint"),
         (["--validate-every", "-1"], "validate every must be"),
         (["--validation-seed", "1000"], "seeds must differ"),
+        (["--popsize", "1", "--method", "cmaes"], "popsize must be at least 2"),
+        (["--gains", str(schedule_file)], "--per-phase"),
     ]
     for args, msg in cases:  # in this process (the console script itself: tests/test_model.py)
         rc = main(["tune", "--out", str(tmp_path / "o"), *args])
@@ -359,3 +363,80 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
     assert len(calls) == 4
     (eta,) = [e for n, e in etas if n == 2]
     assert eta is not None and eta < 0.75, etas  # 2 iterations left; counting the first: 2 s or more
+
+
+# ---------------------------------------------------------------- methods (issue 13)
+
+
+def _quadratic(scale=(1.0, 100.0, 1e4)):
+    from jaxsync.optimize.methods import Oracle
+
+    a = np.diag(scale)
+    return Oracle(
+        value_and_grad=lambda x: (0.5 * x @ a @ x, a @ x),
+        values=lambda xs: 0.5 * np.einsum("pi,ij,pj->p", xs, a, xs),
+    )
+
+
+@pytest.mark.parametrize("name", ["adam", "lbfgs", "cmaes", "cmaes-lbfgs"])
+def test_methods_minimise_an_ill_conditioned_quadratic(name):
+    from jaxsync.optimize import methods
+
+    m, oracle = methods.get(name), _quadratic()
+    state = m.init(np.ones(3), seed=0)
+    f0 = 0.5 * (1 + 100 + 1e4)
+    for _ in range(40):
+        state, row = m.step(state, oracle)
+    x = m.incumbent(state)
+    f = 0.5 * float(x @ np.diag([1.0, 100.0, 1e4]) @ x)
+    # L-BFGS learns the curvature (condition number 1e4); Adam's fixed steps do not get far in 40
+    bound = {"adam": 0.01 * f0, "lbfgs": 1e-12, "cmaes": 1e-3, "cmaes-lbfgs": 1e-12}[name]
+    assert f < bound, (name, f)
+    if name in ("lbfgs", "cmaes-lbfgs"):
+        assert oracle.gradient_calls < 120  # one to a few per iteration
+    if name == "cmaes":
+        assert oracle.gradient_calls == 0 and oracle.forward_rollouts == 40 * m.popsize
+    with pytest.raises(jaxsync.ConfigError, match="method"):
+        methods.get("newton")
+
+
+def test_lbfgs_skips_non_finite_trials_and_keeps_the_iterate():
+    from jaxsync.optimize.methods import LBFGS, Oracle
+
+    calls = []
+
+    def vg(x):
+        calls.append(x.copy())
+        return (float("nan"), np.full_like(x, np.nan)) if len(calls) > 1 else (float(x @ x), 2 * x)
+
+    m = LBFGS(max_trials=3)
+    state, row = m.step(m.init(np.ones(2)), Oracle(value_and_grad=vg))
+    assert row["accepted"] == 0 and np.array_equal(m.incumbent(state), np.ones(2)) and len(calls) == 4
+
+
+def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuning_program, tmp_path):
+    """jaxsync tune --method lbfgs on tune's own (full-task, exact) gradient program:
+    two iterations lower the training cost on its fixed batch, every accepted step
+    satisfies Armijo's condition, and the checkpoint holds the method's state exactly."""
+    from jaxsync.optimize import tune as tune_mod
+
+    cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, checkpoint_every=1, validate_every=0)
+    cfg = dataclasses.replace(cfg, method="lbfgs")
+    spec, base = tuning_program["spec"], tuning_program["base"]
+    r = tune(model, spec, base, cfg, out=str(tmp_path / "l"), progress=False)
+    h = r.history
+    assert [row["iteration"] for row in h] == [0, 1] and all(row["skipped"] == 0 for row in h)
+    assert all(row["gradient_calls"] >= 1 for row in h)
+    # the fixed batch's cost at the start, from the same program
+    from jaxsync.optimize.tasks import training_base, training_batch
+
+    scen = training_batch(cfg, 0, training_base(cfg)[0])
+    (c0, _), _ = tuning_program["value_and_grad"](spec.init(base), scen)
+    assert h[0]["cost"] < float(c0) and h[1]["cost"] < h[0]["cost"]
+    saved = tune_mod._resumed(str(tmp_path / "l" / "checkpoint.pkl"), None, spec, base, None)
+    mine = r.state.opt_state
+    assert saved.iteration == 2
+    np.testing.assert_array_equal(saved.opt_state["x"], mine["x"])
+    assert len(saved.opt_state["s"]) == len(mine["s"]) >= 1
+    for a, b in zip(saved.opt_state["y"], mine["y"], strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -34,7 +34,7 @@ def _names(text: str | None) -> list[str]:
 
 
 def run(args) -> int:
-    from jaxsync import _gains, _io
+    from jaxsync import _gains, _io, _schedule
     from jaxsync._model import load_model
     from jaxsync.optimize import tasks
     from jaxsync.optimize import tune as tuning
@@ -46,7 +46,12 @@ def run(args) -> int:
     unknown = sorted(set(frozen) - set(TUNABLE))
     if unknown:
         raise ConfigError(f"--freeze: unknown parameter(s) {unknown}; tunable: {list(TUNABLE)}")
-    spec = TuneSpec(tuned=tuple(n for n in tuned if n not in frozen), per_arm=args.per_arm, isotropic=args.isotropic)
+    spec = TuneSpec(
+        tuned=tuple(n for n in tuned if n not in frozen),
+        per_arm=args.per_arm,
+        isotropic=args.isotropic,
+        schedule=args.per_phase,
+    )
     cfg = tuning.TuneConfig(
         iterations=args.iterations,
         batch=args.batch,
@@ -63,9 +68,12 @@ def run(args) -> int:
         validation_seed=args.validation_seed,
         validation_batch=args.validation_batch,
         task=args.task,
+        method=args.method,
+        popsize=args.popsize,
     ).validate()
     weights = _weights(args.weight)
     base = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    spec.init(base)  # a schedule file needs --per-phase: say so before any folder is touched
     # the input is checked; now the folder: continue (--resume) or discard
     # (--restart) a run there, never overwrite one silently; created only now
     tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
@@ -92,7 +100,9 @@ def run(args) -> int:
         _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
 
     print(
-        f"tuning {', '.join(spec.tuned)}: {cfg.iterations} iterations, batch {cfg.batch} "
+        f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
+        + (", per task phase" if spec.schedule else "")
+        + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
         "(the first iteration traces and compiles the gradient: minutes on a small CPU, seconds when the "
         "compilation cache holds it; the ETA leaves it out)",
         flush=True,
@@ -126,10 +136,12 @@ def run(args) -> int:
 
     print("held-out evaluation after tuning...", flush=True)
     after = tuning.eval_summary(evaluate(gains, held))
-    _io.write_json(os.path.join(args.out, "gains.json"), {"gains": _gains.to_dict(gains), "tune": spec.describe()})
+    _io.write_json(
+        os.path.join(args.out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": spec.describe()}
+    )
     _io.write_json(
         os.path.join(args.out, "gains_last.json"),
-        {"gains": _gains.to_dict(result.last_gains), "tune": spec.describe()},
+        {"gains": _schedule.to_file_dict(result.last_gains), "tune": spec.describe()},
     )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
@@ -183,6 +195,7 @@ def change_text(before: float | None, after: float | None) -> str:
 
 
 def add_parser(sub) -> None:
+    from jaxsync.optimize.methods import METHODS
     from jaxsync.optimize.params import TUNABLE
 
     p = sub.add_parser(
@@ -202,6 +215,20 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--freeze", default=None, help="comma-separated parameters to keep fixed")
     p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")
+    p.add_argument(
+        "--per-phase",
+        action="store_true",
+        help="a gain schedule: every tuned parameter per task phase (close, squeeze, carry, hold), blended "
+        "across the boundaries; with --per-arm, 160 parameters",
+    )
+    p.add_argument(
+        "--method",
+        default="adam",
+        choices=list(METHODS),
+        help="adam (optax, a fresh batch every iteration), lbfgs (quasi-Newton with a line search), cmaes, "
+        "cmaes-lbfgs (CMA-ES, then L-BFGS); the last three optimise one fixed batch (docs/tuning.md) (adam)",
+    )
+    p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
     p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")
     p.add_argument(
         "--truncate-every",

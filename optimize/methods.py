@@ -1,0 +1,223 @@
+"""Optimisation methods over a flat parameter vector, one step at a time.
+
+Every method is a small state machine over numpy arrays: ``init(x0, seed)``
+gives a state (plain Python and numpy, picklable: checkpoints hold it),
+``step(state, oracle)`` takes one iteration and returns the new state and a
+row for the history, and ``incumbent(state)`` is the parameter vector the
+method stands by (what is scored on held-out scenarios). The oracle evaluates
+the training objective on a fixed batch:
+
+- ``oracle.value_and_grad(x) -> (f, g)``: one forward and one reverse pass;
+- ``oracle.values(X) -> f``: the objective of a population ``X`` (P, n) in
+  one batched forward pass (CMA-ES).
+
+Methods (:data:`METHODS`):
+
+- ``adam``: optax Adam on the exact gradient, global-norm clipped;
+- ``lbfgs``: limited-memory BFGS (two-loop recursion, memory 10) with a
+  backtracking Armijo line search and a cap on the step's length in theta:
+  quasi-Newton curvature for a gradient that is steep in a few directions;
+- ``cmaes``: CMA-ES (the maintained ``cma`` package), its population
+  evaluated as one batch;
+- ``cmaes-lbfgs``: CMA-ES for the first generations (a global look around),
+  then L-BFGS from its mean.
+
+Example:
+  >>> m = get("lbfgs")
+  >>> oracle = Oracle(value_and_grad=lambda x: (float(x @ x), 2 * x))
+  >>> state = m.init(np.ones(3), seed=0)
+  >>> for _ in range(10):
+  ...     state, row = m.step(state, oracle)
+  >>> float(np.abs(m.incumbent(state)).max()) < 1e-6
+  True
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from jaxsync._errors import ConfigError
+
+METHODS = ("adam", "lbfgs", "cmaes", "cmaes-lbfgs")
+
+
+@dataclasses.dataclass
+class Oracle:
+    """The training objective on a fixed batch; counts what it is asked."""
+
+    value_and_grad: Callable | None = None
+    values: Callable | None = None
+    gradient_calls: int = 0
+    forward_rollouts: int = 0  # population members evaluated
+
+    def vg(self, x):
+        self.gradient_calls += 1
+        f, g = self.value_and_grad(x)
+        return float(f), np.asarray(g, dtype=float)
+
+    def pop(self, X):
+        self.forward_rollouts += len(X)
+        return np.asarray(self.values(np.asarray(X)), dtype=float)
+
+
+# ----------------------------------------------------------------- Adam
+
+
+@dataclasses.dataclass(frozen=True)
+class Adam:
+    learning_rate: float = 0.05
+    clip_norm: float = 1.0
+    needs = ("value_and_grad",)
+
+    def _opt(self):
+        import optax
+
+        return optax.chain(optax.clip_by_global_norm(self.clip_norm), optax.adam(self.learning_rate))
+
+    def init(self, x0, seed: int = 0) -> dict:
+        x = np.asarray(x0, dtype=float)
+        return {"x": x, "opt": self._opt().init(x)}
+
+    def step(self, state, oracle: Oracle):
+        import optax
+
+        f, g = oracle.vg(state["x"])
+        row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 1}
+        if not (np.isfinite(f) and np.all(np.isfinite(g))):
+            row["accepted"] = 0
+            return state, row  # skip a non-finite step, as the tuner does
+        upd, opt = self._opt().update(g, state["opt"], state["x"])
+        x = np.asarray(optax.apply_updates(state["x"], upd))
+        return {"x": x, "opt": opt}, row
+
+    def incumbent(self, state):
+        return state["x"]
+
+
+# ----------------------------------------------------------------- L-BFGS
+
+
+@dataclasses.dataclass(frozen=True)
+class LBFGS:
+    memory: int = 10
+    max_step: float = 0.5  # longest step in theta (a factor e^0.5 on a log-parametrised gain)
+    first_step: float = 0.1  # length of the first (steepest-descent) step
+    armijo: float = 1e-4
+    shrink: float = 0.3
+    max_trials: int = 6
+    needs = ("value_and_grad",)
+
+    def init(self, x0, seed: int = 0) -> dict:
+        return {"x": np.asarray(x0, dtype=float), "f": None, "g": None, "s": [], "y": []}
+
+    def _direction(self, g, s_hist, y_hist):
+        if not s_hist:
+            return -g * (self.first_step / max(np.linalg.norm(g), 1e-300))
+        q = g.copy()
+        alphas = []
+        for s, y in zip(reversed(s_hist), reversed(y_hist), strict=True):
+            a = (s @ q) / (y @ s)
+            alphas.append(a)
+            q = q - a * y
+        s, y = s_hist[-1], y_hist[-1]
+        q = q * ((s @ y) / (y @ y))
+        for (s, y), a in zip(zip(s_hist, y_hist, strict=True), reversed(alphas), strict=True):
+            b = (y @ q) / (y @ s)
+            q = q + (a - b) * s
+        return -q
+
+    def step(self, state, oracle: Oracle):
+        x, f, g = state["x"], state["f"], state["g"]
+        if g is None:
+            f, g = oracle.vg(x)
+            if not (np.isfinite(f) and np.all(np.isfinite(g))):
+                return state, {"train_cost": f, "grad_norm": float("nan"), "accepted": 0}
+        d = self._direction(g, state["s"], state["y"])
+        slope = g @ d
+        if not slope < 0:  # not a descent direction: forget the curvature
+            d, slope = -g * (self.first_step / max(np.linalg.norm(g), 1e-300)), -self.first_step * np.linalg.norm(g)
+            state = {**state, "s": [], "y": []}
+        alpha = min(1.0, self.max_step / max(np.linalg.norm(d), 1e-300))
+        for _ in range(self.max_trials):
+            x_new = x + alpha * d
+            f_new, g_new = oracle.vg(x_new)
+            if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and f_new <= f + self.armijo * alpha * slope:
+                s, y = x_new - x, g_new - g
+                s_hist, y_hist = list(state["s"]), list(state["y"])
+                if s @ y > 1e-10 * np.linalg.norm(s) * np.linalg.norm(y):
+                    s_hist, y_hist = (s_hist + [s])[-self.memory :], (y_hist + [y])[-self.memory :]
+                row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1}
+                return {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist}, row
+            alpha *= self.shrink
+        # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
+        row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0}
+        return {"x": x, "f": f, "g": g, "s": [], "y": []}, row
+
+    def incumbent(self, state):
+        return state["x"]
+
+
+# ----------------------------------------------------------------- CMA-ES
+
+
+@dataclasses.dataclass(frozen=True)
+class CMAES:
+    sigma: float = 0.3
+    popsize: int = 16
+    needs = ("values",)
+
+    def init(self, x0, seed: int = 0) -> dict:
+        try:
+            import cma
+        except ImportError:  # pragma: no cover - cma is a dependency
+            raise ConfigError("method 'cmaes' needs the 'cma' package (pip install cma)") from None
+        es = cma.CMAEvolutionStrategy(
+            np.asarray(x0, dtype=float), self.sigma, {"popsize": self.popsize, "seed": seed + 1, "verbose": -9}
+        )
+        return {"es": es}
+
+    def step(self, state, oracle: Oracle):
+        es = state["es"]
+        xs = es.ask()
+        fs = oracle.pop(np.stack(xs))
+        es.tell(xs, [float(v) if np.isfinite(v) else 1e12 for v in fs])
+        return state, {"train_cost": float(np.nanmin(fs)), "sigma": float(es.sigma), "accepted": 1}
+
+    def incumbent(self, state):
+        return np.asarray(state["es"].mean, dtype=float)
+
+
+@dataclasses.dataclass(frozen=True)
+class CMAESThenLBFGS:
+    generations: int = 6
+    cmaes: CMAES = CMAES()
+    lbfgs: LBFGS = LBFGS()
+    needs = ("values", "value_and_grad")
+
+    def init(self, x0, seed: int = 0) -> dict:
+        return {"phase": "cmaes", "n": 0, "inner": self.cmaes.init(x0, seed)}
+
+    def step(self, state, oracle: Oracle):
+        if state["phase"] == "cmaes":
+            inner, row = self.cmaes.step(state["inner"], oracle)
+            n = state["n"] + 1
+            if n >= self.generations:
+                return {"phase": "lbfgs", "n": n, "inner": self.lbfgs.init(self.cmaes.incumbent(inner))}, row
+            return {"phase": "cmaes", "n": n, "inner": inner}, row
+        inner, row = self.lbfgs.step(state["inner"], oracle)
+        return {**state, "inner": inner}, row
+
+    def incumbent(self, state):
+        m = self.cmaes if state["phase"] == "cmaes" else self.lbfgs
+        return m.incumbent(state["inner"])
+
+
+def get(name: str, **options):
+    """A method by name (:data:`METHODS`), with its options."""
+    table = {"adam": Adam, "lbfgs": LBFGS, "cmaes": CMAES, "cmaes-lbfgs": CMAESThenLBFGS}
+    if name not in table:
+        raise ConfigError(f"method must be one of {list(METHODS)}, got {name!r}")
+    return table[name](**options)

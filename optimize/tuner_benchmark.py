@@ -1,0 +1,255 @@
+"""Tuners measured against each other on the same rollouts (issue 13, item 2).
+
+Every method (``optimize.methods``) gets the same parameters, the same fixed
+training batch (per seed), the same held-out scenarios and the same
+wall-clock budget of optimisation; compiling and held-out scoring are not
+counted (they are reported). After every iteration the method's incumbent is
+scored on the held-out scenarios; a run's *time to target* is the first
+optimisation time at which that held-out cost is at or below the target (a
+fraction of the held-out cost of the starting gains).
+
+Two problems on the same programs:
+
+- ``constant``: the 22 parameters of ``jaxsync tune`` (TuneSpec()): k_rk,
+  k_lk, k_rl, k_ll and per-axis impedance mass, stiffness and damping ratio
+  shared by the arms;
+- ``schedule``: those per arm and per task phase (TuneSpec(per_arm=True,
+  schedule=True)): 160 parameters.
+
+The constant problem is the schedule problem with its parameters tied (every
+phase and both arms equal): one linear map ``x160 = T x22`` and its transpose
+for the gradient, so both problems run on one set of compiled programs
+(value and gradient on the training batch, the population's values, the
+held-out value).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from jaxsync.optimize import methods as _methods
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.tasks import sample_scenarios
+
+from jaxsync import _scenario
+
+PROBLEMS = {
+    "constant": TuneSpec(),
+    "schedule": TuneSpec(per_arm=True, schedule=True),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class BenchConfig:
+    budget_s: float = 60.0  # optimisation wall time per run
+    batch: int = 2  # training scenarios (fixed per seed)
+    heldout_batch: int = 8
+    heldout_seed: int = 10_000
+    popsize: int = 16  # CMA-ES population: popsize x batch rollouts per generation
+    target: float = 0.5  # target held-out cost = this x the starting gains' held-out cost
+    task: str = "short"  # the training and held-out task ("short": 2 s; "full": 4 s)
+    max_iterations: int = 10_000
+
+
+class Programs:
+    """The compiled programs both problems share, and the two problems' oracles."""
+
+    def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
+        from jaxsync.optimize.tune import TuneConfig, make_loss
+
+        from jaxsync import _gains
+
+        self.cfg = cfg
+        base = base if base is not None else _gains.default_gains()
+        tcfg = TuneConfig(batch=cfg.batch, task=cfg.task, truncate_every=None)
+        self.spec = PROBLEMS["schedule"]
+        loss = make_loss(model, self.spec, base, tcfg, weights or CostWeights())
+        theta0 = self.spec.init(base)
+        self.x0, unravel = ravel_pytree(theta0)
+        self.x0 = np.asarray(self.x0)
+        f = lambda x, s: loss(unravel(x), s)[0]  # noqa: E731
+        self.value_and_grad = jax.jit(jax.value_and_grad(f))
+        self.values = jax.jit(jax.vmap(f, in_axes=(0, None)))
+        self.value = jax.jit(f)
+        self.base_task = _scenario.short_task() if cfg.task == "short" else _scenario.default_scenario()
+        self.heldout = sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, self.base_task)
+        # the tie map of the constant problem: x160 = T @ x22
+        spec22 = PROBLEMS["constant"]
+        th22 = spec22.init(base)
+        x22, unravel22 = ravel_pytree(th22)
+        shapes = jax.tree_util.tree_map(jnp.shape, theta0)
+
+        def tie(x):
+            th = unravel22(x)
+            return ravel_pytree({k: jnp.broadcast_to(v, shapes[k]) for k, v in th.items()})[0]
+
+        eye = np.eye(x22.size)
+        self.tie = np.stack([np.asarray(tie(jnp.asarray(e))) for e in eye], axis=1)  # (160, 22)
+        assert np.allclose(self.tie @ np.asarray(x22), self.x0)
+        self.x0_constant = np.asarray(x22)
+
+    def training(self, seed: int):
+        return sample_scenarios(jax.random.key(seed), self.cfg.batch, self.base_task)
+
+    def to_full(self, problem: str, x) -> np.ndarray:
+        return self.tie @ x if problem == "constant" else np.asarray(x)
+
+    def start(self, problem: str) -> np.ndarray:
+        return self.x0_constant if problem == "constant" else self.x0
+
+    def oracle(self, problem: str, scen) -> _methods.Oracle:
+        T = self.tie if problem == "constant" else None
+
+        def vg(x):
+            f, g = self.value_and_grad(jnp.asarray(self.to_full(problem, x)), scen)
+            g = np.asarray(g)
+            return float(f), (T.T @ g if T is not None else g)
+
+        def values(X):
+            full = np.stack([self.to_full(problem, x) for x in X])
+            return np.asarray(self.values(jnp.asarray(full), scen))
+
+        return _methods.Oracle(value_and_grad=vg, values=values)
+
+    def heldout_cost(self, problem: str, x) -> float:
+        return float(self.value(jnp.asarray(self.to_full(problem, x)), self.heldout))
+
+    def compile(self, log=print) -> dict:
+        """Compile (or load from the cache) the three programs; seconds each."""
+        scen = self.training(0)
+        out = {}
+        for name, call in (
+            ("value_and_grad", lambda: self.value_and_grad(jnp.asarray(self.x0), scen)),
+            ("population_values", lambda: self.values(jnp.asarray(np.stack([self.x0] * self.cfg.popsize)), scen)),
+            ("heldout_value", lambda: self.value(jnp.asarray(self.x0), self.heldout)),
+        ):
+            t = time.perf_counter()
+            jax.block_until_ready(call())
+            out[name] = time.perf_counter() - t
+            log(f"  compiled {name} in {out[name]:.1f} s")
+        return out
+
+
+def run_one(programs: Programs, problem: str, method: str, seed: int, log: Callable = print, **options) -> dict:
+    """One method on one problem with one seed, for ``programs.cfg.budget_s`` of optimisation."""
+    cfg = programs.cfg
+    m = _methods.get(method, **options) if method != "cmaes" else _methods.get(method, popsize=cfg.popsize, **options)
+    if method == "cmaes-lbfgs":
+        m = dataclasses.replace(m, cmaes=_methods.CMAES(popsize=cfg.popsize))
+    oracle = programs.oracle(problem, programs.training(seed))
+    x0 = programs.start(problem)
+    h0 = programs.heldout_cost(problem, x0)
+    state = m.init(x0, seed)
+    used, curve, rows = 0.0, [(0.0, h0)], []
+    best = h0
+    for i in range(cfg.max_iterations):
+        if used >= cfg.budget_s:
+            break
+        t = time.perf_counter()
+        state, row = m.step(state, oracle)
+        x = m.incumbent(state)
+        used += time.perf_counter() - t
+        h = programs.heldout_cost(problem, x)
+        best = min(best, h) if np.isfinite(h) else best
+        curve.append((used, h))
+        rows.append({"iteration": i, "seconds": used, "heldout_cost": h, **row})
+        log(f"  {problem:8s} {method:11s} seed {seed}  {used:6.1f} s  it {i:3d}  held-out {h:.4g}  best {best:.4g}")
+    target = cfg.target * h0
+    hit = next((tt for tt, c in curve if c <= target), None)
+    return {
+        "problem": problem,
+        "method": method,
+        "seed": seed,
+        "initial_heldout_cost": h0,
+        "target_cost": target,
+        "time_to_target_s": hit,
+        "best_heldout_cost": best,
+        "final_heldout_cost": curve[-1][1],
+        "iterations": len(rows),
+        "gradient_calls": oracle.gradient_calls,
+        "forward_rollouts_population": oracle.forward_rollouts * cfg.batch,
+        "curve": curve,
+        "history": rows,
+        "x": np.asarray(m.incumbent(state)).tolist(),
+    }
+
+
+def summarize(runs: list[dict]) -> list[dict]:
+    """Per problem and method: median and range over seeds of the time to target
+    (a run that missed counts as infinitely slow) and of the best held-out cost."""
+    out = []
+    keys = sorted({(r["problem"], r["method"]) for r in runs}, key=lambda k: (k[0], _methods.METHODS.index(k[1])))
+    for problem, method in keys:
+        rs = [r for r in runs if r["problem"] == problem and r["method"] == method]
+        tt = np.array([r["time_to_target_s"] if r["time_to_target_s"] is not None else np.inf for r in rs])
+        best = np.array([r["best_heldout_cost"] for r in rs])
+        out.append(
+            {
+                "problem": problem,
+                "method": method,
+                "seeds": len(rs),
+                "reached": int(np.isfinite(tt).sum()),
+                "time_to_target_median_s": float(np.median(tt)),
+                "time_to_target_min_s": float(tt.min()),
+                "time_to_target_max_s": float(tt.max()),
+                "best_heldout_median": float(np.median(best)),
+                "best_heldout_min": float(best.min()),
+                "best_heldout_max": float(best.max()),
+            }
+        )
+    return out
+
+
+def table(summary: list[dict]) -> str:
+    def s(v):
+        return "never" if not np.isfinite(v) else f"{v:.1f}"
+
+    lines = [
+        f"{'problem':9s} {'method':12s} {'reached':>7s} {'to target, s: median [min, max]':>32s}"
+        f" {'best held-out cost: median [min, max]':>40s}"
+    ]
+    for r in summary:
+        tt = f"{s(r['time_to_target_median_s'])} [{s(r['time_to_target_min_s'])}, {s(r['time_to_target_max_s'])}]"
+        b = f"{r['best_heldout_median']:.4g} [{r['best_heldout_min']:.4g}, {r['best_heldout_max']:.4g}]"
+        lines.append(f"{r['problem']:9s} {r['method']:12s} {r['reached']:>3d}/{r['seeds']:<3d} {tt:>32s} {b:>40s}")
+    return "\n".join(lines)
+
+
+def plot(runs: list[dict], path: str, target_fraction: float | None = None) -> None:
+    """Held-out cost (best so far) against optimisation wall time, one panel per problem."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from jaxsync import _io
+
+    problems = [p for p in PROBLEMS if any(r["problem"] == p for r in runs)]
+    fig, axes = plt.subplots(1, len(problems), figsize=(6.5 * len(problems), 4.2), squeeze=False)
+    colors = dict(zip(_methods.METHODS, ("C0", "C1", "C2", "C3"), strict=True))
+    for ax, problem in zip(axes[0], problems, strict=True):
+        seen = set()
+        for r in runs:
+            if r["problem"] != problem:
+                continue
+            c = np.array(r["curve"], dtype=float)
+            bestsofar = np.fmin.accumulate(np.where(np.isfinite(c[:, 1]), c[:, 1], np.inf))
+            label = r["method"] if r["method"] not in seen else None
+            seen.add(r["method"])
+            ax.step(c[:, 0], bestsofar, where="post", color=colors[r["method"]], alpha=0.8, lw=1.2, label=label)
+            ax.axhline(r["target_cost"], color="k", ls=":", lw=0.8)
+        n = PROBLEMS[problem].size()
+        ax.set_title(f"{problem} gains ({n} parameters)")
+        ax.set_xlabel("optimisation wall time [s] (compiling and scoring excluded)")
+        ax.set_ylabel("best held-out cost so far")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(title="dotted: target")
+    _io.save_figure(fig, path)
