@@ -10,8 +10,8 @@ where the weights step from one phase to the next across each phase
 boundary with a quintic smoothstep of width :data:`BLEND_S` centred on the
 boundary (C2: the rollout stays differentiable in the gains and in time). Away
 from a boundary one weight is exactly 1 and the others exactly 0, so the gains
-are exactly that phase's; a schedule whose phases are equal is the constant
-gains, bit for bit. Both rollout backends evaluate a schedule in the same
+are that phase's (to rounding); a schedule whose phases are equal is the
+constant gains, bit for bit. Both rollout backends evaluate a schedule in the same
 place (``jaxsync._task.control``), so MJX and MuJoCo C run the same law.
 
 Example:
@@ -69,11 +69,21 @@ def weights(s: _scenario.Scenario, t) -> jax.Array:
 
 
 def at(gains, s: _scenario.Scenario, t) -> Gains:
-    """The gains in force at time ``t``: ``gains`` itself when constant."""
+    """The gains in force at time ``t``: ``gains`` itself when constant.
+
+    Written as the first phase's gains plus each later phase's change, faded
+    in across its boundary: equal phases add exact zeros, so a constant
+    schedule gives the constant gains bit for bit, also inside the blends."""
     if not isinstance(gains, Schedule):
         return gains
-    w = weights(s, t)
-    return Gains(*(jnp.tensordot(w, v, axes=1) for v in gains.phases))
+    bounds = jnp.stack(_scenario.phase_times(s))
+    up = _smoothstep((t - bounds) / BLEND_S + 0.5)  # (3,) 0 before each boundary, 1 after
+
+    def blend(v):
+        steps = v[1:] - v[:-1]  # (3, ...) the change at each boundary
+        return v[0] + jnp.tensordot(up, steps, axes=1)
+
+    return Gains(*(blend(v) for v in gains.phases))
 
 
 # ------------------------------------------------------------------ files
