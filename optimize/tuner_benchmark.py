@@ -26,6 +26,7 @@ held-out value).
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Callable
 
@@ -147,6 +148,7 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
     x0 = programs.start(problem)
     h0 = programs.heldout_cost(problem, x0)
     state = m.init(x0, seed)
+    load_before = os.getloadavg()[0]
     used, curve, rows = 0.0, [(0.0, h0)], []
     best = h0
     for i in range(cfg.max_iterations):
@@ -178,6 +180,7 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
         "curve": curve,
         "history": rows,
         "x": np.asarray(m.incumbent(state)).tolist(),
+        "load_average_1min": [load_before, os.getloadavg()[0]],  # > ~2.2 on 2 cores: something else ran
     }
 
 
