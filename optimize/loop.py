@@ -1,8 +1,8 @@
-"""One optax step, shared by every optimisation loop.
+"""One optax step, shared by the optax loops.
 
-The tuner (``jaxsync.optimize.tune``), the benchmark's tuning step and the
-CMA-ES comparison (``experiments/tune_vs_cmaes.py``) all update their
-parameters here: clip, step, and skip a non-finite step (keep the parameters
+The tuner's Adam (``jaxsync.optimize.tune``) and the benchmark's tuning step
+(``jaxsync bench``) update their parameters here (the other methods:
+``optimize.methods``): clip, step, and skip a non-finite step (keep the parameters
 and the optimiser state). Pure: it runs eagerly or inside ``jax.jit``.
 """
 
