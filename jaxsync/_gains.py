@@ -153,6 +153,17 @@ def from_dict(d: dict, base: Gains | None = None) -> Gains:
     return validate(_as_arrays(Gains(**fields)))
 
 
+def load_constant(path: str | os.PathLike, command: str) -> Gains:
+    """:func:`load`, for a command that takes constant gains only (a schedule is a ConfigError naming it)."""
+    g = load(path)
+    if not isinstance(g, Gains):
+        raise ConfigError(
+            f"gains file {path} holds a gain schedule; {command} takes constant gains "
+            "(compare and tune --per-phase take schedules)"
+        )
+    return g
+
+
 def load(path: str | os.PathLike):
     """Read a gains JSON (written by :func:`save` or ``jaxsync tune``): :class:`Gains`,
     or a :class:`jaxsync._schedule.Schedule` when the file holds ``{"schedule": ...}``."""

@@ -130,3 +130,15 @@ def test_a_schedule_acts_from_its_phase_on(rollouts, schedule_rollouts):
     after = t > t_hold + 0.1
     np.testing.assert_array_equal(np.asarray(a.qpos)[before], np.asarray(b.qpos)[before])
     assert np.abs(np.asarray(a.torque)[after] - np.asarray(b.torque)[after]).max() > 1e-6
+
+
+def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
+    from jaxsync.cli import main
+
+    path = tmp_path / "sched.json"
+    path.write_text(json.dumps({"gains": {"schedule": {"hold": {"k_rk": 0.1}}}}))
+    for cmd in (["sensitivity"], ["sweep", "--param", "k_rl=0.2,0.4"]):
+        rc = main([*cmd, "--gains", str(path), "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert rc == 2 and "holds a gain schedule" in err and "Traceback" not in err, (cmd, err)
+        assert not (tmp_path / "o").exists()

@@ -18,7 +18,7 @@ def run(args) -> int:
     from jaxsync.optimize.tasks import sample_scenarios
 
     # every input is checked before anything is written
-    gains = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    gains = _gains.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
     base = short_task() if args.task == "short" else default_scenario()
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
     if duration < min_duration(base):

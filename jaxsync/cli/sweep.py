@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync import _gains
     from jaxsync.optimize import sweep
 
-    gains = _gains.load(args.gains) if args.gains else None
+    gains = _gains.load_constant(args.gains, "jaxsync sweep") if args.gains else None
     plan = sweep.make_plan(
         args.param,
         samples=args.samples,
