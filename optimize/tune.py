@@ -73,7 +73,7 @@ class TuneConfig:
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500
     validation_batch: int = 16
-    method: str = "adam"  # optimize.methods.METHODS; "adam" is the optax loop above, the others take a fixed batch
+    method: str = "lbfgs"  # optimize.methods.METHODS (docs/tuning.md: measured best); "adam" is the optax loop
     popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
 
     def validate(self) -> TuneConfig:

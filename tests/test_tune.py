@@ -22,7 +22,7 @@ from jaxsync import _gains
 # ``tuning_program``, whose gradient tests/test_gradient.py checks against
 # central differences in every parameter. Four iterations, a checkpoint every
 # two.
-RESUME = dict(iterations=4, checkpoint_every=2, validate_every=2)
+RESUME = dict(iterations=4, checkpoint_every=2, validate_every=2, method="adam")
 
 
 def test_parametrisation_is_constrained_and_round_trips():
@@ -358,7 +358,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
         return value_and_grad
 
     monkeypatch.setattr(tune_mod, "_traced_value_and_grad", fake_traced)
-    cfg = TuneConfig(iterations=4, batch=1, validate_every=0, task="short")
+    cfg = TuneConfig(iterations=4, batch=1, validate_every=0, task="short", method="adam")
     tune(model, TuneSpec(), _gains.default_gains(), cfg, progress=True)
     assert len(calls) == 4
     (eta,) = [e for n, e in etas if n == 2]

@@ -223,10 +223,11 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--method",
-        default="adam",
+        default="lbfgs",
         choices=list(METHODS),
-        help="adam (optax, a fresh batch every iteration), lbfgs (quasi-Newton with a line search), cmaes, "
-        "cmaes-lbfgs (CMA-ES, then L-BFGS); the last three optimise one fixed batch (docs/tuning.md) (adam)",
+        help="lbfgs (quasi-Newton with a line search; measured fastest to a target, docs/tuning.md), adam "
+        "(optax, a fresh batch every iteration; --lr, --optimizer, --schedule and --clip steer it), cmaes, "
+        "cmaes-lbfgs (CMA-ES, then L-BFGS); all but adam optimise one fixed batch (lbfgs)",
     )
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
     p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")
