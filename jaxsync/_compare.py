@@ -9,7 +9,7 @@ import time
 import jax
 import numpy as np
 
-from jaxsync import _gains, _io, _metrics, _scenario
+from jaxsync import _io, _metrics, _scenario, _schedule
 from jaxsync._cache import compile_watch
 from jaxsync._controller import CONTROLLERS
 from jaxsync._errors import ConfigError
@@ -193,7 +193,7 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
     held = not any(drop_time(summary[name]) is not None for name in results)
     summary["resultant_ratio"] = (c / s) if held and s and s > 0 else None
     summary["scenario"] = {k: np.asarray(v).tolist() for k, v in scenario._asdict().items()}
-    summary["gains"] = _gains.to_dict(gains)
+    summary["gains"] = _schedule.to_file_dict(gains)  # constant gains by name, or {"schedule": ...}
     summary["options"] = options
     summary["wall_time_s"] = wall_time_s
     _io.write_csv(os.path.join(out, "series.csv"), columns)

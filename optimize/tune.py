@@ -407,24 +407,36 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
     calls0, pop0 = oracle.oracle.gradient_calls, oracle.oracle.forward_rollouts
     mstate, r = method.step(state.opt_state, oracle.oracle)
     x = method.incumbent(mstate)
-    finite = bool(r.get("accepted", 1)) and bool(np.all(np.isfinite(x)))
+    accepted = bool(r.get("accepted", 1))
+    finite = bool(np.isfinite(r["train_cost"])) and bool(np.all(np.isfinite(x)))
     bad = 0 if finite else state.bad + 1
     if not finite:
-        log(f"iteration {i}: no step taken ({cfg.method}: cost {r.get('train_cost')})")
+        log(f"iteration {i}: non-finite cost ({cfg.method}: cost {r.get('train_cost')}); no step taken")
         if bad >= cfg.max_bad_steps:
-            raise TuneError(f"{cfg.method}: {bad} iterations in a row without a step, the last at iteration {i}")
+            raise TuneError(f"{cfg.method}: {bad} non-finite iterations in a row, the last at iteration {i}")
+    # a line search that found no lower cost, twice in a row (the second time a
+    # short steepest-descent step after the curvature memory was reset): the
+    # fixed batch's cost is at a local minimum to the line search's resolution
+    stalled = finite and not accepted
+    prev = state.history[-1] if state.history else None
+    converged = stalled and prev is not None and bool(prev["skipped"]) and math.isfinite(prev["cost"])
+    if stalled:
+        log(
+            f"iteration {i}: no step lowered the training cost"
+            + ("; converged, stopping" if converged else "; curvature memory reset")
+        )
     row = {
         "iteration": i,
         "cost": float(r["train_cost"]),
         "grad_norm": float(r.get("grad_norm", float("nan"))),
-        "skipped": int(not finite),
+        "skipped": int(not (accepted and finite)),
         "seconds": time.perf_counter() - t0,
         "gradient_calls": oracle.oracle.gradient_calls - calls0,
         "population_rollouts": (oracle.oracle.forward_rollouts - pop0) * cfg.batch,
     }
     theta = oracle.unravel(jnp.asarray(x)) if np.all(np.isfinite(x)) else state.theta
     state = state._replace(theta=theta, opt_state=mstate, iteration=i + 1, bad=bad, history=(*state.history, row))
-    return state, row
+    return state, row, converged
 
 
 def tune(
@@ -512,11 +524,12 @@ def tune(
                     value_and_grad = _traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), write)
                 return value_and_grad
 
+            converged = False
             if method is None:
                 state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, bar.write)
             else:
                 oracle = oracle or _MethodOracle(loss, get_value_and_grad, state.theta, scen, cfg)
-                state, row = _method_step(state, method, oracle, cfg, spec, base, bar.write)
+                state, row, converged = _method_step(state, method, oracle, cfg, spec, base, bar.write)
             bar.update(1)
             if i == start:
                 bar.close()
@@ -524,10 +537,14 @@ def tune(
             bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")
             if on_iteration is not None:
                 on_iteration(i, state.theta, row)
-            if every and ((i + 1) % every == 0 or i + 1 == cfg.iterations):
+            last = converged or i + 1 == cfg.iterations
+            if every and ((i + 1) % every == 0 or last):
                 state = _validated(state, validate, spec, base, bar.write)
-            if (i + 1) % cfg.checkpoint_every == 0 or i + 1 == cfg.iterations:
+            if (i + 1) % cfg.checkpoint_every == 0 or last:
                 _save(ckpt, state, fingerprint)
+            if converged:
+                bar.write(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
+                break
     except KeyboardInterrupt:
         if ckpt:
             _save(ckpt, state, fingerprint)

@@ -142,3 +142,17 @@ def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
         err = capsys.readouterr().err
         assert rc == 2 and "holds a gain schedule" in err and "Traceback" not in err, (cmd, err)
         assert not (tmp_path / "o").exists()
+
+
+def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
+    """compare --gains takes a schedule: its summary.json records it in the gains-file form."""
+    from jaxsync import _compare, _metrics
+
+    s = rollouts["scenario"]
+    sched = _schedule.from_dict({"all": {"k_rl": 0.4}, "hold": {"k_rk": -0.2}})
+    results = {n: (rollouts[n], _metrics.summarize(rollouts[n], s)) for n in ("classical", "synchronous")}
+    _compare.write_results(str(tmp_path), results, s, sched, {}, 1.0)
+    back = _gains.load(tmp_path / "summary.json")
+    assert isinstance(back, _schedule.Schedule)
+    for a, b in zip(sched.phases, back.phases, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -440,3 +440,32 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     assert len(saved.opt_state["s"]) == len(mine["s"]) >= 1
     for a, b in zip(saved.opt_state["y"], mine["y"], strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_path):
+    """A line search that finds no lower cost twice in a row (the second time after
+    the curvature memory is reset) is convergence on the fixed batch: tune() stops,
+    validates and checkpoints the last iterate and returns normally (it raised
+    'iterations in a row without a step' after 46 iterations of a real run)."""
+    from jaxsync.optimize import tune as tune_mod
+
+    def fake_traced(loss, model, spec, base, cfg, weights, args, log):
+        theta0 = args[0]
+
+        def value_and_grad(theta, scenarios):  # the cost rises along -grad: every trial step fails
+            pairs = zip(jax.tree_util.tree_leaves(theta), jax.tree_util.tree_leaves(theta0), strict=True)
+            d = sum(jax.numpy.sum((a - b) ** 2) for a, b in pairs)
+            ones = jax.tree_util.tree_map(jax.numpy.ones_like, theta)
+            return (1.0 + d, {"grip": jax.numpy.asarray(1.0)}), ones
+
+        return value_and_grad
+
+    monkeypatch.setattr(tune_mod, "_traced_value_and_grad", fake_traced)
+    cfg = TuneConfig(iterations=10, batch=1, validate_every=5, task="short", method="lbfgs")
+    r = tune(
+        model, TuneSpec(), _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation
+    )
+    assert [row["skipped"] for row in r.history] == [1, 1]
+    assert [v["iteration"] for v in r.validation] == [0, 2]  # the last iterate validated
+    assert (tmp_path / "checkpoint.pkl").exists()
+    np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
