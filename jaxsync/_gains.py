@@ -166,7 +166,12 @@ def load_constant(path: str | os.PathLike, command: str) -> Gains:
 
 def load(path: str | os.PathLike):
     """Read a gains JSON (written by :func:`save` or ``jaxsync tune``): :class:`Gains`,
-    or a :class:`jaxsync._schedule.Schedule` when the file holds ``{"schedule": ...}``."""
+    or a :class:`jaxsync._schedule.Schedule` when the file holds ``{"schedule": ...}``; also what
+    ``jaxsync export`` writes (``gains.yaml``, ``gains.json``, a ros2-admittance folder)."""
+    if os.path.isdir(path) or str(path).endswith((".yaml", ".yml")):
+        from jaxsync import _export
+
+        return _export.load(str(path))
     try:
         with open(path) as f:
             data = json.load(f)
@@ -176,6 +181,10 @@ def load(path: str | os.PathLike):
         raise ConfigError(f"gains file {path}: cannot read JSON: {err}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"gains file {path}: expected a JSON object of gains")
+    if isinstance(data, dict) and "jaxsync_gains" in data:  # written by jaxsync export --format json
+        from jaxsync import _export
+
+        return _export.from_document(data, str(path))
     data = data.get("gains", data)
     try:
         if isinstance(data, dict) and "schedule" in data:  # per-phase gains (jaxsync._schedule)

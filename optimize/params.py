@@ -90,7 +90,10 @@ class TuneSpec:
         ``base``: constant gains, or (with ``schedule``) a schedule."""
         if isinstance(base, _schedule.Schedule):
             if not self.schedule:
-                raise ConfigError("the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; TuneSpec(schedule=True))")
+                raise ConfigError(
+                    "the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; "
+                    "TuneSpec(schedule=True))"
+                )
             per = [self._init_constant(_schedule.phase(base, i)) for i in range(len(_schedule.PHASES))]
             return jax.tree_util.tree_map(lambda *v: jnp.stack(v), *per)
         theta = self._init_constant(base)
@@ -118,7 +121,10 @@ class TuneSpec:
         :class:`~jaxsync._schedule.Schedule` when ``schedule`` is set."""
         if not self.schedule:
             if isinstance(base, _schedule.Schedule):
-                raise ConfigError("the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; TuneSpec(schedule=True))")
+                raise ConfigError(
+                    "the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; "
+                    "TuneSpec(schedule=True))"
+                )
             return self._to_constant(theta, base)
         if not isinstance(base, _schedule.Schedule):
             base = _schedule.constant(base)

@@ -1,6 +1,6 @@
 """The ``jaxsync`` command line: the root parser and the entry point.
 
-One module per command (``info``, ``compare``, ``tune``, ``sensitivity``, ``sweep``, ``bench``,
+One module per command (``info``, ``compare``, ``tune``, ``sensitivity``, ``export``, ``sweep``, ``bench``,
 ``render``), each with ``add_parser(subparsers)`` and ``run(args) -> int``.
 Imports run one way: the command line imports the library and
 ``jaxsync.optimize``; nothing in them imports the command line.
@@ -16,7 +16,7 @@ import sys
 from jaxsync import _io
 from jaxsync._errors import JaxsyncError
 
-COMMANDS = ("info", "compare", "tune", "sensitivity", "sweep", "bench", "render")
+COMMANDS = ("info", "compare", "tune", "sensitivity", "export", "sweep", "bench", "render")
 
 
 def _setup_jax(args: argparse.Namespace) -> None:

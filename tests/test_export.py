@@ -1,0 +1,104 @@
+"""jaxsync export (issue 15, item 1): every format reads back to the same gains, constant and scheduled."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxsync import _export, _gains, _schedule
+from jaxsync._errors import ConfigError
+
+
+def _tuned_like():
+    """Gains unlike the defaults in every field (per arm, per axis)."""
+    g = _gains.default_gains()
+    ramp = np.linspace(0.7, 1.3, 12).reshape(2, 6)
+    return g._replace(
+        imp_mass=g.imp_mass * ramp,
+        imp_stiffness=g.imp_stiffness * ramp[::-1],
+        imp_damping=g.imp_damping * ramp**2,
+        k_rk=jnp.asarray(0.18),
+        k_lk=jnp.asarray(0.97),
+        k_rl=jnp.asarray(0.061),
+        k_ll=jnp.asarray(-0.2),
+        kp_pos=jnp.asarray(1234.5),
+        kd_pos=jnp.asarray(70.25),
+        kp_null=jnp.asarray(90.0),
+        kd_null=jnp.asarray(19.0),
+    )
+
+
+def _schedule_like():
+    sched = _schedule.constant(_tuned_like())
+    return sched._replace(phases=sched.phases._replace(k_rk=jnp.array([0.5, 0.3, 0.2, 0.1])))
+
+
+def _same(a, b, rtol):
+    assert type(a) is type(b)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=0)
+
+
+@pytest.mark.parametrize("fmt", _export.FORMATS)
+@pytest.mark.parametrize("kind", ["constant", "schedule"])
+def test_every_format_round_trips(tmp_path, fmt, kind):
+    gains = _tuned_like() if kind == "constant" else _schedule_like()
+    paths = _export.export(gains, fmt, str(tmp_path))
+    back = _gains.load(paths[0] if fmt != "ros2-admittance" else tmp_path)  # what compare --gains reads
+    # yaml/json carry the values as written; ros2 carries the damping as a ratio (one rounding)
+    _same(back, gains, rtol=0 if fmt != "ros2-admittance" else 1e-14)
+
+
+def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
+    import yaml
+
+    g = _tuned_like()
+    _export.export(g, "ros2-admittance", str(tmp_path))
+    doc = yaml.safe_load((tmp_path / "admittance_left.yaml").read_text())
+    params = doc["admittance_controller_left"]["ros__parameters"]
+    adm = params["admittance"]
+    assert params["control"]["frame"]["id"] == "l_pad" and params["ft_sensor"]["frame"]["id"] == "l_ft"
+    assert adm["selected_axes"] == [True] * 6
+    m, k, zeta = (np.array(adm[key]) for key in ("mass", "stiffness", "damping_ratio"))
+    np.testing.assert_allclose(m, np.asarray(g.imp_mass)[1], rtol=0)
+    np.testing.assert_allclose(k, np.asarray(g.imp_stiffness)[1], rtol=0)
+    np.testing.assert_allclose(2 * zeta * np.sqrt(m * k), np.asarray(g.imp_damping)[1], rtol=1e-14)
+    text = (tmp_path / "admittance_left.yaml").read_text()
+    assert "Not carried over" in text and "synchronisation.yaml" in text
+    sync = yaml.safe_load((tmp_path / "synchronisation.yaml").read_text())["dual_arm_synchronisation"]
+    assert sync["ros__parameters"]["k_lk"] == pytest.approx(0.97)
+
+
+def test_yaml_names_every_gain_with_its_unit(tmp_path):
+    import yaml
+
+    (path,) = _export.export(_gains.default_gains(), "yaml", str(tmp_path))
+    doc = yaml.safe_load(open(path))["jaxsync_gains"]["gains"]
+    assert set(doc) == set(_gains.Gains._fields)
+    assert all(doc[k]["unit"] and doc[k]["paper"] for k in doc)
+
+
+def test_export_cli_and_its_errors(tmp_path, capsys):
+    from jaxsync.cli import main
+
+    src = tmp_path / "gains.json"
+    _gains_file = {"gains": _schedule.to_file_dict(_schedule_like())}
+    import json
+
+    src.write_text(json.dumps(_gains_file))
+    assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "r")]) == 0
+    out = capsys.readouterr().out
+    assert "a gain schedule" in out and "the same gains" in out
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == sorted(_schedule.PHASES)
+    # bad input: one line, exit 2, nothing written
+    rc = main(["export", str(tmp_path / "missing.json"), "--format", "yaml", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no such file" in err and "Traceback" not in err and not (tmp_path / "o").exists()
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "synchronisation.yaml").write_text("dual_arm_synchronisation: {}\n")
+    with pytest.raises(ConfigError, match="admittance_right.yaml"):
+        _gains.load(tmp_path / "half")
+    with pytest.raises(SystemExit):
+        main(["export", str(src), "--format", "urdf"])
