@@ -198,6 +198,12 @@ def fake_tuning(monkeypatch):
         return TuneResult(base, history, [v0], v0, last, None)
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
+
+    def fake_check(model, before, after, scenarios, duration, n=4):
+        calls["mujoco_check"] = n
+        return {"scenarios": 2, "tolerance": 0.1, "mujoco_before_N": 0.015, "mujoco_after_N": 0.03}
+
+    monkeypatch.setattr(tune_mod, "mujoco_check", fake_check)
     return calls
 
 
@@ -231,6 +237,9 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
         assert key in summary, key
     assert summary["heldout_settled_peak_resultant_N_before"] == pytest.approx(0.015)
     assert summary["options"]["weight"] == ["grip=3"]
+    # the MuJoCo C check ran (a stand-in here) and is recorded beside MJX's figures
+    assert calls["mujoco_check"] == 4 and summary["mujoco_check"]["factor_mujoco"] == pytest.approx(0.5)
+    assert summary["mujoco_check"]["mjx_before_N"] == pytest.approx(0.015) and summary["mujoco_check"]["agree"] is False
     selected = json.loads((out / "gains.json").read_text())["gains"]
     last = json.loads((out / "gains_last.json").read_text())["gains"]
     assert selected["k_rl"] == 0.5 and last["k_rl"] == 0.4
@@ -469,3 +478,31 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
     assert [v["iteration"] for v in r.validation] == [0, 2]  # the last iterate validated
     assert (tmp_path / "checkpoint.pkl").exists()
     np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
+
+
+def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts):
+    """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX; the
+    factors agree here (the same control law, the same scenario), and a
+    disagreement is flagged in the printed line."""
+    from conftest import TEST_DURATION
+    from jaxsync.optimize import tune as tune_mod
+
+    from jaxsync import _metrics
+    from jaxsync._rollout import rollout
+    from jaxsync.cli.tune import mujoco_text
+
+    s, g = rollouts["scenario"], rollouts["gains"]
+    g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
+    batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
+    check = tune_mod.mujoco_check(model, g, g2, batch, TEST_DURATION, n=4)
+    assert check["scenarios"] == 1
+    mjx = [
+        float(_metrics.summarize(rollout(model, x, s, duration=TEST_DURATION), s).settled_peak_resultant_N)
+        for x in (g, g2)
+    ]
+    check = tune_mod.mujoco_verdict(check, [mjx[0]], [mjx[1]])
+    assert check["mujoco_before_N"] == pytest.approx(mjx[0], rel=0.05)
+    assert check["mujoco_after_N"] == pytest.approx(mjx[1], rel=0.05)
+    assert check["agree"] and "agree within 10 %" in mujoco_text(check)
+    off = tune_mod.mujoco_verdict(dict(check, mujoco_after_N=check["mujoco_after_N"] * 2), [mjx[0]], [mjx[1]])
+    assert not off["agree"] and "WARNING" in mujoco_text(off)

@@ -79,7 +79,8 @@ def run(args) -> int:
     tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
     _io.ensure_writable_dir(args.out)
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
-    fingerprint = {k: v for k, v in options.items() if k not in ("resume", "restart", "iterations", "out", "cache_dir")}
+    skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check")
+    fingerprint = {k: v for k, v in options.items() if k not in skip}
 
     t_start = time.perf_counter()
     model = load_model(args.model)  # one physics: training, validation and held-out scoring alike
@@ -143,6 +144,11 @@ def run(args) -> int:
         os.path.join(args.out, "gains_last.json"),
         {"gains": _schedule.to_file_dict(result.last_gains), "tune": spec.describe()},
     )
+    check = None
+    if args.mujoco_check:
+        print(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
+        check = tuning.mujoco_check(model, base, gains, held, cfg.eval_duration, n=4)
+        check = tuning.mujoco_verdict(check, before["per_scenario_peak_N"], after["per_scenario_peak_N"])
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
         _io.write_csv(os.path.join(args.out, "history.csv"), cols)
@@ -164,11 +170,14 @@ def run(args) -> int:
         "options": options,
         "weights": weights._asdict(),
         "tune": spec.describe(),
+        "mujoco_check": check,
     }
     _io.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
     print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
     print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
+    if check is not None:
+        print(mujoco_text(check))
     print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
 
@@ -183,6 +192,18 @@ def history_columns(history: list[dict]) -> list[str]:
     """history.csv's header: HISTORY_COLUMNS, then any other keys sorted."""
     keys = {k for r in history for k in r}
     return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
+
+
+def mujoco_text(c: dict) -> str:
+    """The MuJoCo C check's line: both improvement factors, flagged when they disagree."""
+    head = (
+        f"on {c['scenarios']} held-out scenarios, settled peak before -> after: MJX {c['mjx_before_N']:.5f} -> "
+        f"{c['mjx_after_N']:.5f} N ({c['factor_mjx']:.2f}x), MuJoCo C {c['mujoco_before_N']:.5f} -> "
+        f"{c['mujoco_after_N']:.5f} N ({c['factor_mujoco']:.2f}x): "
+    )
+    if c["agree"]:
+        return head + f"agree within {100 * c['tolerance']:.0f} %"
+    return head + f"WARNING: MuJoCo C and MJX disagree by more than {100 * c['tolerance']:.0f} % (docs/export.md)"
 
 
 def change_text(before: float | None, after: float | None) -> str:
@@ -230,6 +251,12 @@ def add_parser(sub) -> None:
         "cmaes-lbfgs (CMA-ES, then L-BFGS); all but adam optimise one fixed batch (lbfgs)",
     )
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
+    p.add_argument(
+        "--no-mujoco-check",
+        dest="mujoco_check",
+        action="store_false",
+        help="skip rolling the gains before and after out on MuJoCo C (4 held-out scenarios; about a minute)",
+    )
     p.add_argument("--isotropic", action="store_true", help="one impedance value for translations, one for rotations")
     p.add_argument(
         "--truncate-every",
