@@ -239,3 +239,64 @@ def test_compile_watch_tells_compiling_from_a_cache_read():
     assert w.compile_s == 0 and w.cache_hits == 0 and w.describe() == ""
     jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 5.0)  # outside the block: not counted
     assert w.compile_s == 0
+
+
+def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts):
+    """Issue 15, item 2: gains against a baseline on MJX and on MuJoCo C with the
+    same jitted control law. MJX's side is the session's own rollout to the last
+    digit; MuJoCo C lands within 5 % of it; the factors agree and the table says
+    so; a disagreement or a drop is flagged with a WARNING line."""
+    from conftest import TEST_DURATION
+
+    s, g = rollouts["scenario"], rollouts["gains"]
+    g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
+    batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
+    check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, log=lambda m: None)
+    assert check["scenarios"] == 1 and check["scenarios_lost"] == []
+    assert check["mjx_before_N"] == float(_metrics.summarize(rollouts["synchronous"], s).settled_peak_resultant_N)
+    for which in ("before", "after"):
+        assert check[f"mujoco_{which}_N"] == pytest.approx(check[f"mjx_{which}_N"], rel=0.05)
+    assert check["factor_mjx"] == pytest.approx(check["mjx_before_N"] / check["mjx_after_N"])
+    assert abs(check["factor_mjx"] - 1.0) > 0.05  # the two gains differ measurably, else the check proves nothing
+    lines = _compare.sim_to_sim_table(check)
+    assert check["agree"] and lines[-1].startswith("sim-to-sim: the improvement factors agree within 10 %"), lines
+    assert json.loads(json.dumps(check)) == check  # summary.json takes it as it is
+
+    per = json.loads(json.dumps(check["per_scenario"]))
+    per["mujoco_after"][0]["settled_peak_resultant_N"] *= 1.5  # MuJoCo C's factor 1/1.5 of MJX's
+    off = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    assert not off["agree"] and off["difference"] == pytest.approx((1 + check["difference"]) / 1.5 - 1)
+    assert _compare.sim_to_sim_table(off)[-1].startswith("WARNING: sim-to-sim check failed: the improvement factor")
+    per["mujoco_after"][0]["settled_peak_resultant_N"] /= 1.5
+    per["mujoco_before"][0]["lost"] = True
+    lost = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    assert not lost["agree"] and lost["factor_mujoco"] is None and "dropped" in _compare.sim_to_sim_table(lost)[-1]
+
+
+def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monkeypatch, capsys):
+    """compare --mujoco-check: the check's table is printed, summary.json records it,
+    and a disagreement ends in a one-line WARNING and exit status 5 (the rollouts
+    are the session's, the check a stand-in: no compiling)."""
+    from jaxsync.cli import main
+
+    monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
+    row = lambda peak: [{"settled_peak_resultant_N": peak, "grip_force_error_rel": 0.003, "lost": False}]  # noqa: E731
+    per = {"mjx_before": row(0.01), "mjx_after": row(0.001), "mujoco_before": row(0.01), "mujoco_after": row(0.004)}
+    seen = {}
+
+    def fake(model, gains, baseline, scenarios, duration, *, n, **kw):
+        seen.update(n=n, duration=duration, count=int(jax.tree_util.tree_leaves(scenarios)[0].shape[0]))
+        return _compare.sim_to_sim_verdict(per, 1, duration)
+
+    monkeypatch.setattr(_compare, "sim_to_sim", fake)
+    out = tmp_path / "o"
+    assert main(["compare", "--out", str(out), "--mujoco-check"]) == 5
+    captured = capsys.readouterr()
+    assert seen == {"n": 4, "duration": 4.0, "count": 16}  # tune's held-out scenarios and horizon
+    assert "10.00x" in captured.out and "2.50x" in captured.out and "WARNING: sim-to-sim check failed" in captured.out
+    last = captured.err.strip().splitlines()[-1]
+    assert last.startswith("jaxsync compare: WARNING: the MuJoCo C check failed") and "exit status 5" in last
+    assert json.loads((out / "summary.json").read_text())["sim_to_sim"]["agree"] is False
+    per["mujoco_after"] = row(0.00105)  # 5 % apart: within the tolerance
+    assert main(["compare", "--out", str(out), "--mujoco-check", "2"]) == 0
+    assert seen["n"] == 2 and "agree within 10 %" in capsys.readouterr().out

@@ -31,6 +31,8 @@ def scenario_from_args(args: argparse.Namespace):
 # the exit status when a controller dropped the object: the files are written,
 # but the run did not show what compare measures (a settled grasp)
 EXIT_DROPPED = 4
+# the exit status when --mujoco-check finds MuJoCo C and MJX disagreeing (the files are written)
+EXIT_SIM_TO_SIM = 5
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import time
 
-    from jaxsync import _compare, _gains
+    from jaxsync import _compare, _gains, _io
     from jaxsync._io import ensure_writable_dir
     from jaxsync._model import load_model
 
@@ -62,6 +64,19 @@ def run(args: argparse.Namespace) -> int:
         files.append(os.path.basename(compare_video(model, results, scenario, args.out, speed=args.video_speed)))
     for line in _compare.table(summary):
         print(line)
+    check = None
+    if args.mujoco_check:
+        from jaxsync.optimize import tasks
+        from jaxsync.optimize.tune import TuneConfig
+
+        cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
+        check = _compare.sim_to_sim(
+            model, gains, _gains.default_gains(), tasks.heldout_scenarios(cfg), cfg.eval_duration, n=args.mujoco_check
+        )
+        summary["sim_to_sim"] = check
+        _io.write_json(os.path.join(args.out, "summary.json"), summary)
+        for line in _compare.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
+            print(line)
     print(f"results in {args.out}: {', '.join(files)}")
     dropped = {n: _compare.drop_time(summary[n]) for n in results if _compare.drop_time(summary[n]) is not None}
     if dropped:
@@ -73,6 +88,14 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_DROPPED
+    if check is not None and not check["agree"]:
+        print(
+            "jaxsync compare: WARNING: the MuJoCo C check failed: "
+            + "; ".join(check["problems"])
+            + f" (exit status {EXIT_SIM_TO_SIM})",
+            file=sys.stderr,
+        )
+        return EXIT_SIM_TO_SIM
     return 0
 
 
@@ -84,7 +107,7 @@ def add_parser(sub) -> None:
         "impedance parameters on the same scenario; write summary.json, series.csv and force plots.",
         epilog=f"Exit status: 0 done; 2 bad input; {EXIT_DROPPED} a controller dropped the object (the files are "
         "written, the drop marked in the table and plots, resultant_ratio null in summary.json); 3 internal error; "
-        "130 interrupted.",
+        f"{EXIT_SIM_TO_SIM} --mujoco-check: MuJoCo C disagrees with MJX (files written); 130 interrupted.",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     p.add_argument("--grip-force", type=positive(float), default=None, help="desired grip force f_d, N (10)")
@@ -97,9 +120,25 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--force-noise", type=float, default=None, help="wrist force noise std, N (0.1)")
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (0)")
-    p.add_argument("--gains", default=None, help="JSON file of gains (default: built-in)")
+    p.add_argument(
+        "--gains",
+        default=None,
+        help="gains file: JSON, or a jaxsync export (gains.yaml, a ros2-admittance folder); default: built-in",
+    )
     p.add_argument("--out", default="results/compare", help="output folder (results/compare)")
     p.add_argument("--backend", default="mjx", choices=["mjx", "mujoco"], help="physics engine (mjx)")
+    p.add_argument(
+        "--mujoco-check",
+        type=positive(int),
+        nargs="?",
+        const=4,
+        default=None,
+        metavar="N",
+        help="also roll these gains and the default gains out on N (4) of jaxsync tune's held-out scenarios (4 s) "
+        "on MJX and on MuJoCo C with the same jitted control law, and print both engines' metrics and improvement "
+        f"factors; a WARNING and exit status {EXIT_SIM_TO_SIM} when the factors differ by more than 10 %% "
+        "or an object was dropped (docs/export.md)",
+    )
     add_model_argument(p)
     p.add_argument("--video", action="store_true", help="also render both rollouts side by side to a video")
     p.add_argument("--video-speed", type=positive(float), default=0.5, help="playback speed of the video (0.5)")
