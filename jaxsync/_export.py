@@ -116,12 +116,70 @@ def _yaml_list(v) -> str:
     return "[" + ", ".join(repr(bool(x)).lower() if isinstance(x, bool) else repr(float(x)) for x in v) + "]"
 
 
+# admittance_controller_parameters.yaml's element_bounds
+MASS_BOUNDS = (1e-4, 1e6)
+STIFFNESS_BOUNDS = (0.0, 1e8)
+
+
+def check_admittance(g: Gains, phase: str | None = None) -> None:
+    """Raise :class:`ConfigError` when the admittance controller cannot hold these
+    impedance parameters: mass or stiffness outside its bounds, or a damping it
+    cannot express as a ratio (zero stiffness: it computes D = 2 zeta sqrt(M K) = 0)."""
+    when = f" (phase {phase})" if phase else ""
+    for arm, name in enumerate(ARMS):
+        m, b, k = (np.asarray(v, dtype=float)[arm] for v in (g.imp_mass, g.imp_damping, g.imp_stiffness))
+        for axis, (mi, bi, ki) in enumerate(zip(m, b, k, strict=True)):
+            where = f"{name} arm, axis {AXES[axis]}{when}"
+            if not MASS_BOUNDS[0] <= mi <= MASS_BOUNDS[1]:
+                raise ConfigError(
+                    f"ros2-admittance: mass {mi:g} of the {where} is outside the admittance "
+                    f"controller's bounds {list(MASS_BOUNDS)}"
+                )
+            if not STIFFNESS_BOUNDS[0] <= ki <= STIFFNESS_BOUNDS[1]:
+                raise ConfigError(
+                    f"ros2-admittance: stiffness {ki:g} of the {where} is outside the admittance "
+                    f"controller's bounds {list(STIFFNESS_BOUNDS)}"
+                )
+            if ki == 0.0:  # jaxsync's damping is > 0
+                raise ConfigError(
+                    f"ros2-admittance: the {where} has zero stiffness and damping {bi:g}: the admittance "
+                    "controller's damping_ratio cannot express it (D = 2 zeta sqrt(M K) = 0); "
+                    "use --format yaml or json"
+                )
+            if not np.isfinite(bi) or bi < 0.0:
+                raise ConfigError(f"ros2-admittance: damping {bi:g} of the {where} must be finite and >= 0")
+
+
+def notes(gains) -> list[str]:
+    """What the user should know about exporting these gains to the admittance controller
+    beyond what every export says (docs/export.md): anisotropic mass."""
+    out = []
+    phases = (
+        [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
+        if isinstance(gains, _schedule.Schedule)
+        else [(None, gains)]
+    )
+    for phase, g in phases:
+        m = np.asarray(g.imp_mass, dtype=float)
+        for arm, name in enumerate(ARMS):
+            for part, cols in (("x, y, z", slice(0, 3)), ("rx, ry, rz", slice(3, 6))):
+                v = m[arm, cols]
+                if not np.allclose(v, v[0], rtol=1e-9, atol=0):
+                    when = f", phase {phase}" if phase else ""
+                    out.append(
+                        f"the {name} arm's mass differs between {part}{when} ({', '.join(f'{x:g}' for x in v)}): "
+                        "the admittance controller applies its mass per axis of kinematics.base, not of the "
+                        "control frame, so it matches jaxsync only where the two frames are aligned (docs/export.md)"
+                    )
+    return out
+
+
 def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None) -> str:
     name = ARMS[arm]
     m = np.asarray(g.imp_mass, dtype=float)[arm]
     b = np.asarray(g.imp_damping, dtype=float)[arm]
     k = np.asarray(g.imp_stiffness, dtype=float)[arm]
-    zeta = b / (2.0 * np.sqrt(m * k))
+    zeta = b / (2.0 * np.sqrt(m * k))  # check_admittance: K > 0 here
     pad, ft = FRAMES[name]
     when = f", task phase '{phase}'" if phase else ""
     return "\n".join(
@@ -131,8 +189,12 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None) -> 
             "# normal). damping_ratio = D / (2 sqrt(M K)), the admittance controller's convention.",
             "# Not carried over (the admittance controller has no parameter for it): the paper's",
             "# synchronisation (absolute and relative errors between the arms, eqs. 12-17, k_rk k_lk k_rl",
-            "# k_ll), the inner position loop and the null-space gains (eq. 18): synchronisation.yaml.",
-            "# Fill in joints, kinematics and robot_description for your robot.",
+            "# k_ll), the inner position loop and the null-space gains (eq. 18): synchronisation.yaml;",
+            "# the desired contact wrench f_d (a task input, not a gain: the admittance controller has no",
+            "# wrench set-point). It applies stiffness and damping in the control frame but the mass per",
+            "# axis of kinematics.base (docs/export.md). joint_damping is set to 0: jaxsync's law has none",
+            "# (the controller's default, 5, adds joint-space damping the tuned gains did not see).",
+            "# Fill in joints, interfaces, kinematics and robot_description for your robot.",
             f"{controller}:",
             "  ros__parameters:",
             "    control:",
@@ -146,6 +208,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None) -> 
             f"      mass: {_yaml_list(m)}",
             f"      damping_ratio: {_yaml_list(zeta)}",
             f"      stiffness: {_yaml_list(k)}",
+            "      joint_damping: 0.0",
             "",
         ]
     )
@@ -167,6 +230,7 @@ def _sync_yaml(g: Gains, phase: str | None) -> str:
 
 
 def _ros2(g: Gains, out: str, phase: str | None) -> list[str]:
+    check_admittance(g, phase)
     _io.ensure_writable_dir(out)
     paths = []
     for arm, name in enumerate(ARMS):
@@ -223,6 +287,8 @@ def export(gains, fmt: str, out: str) -> list[str]:
         raise ConfigError(f"--format must be one of {list(FORMATS)}, got {fmt!r}")
     if fmt == "ros2-admittance":
         if isinstance(gains, _schedule.Schedule):
+            for i, p in enumerate(_schedule.PHASES):  # every phase checked before anything is written
+                check_admittance(_schedule.phase(gains, i), p)
             paths = []
             for i, p in enumerate(_schedule.PHASES):
                 paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p)

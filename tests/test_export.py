@@ -102,3 +102,54 @@ def test_export_cli_and_its_errors(tmp_path, capsys):
         _gains.load(tmp_path / "half")
     with pytest.raises(SystemExit):
         main(["export", str(src), "--format", "urdf"])
+
+
+def test_ros2_refuses_what_the_admittance_controller_cannot_hold(tmp_path, capsys):
+    """Out of its bounds, or a damping with zero stiffness (its D = 2 zeta sqrt(M K)
+    is then 0 whatever the ratio, and jaxsync's damping is always > 0): a
+    one-line error, and nothing written."""
+    import json
+
+    from jaxsync.cli import main
+
+    g = _gains.default_gains()
+    k0 = g._replace(imp_stiffness=g.imp_stiffness.at[1, 2].set(0.0))
+    with pytest.raises(ConfigError, match="left arm, axis z.*zero stiffness.*--format yaml or json"):
+        _export.export(k0, "ros2-admittance", str(tmp_path / "a"))
+    heavy = g._replace(imp_mass=g.imp_mass.at[0, 4].set(2e6))
+    with pytest.raises(ConfigError, match=r"mass 2e\+06 of the right arm, axis ry is outside"):
+        _export.export(heavy, "ros2-admittance", str(tmp_path / "a"))
+    sched = _schedule.constant(g)
+    sched = sched._replace(phases=sched.phases._replace(imp_stiffness=sched.phases.imp_stiffness.at[3, 0, 0].set(-1.0)))
+    with pytest.raises(ConfigError, match=r"stiffness -1 of the right arm, axis x \(phase hold\)"):
+        _export.export(sched, "ros2-admittance", str(tmp_path / "a"))
+    assert not (tmp_path / "a").exists()  # not even the phases before the bad one
+    src = tmp_path / "k0.json"
+    src.write_text(json.dumps({"gains": _schedule.to_file_dict(k0)}))
+    rc = main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "b")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "zero stiffness" in err and len(err.strip().splitlines()) == 1 and not (tmp_path / "b").exists()
+
+
+def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
+    """joint_damping 0 (jaxsync's law has none), the missing force set-point named,
+    and a note when the mass is anisotropic (the controller applies it in the base frame)."""
+    import json
+
+    import yaml
+
+    from jaxsync.cli import main
+
+    _export.export(_gains.default_gains(), "ros2-admittance", str(tmp_path / "d"))
+    text = (tmp_path / "d" / "admittance_right.yaml").read_text()
+    params = yaml.safe_load(text)["admittance_controller_right"]["ros__parameters"]
+    assert params["admittance"]["joint_damping"] == 0.0 and "f_d" in text and "kinematics.base" in text
+    assert _export.notes(_gains.default_gains()) == []  # isotropic per block: nothing to say
+    tuned = _tuned_like()
+    notes = _export.notes(tuned)
+    assert len(notes) == 4 and notes[0].startswith("the right arm's mass differs between x, y, z")
+    src = tmp_path / "g.json"
+    src.write_text(json.dumps({"gains": _schedule.to_file_dict(tuned)}))
+    assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "e")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("note: ") == 4 and "the same gains" in out

@@ -16,6 +16,9 @@ def run(args) -> int:
     kind = "a gain schedule" if not isinstance(gains, _gains.Gains) else "constant gains"
     print(f"exported {kind} from {args.gains} as {args.format}: " + ", ".join(paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if same else "DIFFERENT gains"))
+    if args.format == "ros2-admittance":
+        for line in _export.notes(gains):
+            print(f"note: {line}")
     return 0 if same else 1
 
 
