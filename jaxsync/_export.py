@@ -150,28 +150,36 @@ def check_admittance(g: Gains, phase: str | None = None) -> None:
                 raise ConfigError(f"ros2-admittance: damping {bi:g} of the {where} must be finite and >= 0")
 
 
+# a mass spread between the axes of one block (x, y, z or rx, ry, rz) worth a note, relative
+MASS_SPREAD_NOTE = 0.01
+
+
 def notes(gains) -> list[str]:
     """What the user should know about exporting these gains to the admittance controller
-    beyond what every export says (docs/export.md): anisotropic mass."""
-    out = []
+    beyond what every export says (docs/export.md): at most one line, when M_d differs
+    between the axes of a block by more than :data:`MASS_SPREAD_NOTE`."""
     phases = (
         [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
         if isinstance(gains, _schedule.Schedule)
         else [(None, gains)]
     )
+    worst = (0.0, "")
     for phase, g in phases:
         m = np.asarray(g.imp_mass, dtype=float)
         for arm, name in enumerate(ARMS):
             for part, cols in (("x, y, z", slice(0, 3)), ("rx, ry, rz", slice(3, 6))):
                 v = m[arm, cols]
-                if not np.allclose(v, v[0], rtol=1e-9, atol=0):
+                spread = float(v.max() / v.min() - 1.0)
+                if spread > worst[0]:
                     when = f", phase {phase}" if phase else ""
-                    out.append(
-                        f"the {name} arm's mass differs between {part}{when} ({', '.join(f'{x:g}' for x in v)}): "
-                        "the admittance controller applies its mass per axis of kinematics.base, not of the "
-                        "control frame, so it matches jaxsync only where the two frames are aligned (docs/export.md)"
-                    )
-    return out
+                    worst = (spread, f"{name} arm, {part}{when}: {', '.join(f'{x:.4g}' for x in v)}")
+    if worst[0] <= MASS_SPREAD_NOTE:
+        return []
+    return [
+        f"M_d differs between the axes of a block by up to {100 * worst[0]:.0f} % ({worst[1]}): the admittance "
+        "controller applies its mass per axis of kinematics.base, not of the control frame, so it matches "
+        "jaxsync only while the pad frame is aligned with the base frame (docs/export.md)"
+    ]
 
 
 def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None) -> str:
