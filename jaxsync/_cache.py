@@ -171,7 +171,7 @@ def _one_placement(jitted):
     its gradient a second time at its second iteration, 79 s). Committing
     every argument first gives one program.
     """
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
 
     def call(*args):
         return jitted(*jax.device_put(args, device))

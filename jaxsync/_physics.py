@@ -200,11 +200,17 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
     return mjx.euler(m, d)
 
 
+def local_device():
+    """This process's first device. MJX's own default is ``jax.devices()[0]``,
+    which in a multi-process run (jaxsync._distributed) is process 0's."""
+    return jax.local_devices()[0]
+
+
 def put_data(mj_model, mj_data) -> mjx.Data:
     """``mjx.put_data`` with the contact geom ids in the integer dtype that
     MJX's collision step produces (int64 under x64), so the data can be the
     carry of a ``lax.scan`` over steps."""
-    d = mjx.put_data(mj_model, mj_data, impl="jax")
+    d = mjx.put_data(mj_model, mj_data, device=local_device(), impl="jax")
     c = d._impl.contact
     c = c.replace(**{k: jnp.asarray(np.asarray(getattr(c, k), np.int64)) for k in ("geom", "geom1", "geom2")})
     return d.tree_replace({"_impl.contact": c})

@@ -8,6 +8,7 @@ together. The names a user needs are re-exported here.
 
 from __future__ import annotations
 
+import json
 import os
 import sys
 import time
@@ -27,7 +28,7 @@ from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS, plot, summarize_
 from jaxsync.optimize.sweep_spec import Param, Target, build_batch, known_names, make_points, parse_param, resolve_name
 from jaxsync.optimize.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
 
-from jaxsync import _io, _metrics
+from jaxsync import _distributed, _io, _metrics
 from jaxsync._errors import ConfigError
 
 __all__ = [
@@ -65,10 +66,11 @@ def _bounds(i: int, c: int, n: int) -> tuple[int, int]:
 
 
 def _read_back(out: str, stored: dict | None, n: int, n_dev: int, chunk, main_proc: bool, log):
-    """(the stored chunk size or None, {chunk index: metrics}) of the chunks already on disk."""
+    """(the stored chunk size or None, {chunk index: metrics}) of the chunks already on disk
+    (read by process 0 only: it alone assembles the results)."""
     c_stored = int(stored["chunk"]) if stored and stored.get("n_devices") == n_dev else None
     results: dict[int, dict] = {}
-    if c_stored:
+    if c_stored and main_proc:
         if chunk is not None and chunk != c_stored:
             log(f"resuming with the stored chunk size {c_stored} (not --chunk {chunk})")
         for i in range(-(-n // c_stored)):
@@ -95,33 +97,39 @@ def _compile(plan: Plan, c_stored, chunk, budget_gib: float, devices, log):
     return c, compiled, used, time.perf_counter() - t0
 
 
-def _evaluate(plan: Plan, out: str, todo, c: int, compiled, n_dev: int, results: dict, progress: bool, main_proc):
-    """Evaluate the chunks in ``todo`` into ``results`` (and on disk); returns how many were computed."""
-    n = len(plan.points)
-    bar = None
-    if progress and main_proc:
-        from tqdm import tqdm
+def _log_computed(out: str, i: int, process: int) -> None:
+    """One line per chunk this process computed and saved (``chunks/computed_pK.jsonl``):
+    what a resumed or multi-process run did, chunk by chunk."""
+    with open(os.path.join(out, "chunks", f"computed_p{process}.jsonl"), "a") as f:
+        f.write(json.dumps({"chunk": i, "process": process, "time": time.time()}) + "\n")
 
-        done = sum(len(r["dropped"]) for r in results.values())
-        bar = tqdm(total=n, initial=done, unit="pt", desc="sweep", file=sys.stderr, dynamic_ncols=True)
+
+def _evaluate(plan: Plan, out: str, todo, c: int, compiled, n_dev: int, results: dict, bar, process: int):
+    """Evaluate the chunks in ``todo`` into ``results`` and on disk; returns how many were computed."""
+    n = len(plan.points)
     computed = 0
-    try:
-        for i in todo:
-            start, stop = _bounds(i, c, n)
-            idx = np.minimum(np.arange(start, start + c), stop - 1)  # pad the last chunk with its last point
-            g, s = build_batch(plan.params, plan.points[idx], plan.base_gains, plan.base_scenario)
-            m = gather(compiled(to_device(g, n_dev), to_device(s, n_dev)))
-            got = {k: v[: stop - start] for k, v in _metrics.to_arrays(m).items()}
-            if main_proc:
-                save_chunk(out, i, start, stop, got)
-            results[i] = got
-            computed += 1
-            if bar is not None:
-                bar.update(stop - start)
-    finally:
+    for i in todo:
+        start, stop = _bounds(i, c, n)
+        idx = np.minimum(np.arange(start, start + c), stop - 1)  # pad the last chunk with its last point
+        g, s = build_batch(plan.params, plan.points[idx], plan.base_gains, plan.base_scenario)
+        m = gather(compiled(to_device(g, n_dev), to_device(s, n_dev)))
+        got = {k: v[: stop - start] for k, v in _metrics.to_arrays(m).items()}
+        save_chunk(out, i, start, stop, got)
+        _log_computed(out, i, process)
+        results[i] = got
+        computed += 1
         if bar is not None:
-            bar.close()
+            bar.update(stop - start)
     return computed
+
+
+def _progress_bar(progress: bool, total: int, initial: int, nproc: int):
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    desc = "sweep" if nproc == 1 else f"sweep, process 0 of {nproc}"
+    return tqdm(total=total, initial=initial, unit="pt", desc=desc, file=sys.stderr, dynamic_ncols=True)
 
 
 def run(
@@ -142,6 +150,14 @@ def run(
     continued with ``resume`` (the same plan's finished chunks are read back),
     discarded with ``restart``, and an error with neither.
 
+    In a multi-process run (``jaxsync._distributed.initialize``; ``out`` on a
+    file system every process sees) process 0 checks the folder and decides
+    which chunks are left; process k computes every P-th of them on its own
+    devices and writes each as it finishes; process 0 then assembles
+    ``results.csv``, the summary and the plots. A chunk on disk is never
+    computed again: after a lost process, ``resume`` computes only the missing
+    ones.
+
     Example:
       >>> plan = make_plan(["k_rk=-0.5:0.5:3", "object_mass=0.5,0.7"], duration=4.0)
       >>> summary = run(plan, "results/sweep", progress=False)  # doctest: +SKIP
@@ -149,39 +165,66 @@ def run(
     """
     import jax
 
-    devices = jax.devices()
+    devices = jax.local_devices()
     n_dev = len(devices)
     _check(chunk, budget_gib, plot_metrics, n_dev)
     t_start = time.perf_counter()
-    main_proc = jax.process_index() == 0
+    nproc, me = jax.process_count(), jax.process_index()
+    main_proc = me == 0
+    log = log if main_proc else (lambda m: None)
     stored = prepare_out(out, plan, restart, resume) if main_proc else None
-    if jax.process_count() > 1:  # every process reads the same finished chunks (a shared --out)
-        from jax.experimental import multihost_utils
-
-        multihost_utils.sync_global_devices("jaxsync sweep: output folder ready")
+    if nproc > 1:  # every process reads the same folder (a shared --out)
+        _distributed.barrier("sweep: output folder ready")
         if not main_proc:
             stored = read_plan(out, plan)
     n = len(plan.points)
-    c, results = _read_back(out, stored, n, n_dev, chunk, main_proc, log)
-    compile_s, used, compiled = 0.0, None, None
-    if c is None or len(results) < -(-n // c):
-        c, compiled, used, compile_s = _compile(plan, c, chunk, budget_gib, devices, log)
+    c_stored, results = _read_back(out, stored, n, n_dev, chunk, main_proc, log)
+    loaded = len(results)
+    need = _distributed.share("sweep: compile", c_stored is None or len(results) < -(-n // c_stored))
+    compile_s, used, compiled, c = 0.0, None, None, c_stored
+    if need:
+        c, compiled, used, compile_s = _compile(plan, c_stored, chunk, budget_gib, devices, log)
+    c_main = _distributed.share("sweep: chunk size", c)
+    if c_main != c:
+        raise ConfigError(
+            f"process {me} chose chunks of {c} points and process 0 of {c_main} (their memory analyses "
+            "differ): pass --chunk"
+        )
     n_chunks = -(-n // c)
     if main_proc:
         doc = {"fingerprint": plan.fingerprint, "chunk": c, "n_chunks": n_chunks, "n_devices": n_dev}
-        _io.write_json(os.path.join(out, "plan.json"), {**doc, "spec": plan.spec})
-
-    todo = [i for i in range(n_chunks) if i not in results]
-    loaded = n_chunks - len(todo)
-    if loaded:
-        log(f"resuming: {loaded} of {n_chunks} chunks read back from {os.path.join(out, 'chunks')}")
-    if max_chunks is not None:
-        todo = todo[:max_chunks]
+        _io.write_json(os.path.join(out, "plan.json"), {**doc, "spec": plan.spec, "process_count": nproc})
+        todo = [i for i in range(n_chunks) if i not in results]
+        if loaded:
+            log(f"resuming: {loaded} of {n_chunks} chunks read back from {os.path.join(out, 'chunks')}")
+        if max_chunks is not None:
+            todo = todo[:max_chunks]
+    todo = _distributed.share("sweep: todo", todo if main_proc else None)
+    mine = todo[me::nproc]
     n_steps = evaluator(plan.solver, plan.controller, plan.duration, n_dev)[1]
+    size = lambda chunks: sum(stop - start for start, stop in (_bounds(i, c, n) for i in chunks))  # noqa: E731
+    bar = _progress_bar(progress and main_proc, size(mine) + size(results), size(results), nproc)
     t_eval = time.perf_counter()
-    computed = _evaluate(plan, out, todo, c, compiled, n_dev, results, progress, main_proc)
+    try:
+        computed = _evaluate(plan, out, mine, c, compiled, n_dev, results, bar, me)
+    finally:
+        if bar is not None:
+            bar.close()
     eval_s = time.perf_counter() - t_eval
-    done_points = sum(stop - start for start, stop in (_bounds(i, c, n) for i in todo[:computed]))
+    per_process = [{"process": me, "chunks": computed, "points": size(mine), "eval_s": eval_s}]
+    if nproc > 1:
+        per_process = _distributed.gather("sweep: computed", per_process[0])
+        _distributed.barrier("sweep: chunks written")
+    if main_proc:
+        for i in todo:  # the other processes' chunks, from disk
+            if i not in results:
+                got = load_chunk(out, i, *_bounds(i, c, n), _metrics.Metrics._fields)
+                if got is None:
+                    raise RuntimeError(f"chunk {i} was computed by another process but is not in {out}/chunks")
+                results[i] = got
+    computed = sum(p["chunks"] for p in per_process)
+    points = sum(p["points"] for p in per_process)
+    eval_s = max(p["eval_s"] for p in per_process)  # the evaluation ends with the slowest process
     rate = computed and eval_s > 0
     timing = {
         "wall_s": time.perf_counter() - t_start,
@@ -189,9 +232,24 @@ def run(
         "eval_s": eval_s,
         "chunks_computed": computed,
         "chunks_loaded": loaded,
-        "points_per_s": done_points / eval_s if rate else None,
-        "env_steps_per_s": done_points * n_steps / eval_s if rate else None,
+        "points_per_s": points / eval_s if rate else None,
+        "env_steps_per_s": points * n_steps / eval_s if rate else None,
+        "per_process": per_process,
     }
+    if not main_proc:  # process 0 assembles the results: wait until it has
+        _distributed.barrier("sweep: results written")
+        return {"complete": True, "process_index": me, "timing": timing}
+    try:
+        return _assemble(
+            plan, out, results, n_chunks, c, n_steps, devices, nproc, budget_gib, used, timing, plot_metrics, log
+        )
+    finally:
+        _distributed.barrier("sweep: results written")
+
+
+def _assemble(plan, out, results, n_chunks, c, n_steps, devices, nproc, budget_gib, used, timing, plot_metrics, log):
+    """Process 0: results.csv, the plots and summary.json from every chunk (or the note that some are left)."""
+    computed = timing["chunks_computed"]
     if len(results) < n_chunks:
         log(
             f"stopped after {computed} new chunk(s) (--max-chunks): {len(results)} of {n_chunks} done; "
@@ -200,26 +258,25 @@ def run(
         return {"complete": False, "chunks_done": len(results), "n_chunks": n_chunks, "timing": timing}
     metrics = {k: np.concatenate([results[i][k] for i in range(n_chunks)]) for k in _metrics.Metrics._fields}
     summary = {"complete": True, **summarize_sweep(plan, metrics)}
-    if main_proc:
-        write_csv(os.path.join(out, "results.csv"), plan, metrics)
-        fig = plot(out, plan, metrics, plot_metrics)
-        summary.update(
-            {
-                "sweep": plan.spec,
-                "fingerprint": plan.fingerprint,
-                "chunk": c,
-                "n_chunks": n_chunks,
-                "n_steps_per_rollout": n_steps,
-                "devices": [str(d) for d in devices],
-                "process_count": jax.process_count(),
-                "memory": {
-                    "budget_gib_per_device": budget_gib,
-                    "chunk_gib_per_device": used / GIB if used is not None else None,
-                },
-                "timing": timing,
-                "plot": fig,
-                "files": ["results.csv", "summary.json", "plan.json", "chunks/"] + ([fig] if fig else []),
-            }
-        )
-        _io.write_json(os.path.join(out, "summary.json"), summary)
+    write_csv(os.path.join(out, "results.csv"), plan, metrics)
+    fig = plot(out, plan, metrics, plot_metrics)
+    summary.update(
+        {
+            "sweep": plan.spec,
+            "fingerprint": plan.fingerprint,
+            "chunk": c,
+            "n_chunks": n_chunks,
+            "n_steps_per_rollout": n_steps,
+            "devices": [str(d) for d in devices],
+            "process_count": nproc,
+            "memory": {
+                "budget_gib_per_device": budget_gib,
+                "chunk_gib_per_device": used / GIB if used is not None else None,
+            },
+            "timing": timing,
+            "plot": fig,
+            "files": ["results.csv", "summary.json", "plan.json", "chunks/"] + ([fig] if fig else []),
+        }
+    )
+    _io.write_json(os.path.join(out, "summary.json"), summary)
     return summary

@@ -1,8 +1,10 @@
 """The sharded evaluator of a sweep: one compiled, vmapped, sharded chunk function.
 
 A chunk of points is evaluated by one jit-compiled, vmapped rollout that
-returns only the metrics, sharded over every JAX device (``shard_map`` over a
-1-D ``batch`` mesh). The chunk size is fixed for the whole sweep (the last
+returns only the metrics, sharded over this process's JAX devices
+(``shard_map`` over a 1-D ``batch`` mesh); in a multi-process run each
+process evaluates whole chunks of its own (``sweep.run``), so no chunk needs
+another process. The chunk size is fixed for the whole sweep (the last
 chunk is padded), so one compilation serves every chunk, and bounded so that
 XLA's memory analysis of the compiled chunk stays within the memory budget.
 """
@@ -36,7 +38,7 @@ def _mesh():
     import jax
     from jax.sharding import Mesh
 
-    return Mesh(np.array(jax.devices()), ("batch",))
+    return Mesh(np.array(jax.local_devices()), ("batch",))
 
 
 @functools.lru_cache(maxsize=8)
@@ -114,10 +116,6 @@ def to_device(tree, n_devices: int):
 def gather(tree):
     import jax
 
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        tree = multihost_utils.process_allgather(tree, tiled=True)
     return jax.tree_util.tree_map(np.asarray, tree)
 
 

@@ -423,9 +423,10 @@ def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: Tu
 class _MethodOracle:
     """The fixed-batch objective of a non-Adam method (``optimize.methods``) over
     the flat parameters, built on the tuner's traced gradient and, for CMA-ES,
-    one batched forward pass of the population."""
+    one batched forward pass of the population (data-parallel over the run's
+    devices when it has several: ``optimize.parallel``)."""
 
-    def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig):
+    def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig, n_total: int | None = None):
         from jaxsync.optimize.methods import Oracle
 
         _, self.unravel = ravel_pytree(theta)
@@ -435,8 +436,15 @@ class _MethodOracle:
             (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), scen)
             return float(value), np.asarray(ravel_pytree(grad)[0])
 
-        pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
-        self.oracle = Oracle(value_and_grad=vg, values=lambda X: pop(jnp.asarray(X), scen))
+        if n_total is not None:
+            from jaxsync.optimize import parallel
+
+            pop_dp = parallel.population_values(loss, self.unravel, n_total)
+            values = lambda X: pop_dp(X, scen)  # noqa: E731
+        else:
+            pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
+            values = lambda X: pop(jnp.asarray(X), scen)  # noqa: E731
+        self.oracle = Oracle(value_and_grad=vg, values=values)
 
 
 def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
@@ -506,6 +514,12 @@ def tune(
     checks the whole folder first: :func:`prepare_out`).
     ``on_iteration(i, theta, row)`` is called after each step.
 
+    With more than one JAX device (several GPUs, or a multi-process run:
+    ``jaxsync._distributed``) the loss is data-parallel (``optimize.parallel``):
+    ``cfg.batch`` scenarios per process, sharded over every device, the cost and
+    gradient averaged over all of them; every process runs the same optimiser
+    steps and process 0 alone writes the checkpoint.
+
     Example:
       >>> cfg = TuneConfig(iterations=2, task="short")
       >>> result = tune(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(), cfg)
@@ -514,18 +528,25 @@ def tune(
     from tqdm import tqdm
 
     cfg.validate()
+    from jaxsync.optimize import parallel
+
     weights = weights if weights is not None else CostWeights()
     loss = make_loss(model, spec, base, cfg, weights)
+    n_total = parallel.batch_size(cfg.batch) if parallel.active() else None
+    batch_cfg = dataclasses.replace(cfg, batch=n_total) if n_total else cfg  # every process draws the whole batch
+    main = jax.process_index() == 0
+    say = tqdm.write if main else (lambda m: None)
     from jaxsync.optimize import methods as _methods
 
     method = None if cfg.method == "adam" else _methods.get(cfg.method, **_method_options(cfg))
     opt = cfg.optimizer_transform() if method is None else None
     train_base = training_base(cfg)[0]
     ckpt = os.path.join(out, "checkpoint.pkl") if out else None
-    if ckpt and not resume and not restart and os.path.exists(ckpt):
+    if ckpt and not resume and not restart and os.path.exists(ckpt) and main:
         prepare_out(out)  # the error naming --resume and --restart
-    if out:
+    if out and main:
         _io.ensure_writable_dir(out)
+    write_ckpt = ckpt if main else None  # every process reads a checkpoint to resume; process 0 writes them
     state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt, method, cfg.seed)
     every = cfg.validate_every if validate is not None else 0
 
@@ -537,7 +558,7 @@ def tune(
         return tqdm(
             total=cfg.iterations,
             initial=state.iteration,
-            disable=not progress,
+            disable=not (progress and main),
             unit="it",
             dynamic_ncols=True,
             leave=not first,
@@ -549,26 +570,28 @@ def tune(
     try:
         start = state.iteration
         if every and not state.validation:
-            state = _validated(state._replace(iteration=0), validate, spec, base, bar.write)._replace(iteration=start)
+            state = _validated(state._replace(iteration=0), validate, spec, base, say)._replace(iteration=start)
         elif every and (start % every == 0 or start == cfg.iterations) and state.validation[-1]["iteration"] != start:
-            state = _validated(state, validate, spec, base, bar.write)  # interrupted between a step and its validation
+            state = _validated(state, validate, spec, base, say)  # interrupted between a step and its validation
         oracle = None
         for i in range(start, cfg.iterations):
             # Adam: a fresh batch every iteration; the other methods: one fixed batch (a deterministic objective)
-            scen = training_batch(cfg, i if method is None else 0, train_base)
+            scen = training_batch(batch_cfg, i if method is None else 0, train_base)
 
-            def get_value_and_grad(scen=scen, theta=state.theta, write=bar.write):
+            def get_value_and_grad(scen=scen, theta=state.theta):
                 nonlocal value_and_grad
-                if value_and_grad is None:
-                    value_and_grad = _traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), write)
+                if value_and_grad is None and n_total:
+                    value_and_grad = parallel.value_and_grad(loss, n_total)
+                elif value_and_grad is None:
+                    value_and_grad = _traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), say)
                 return value_and_grad
 
             converged = False
             if method is None:
-                state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, bar.write)
+                state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, say)
             else:
-                oracle = oracle or _MethodOracle(loss, get_value_and_grad, state.theta, scen, cfg)
-                state, row, converged = _method_step(state, method, oracle, cfg, spec, base, bar.write)
+                oracle = oracle or _MethodOracle(loss, get_value_and_grad, state.theta, scen, cfg, n_total)
+                state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
             bar.update(1)
             if i == start:
                 bar.close()
@@ -578,16 +601,16 @@ def tune(
                 on_iteration(i, state.theta, row)
             last = converged or i + 1 == cfg.iterations
             if every and ((i + 1) % every == 0 or last):
-                state = _validated(state, validate, spec, base, bar.write)
+                state = _validated(state, validate, spec, base, say)
             if (i + 1) % cfg.checkpoint_every == 0 or last:
-                _save(ckpt, state, fingerprint)
+                _save(write_ckpt, state, fingerprint)
             if converged:
-                bar.write(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
+                say(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
                 break
     except KeyboardInterrupt:
-        if ckpt:
-            _save(ckpt, state, fingerprint)
-            bar.write(
+        if write_ckpt:
+            _save(write_ckpt, state, fingerprint)
+            say(
                 f"interrupted: checkpoint saved to {ckpt} after {state.iteration} iterations; "
                 "run again with --resume to continue"
             )

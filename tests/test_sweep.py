@@ -276,7 +276,7 @@ def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
 def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
     import jax
 
-    monkeypatch.setattr(jax, "devices", lambda *a: ["d0", "d1"])
+    monkeypatch.setattr(jax, "local_devices", lambda *a: ["d0", "d1"])
     with pytest.raises(ConfigError, match="multiple of the 2 devices"):
         sweep.run(sweep.make_plan(["k_rk=0,1"]), str(tmp_path), chunk=3)
 

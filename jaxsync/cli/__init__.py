@@ -26,6 +26,10 @@ def _setup_jax(args: argparse.Namespace) -> None:
 
     jax.config.update("jax_enable_x64", not getattr(args, "float32", False))
     enable_compilation_cache(getattr(args, "cache_dir", None))
+    if hasattr(args, "coordinator"):  # a command that can run over many processes (sweep, tune)
+        from jaxsync import _distributed
+
+        _distributed.initialize(args.coordinator, args.num_processes, args.process_id, args.distributed_auto)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -58,6 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if rc != 0:  # a rejected or failed run leaves no empty output folder behind
             _io.remove_created_dirs()
+            from jaxsync import _distributed
+
+            if _distributed.active():  # the other processes stop too, without waiting minutes for this one
+                if sys.exc_info()[0] is not None:  # JAXSYNC_DEBUG's traceback, before leaving
+                    import traceback
+
+                    traceback.print_exc()
+                _distributed.abandon(rc)
 
 
 def _run(args: argparse.Namespace) -> int:

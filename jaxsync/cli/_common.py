@@ -24,3 +24,23 @@ def positive(kind):
 
 def add_model_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
+
+
+def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
+    """The flags of a multi-process run (jaxsync._distributed, docs/scaling.md)."""
+    g = p.add_argument_group(
+        "multi-process runs (JAX's distributed runtime; docs/scaling.md)",
+        "Start one process per host or GPU, each with the same command and its own --process-id, or let "
+        "JAX detect the cluster (--distributed-auto under SLURM or Open MPI). --out must be on a file system "
+        "every process sees.",
+    )
+    g.add_argument(
+        "--coordinator", default=None, metavar="HOST:PORT", help="process 0's address ($JAXSYNC_COORDINATOR)"
+    )
+    g.add_argument("--num-processes", default=None, help="how many processes take part ($JAXSYNC_NUM_PROCESSES)")
+    g.add_argument("--process-id", default=None, help="this process's index, 0 .. N-1 ($JAXSYNC_PROCESS_ID)")
+    g.add_argument(
+        "--distributed-auto",
+        action="store_true",
+        help="join a multi-process run that JAX detects from the cluster's environment (SLURM, Open MPI, ...)",
+    )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from jaxsync._controller import CONTROLLERS
-from jaxsync.cli._common import positive
+from jaxsync.cli._common import add_distributed_arguments, positive
 from jaxsync.optimize.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS
 
@@ -16,7 +16,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         help="batched parameter study over gains and scenario parameters (grid or random samples)",
         description="Evaluate the metrics of many rollouts, one per point of a Cartesian grid (or of "
         "--samples random points) over named gain and scenario parameters; batched with vmap, sharded over "
-        "all JAX devices, resumable (--resume). Writes results.csv, summary.json, a heatmap (2 swept parameters) or a "
+        "all JAX devices, and over many processes (--coordinator ...), resumable (--resume). Writes results.csv, "
+        "summary.json, a heatmap (2 swept parameters) or a "
         "line plot (1) to --out. See docs/sweep.md.",
     )
     p.add_argument(
@@ -69,6 +70,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
+    add_distributed_arguments(p)
     p.set_defaults(func=run, interrupted_hint="finished chunks are kept; run again with --resume to continue")
     return p
 
@@ -98,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         max_chunks=args.max_chunks,
         plot_metrics=tuple(args.plot_metric or DEFAULT_PLOT_METRICS),
     )
-    if not summary["complete"]:
+    if not summary["complete"] or "process_index" in summary:  # stopped early, or not process 0
         return 0
     t = summary["timing"]
     print(

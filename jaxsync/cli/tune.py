@@ -7,7 +7,7 @@ import os
 import time
 
 from jaxsync._errors import ConfigError
-from jaxsync.cli._common import add_model_argument
+from jaxsync.cli._common import add_distributed_arguments, add_model_argument
 from jaxsync.optimize.cost import CostWeights
 
 
@@ -34,7 +34,7 @@ def _names(text: str | None) -> list[str]:
 
 
 def run(args) -> int:
-    from jaxsync import _gains, _io, _schedule
+    from jaxsync import _distributed, _gains, _io, _schedule
     from jaxsync._model import load_model
     from jaxsync.optimize import tasks
     from jaxsync.optimize import tune as tuning
@@ -74,12 +74,18 @@ def run(args) -> int:
     weights = _weights(args.weight)
     base = _gains.load(args.gains) if args.gains else _gains.default_gains()
     spec.init(base)  # a schedule file needs --per-phase: say so before any folder is touched
-    # the input is checked; now the folder: continue (--resume) or discard
-    # (--restart) a run there, never overwrite one silently; created only now
-    tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
-    _io.ensure_writable_dir(args.out)
+    # a multi-process run (--coordinator ...): every process tunes (data-parallel,
+    # optimize.parallel); process 0 alone checks and writes --out and prints
+    main = _distributed.is_main()
+    say = print if main else (lambda *a, **k: None)
+    if main:
+        # the input is checked; now the folder: continue (--resume) or discard
+        # (--restart) a run there, never overwrite one silently; created only now
+        tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
+        _io.ensure_writable_dir(args.out)
+    _distributed.barrier("tune: output folder ready")
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
-    skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check")
+    skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
     fingerprint = {k: v for k, v in options.items() if k not in skip}
 
     t_start = time.perf_counter()
@@ -88,19 +94,21 @@ def run(args) -> int:
     held = tasks.heldout_scenarios(cfg)
     summary_path = os.path.join(args.out, "summary.json")
     before = None
-    if args.resume and os.path.exists(os.path.join(args.out, "heldout_before.json")):
+    if not main:
+        before = {}  # held-out scoring and the results are process 0's
+    elif args.resume and os.path.exists(os.path.join(args.out, "heldout_before.json")):
         import json
 
         with open(os.path.join(args.out, "heldout_before.json")) as f:
             before = json.load(f)
     if before is None:
-        print(
+        say(
             f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True
         )
         before = tuning.eval_summary(evaluate(base, held))
         _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
 
-    print(
+    say(
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
         + (", per task phase" if spec.schedule else "")
         + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
@@ -114,7 +122,7 @@ def run(args) -> int:
         return tuning.eval_summary(evaluate(g, valid))
 
     if cfg.validate_every:
-        print(
+        say(
             f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
             f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
             "worse than the start's)",
@@ -132,10 +140,13 @@ def run(args) -> int:
         weights=weights,
     )
     gains, history, selected = result.gains, result.history, result.selected
+    if not main:  # process 0 scores, writes and prints; wait until it has
+        _distributed.barrier("tune: results written")
+        return 0
     if selected is not None:
-        print(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)", flush=True)
+        say(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)", flush=True)
 
-    print("held-out evaluation after tuning...", flush=True)
+    say("held-out evaluation after tuning...", flush=True)
     after = tuning.eval_summary(evaluate(gains, held))
     _io.write_json(
         os.path.join(args.out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": spec.describe()}
@@ -146,7 +157,7 @@ def run(args) -> int:
     )
     check = None
     if args.mujoco_check:
-        print(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
+        say(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
         check = tuning.mujoco_check(model, base, gains, held, cfg.eval_duration, n=4)
         check = tuning.mujoco_verdict(check, before["per_scenario_peak_N"], after["per_scenario_peak_N"])
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
@@ -174,11 +185,12 @@ def run(args) -> int:
     }
     _io.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
-    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
-    print(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
+    say(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
+    say(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
     if check is not None:
-        print(mujoco_text(check))
-    print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
+        say(mujoco_text(check))
+    say(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
+    _distributed.barrier("tune: results written")
     return 0
 
 
@@ -226,7 +238,12 @@ def add_parser(sub) -> None:
         "evaluated on held-out scenarios before and after.",
     )
     p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
-    p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4)")
+    p.add_argument(
+        "--batch",
+        type=int,
+        default=4,
+        help="randomised scenarios per step (4); per process in a multi-process run, which trains on all of them",
+    )
     p.add_argument("--lr", type=float, default=0.05, help="learning rate (0.05)")
     p.add_argument("--optimizer", default="adam", help="an optax optimiser by name (adam)")
     p.add_argument("--schedule", default="cosine", choices=["cosine", "constant"])
@@ -295,6 +312,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--gains", default=None, help="start from this gains JSON (default: built-in)")
     add_model_argument(p)
+    add_distributed_arguments(p)
     p.add_argument("--out", default="results/tune", help="output folder (results/tune)")
     p.add_argument("--resume", action="store_true", help="continue from the last checkpoint in --out")
     p.add_argument(
