@@ -199,7 +199,7 @@ def test_sweep_writes_results_summary_and_heatmap(uninterrupted):
     assert summary["complete"] and summary["n_points"] == 4 and summary["n_ok"] == 4
     assert summary["chunk"] == 2 and summary["n_chunks"] == 2 and summary["plot"] == "heatmap.png"
     assert (uninterrupted / "heatmap.png").stat().st_size > 0
-    assert sorted(os.listdir(uninterrupted / "chunks")) == ["chunk_00000.npz", "chunk_00001.npz"]
+    assert sorted(os.listdir(uninterrupted / "chunks")) == ["chunk_00000.npz", "chunk_00001.npz", "computed_p0.jsonl"]
     assert not [p for p in os.listdir(uninterrupted) if p.startswith(".tmp")]
 
 
@@ -218,7 +218,7 @@ def test_sweep_point_equals_the_direct_rollout(uninterrupted, rollouts):
 def test_resume_reads_finished_chunks_back(uninterrupted, tmp_path):
     out = tmp_path / "resumed"
     assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--max-chunks", "1"]) == 0  # "interrupted"
-    assert os.listdir(out / "chunks") == ["chunk_00000.npz"]
+    assert sorted(os.listdir(out / "chunks")) == ["chunk_00000.npz", "computed_p0.jsonl"]
     assert not (out / "results.csv").exists()
     first = (out / "chunks" / "chunk_00000.npz").stat().st_mtime_ns
     assert run_cli(["sweep", *FAST, *GRID, "--out", str(out), "--resume"]) == 0
