@@ -107,11 +107,12 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=2, help="tuning scenarios per process (2)")
     ap.add_argument("--iterations", type=int, default=4, help="tuning iterations (4)")
     ap.add_argument("--out", default="results/scaling")
+    ap.add_argument("--what", default="sweep,tune", help="what to measure (sweep,tune)")
     args = ap.parse_args(argv)
     ns = [int(x) for x in args.processes.split(",")]
     os.makedirs(args.out, exist_ok=True)
     res = {"sweep": [], "tune": [], "cpu_count": os.cpu_count()}
-    for n in ns:
+    for n in ns if "sweep" in args.what else []:
         r = sweep(n, args.points_side, args.chunk, os.path.join(args.out, f"sweep_n{n}"))
         print(
             f"sweep, {n} process(es): {r['points']} points, {r['points_per_s']:.2f} points/s "
@@ -119,7 +120,7 @@ def main(argv=None) -> int:
             flush=True,
         )
         res["sweep"].append(r)
-    for n in ns:
+    for n in ns if "tune" in args.what else []:
         r = tune(n, args.batch, args.iterations, os.path.join(args.out, f"tune_n{n}"))
         print(
             f"tune, {n} process(es), batch {args.batch} each ({r['total_batch']} in all): "

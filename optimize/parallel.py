@@ -17,12 +17,16 @@ ever needs sending.
 
 from __future__ import annotations
 
+import itertools
+
 import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxsync._errors import ConfigError
+
+_BARRIERS = itertools.count()
 
 
 def active() -> bool:
@@ -86,11 +90,33 @@ def value_and_grad(loss, n_total: int):
     # check_vma off: MJX's solver mixes batched and unbatched cond branches (as the sweep's evaluator)
     fn = jax.jit(jax.shard_map(local, mesh=_mesh(), in_specs=(P(), P("batch")), out_specs=P(), check_vma=False))
 
+    run = _compiled_together(fn, "tune: gradient compiled")
+
     def call(theta, batch):
-        return _local(fn(replicate(theta), shard(batch)))
+        return _local(run(replicate(theta), shard(batch)))
 
     call.jitted = fn
     return call
+
+
+def _compiled_together(fn, name: str):
+    """``fn`` compiled ahead of its first call, then a barrier: the processes
+    compile at their own pace (minutes here, not the same in each), but the
+    first collective, whose CPU (gloo) set-up waits 30 s at most for the other
+    processes, starts only once every process has its program."""
+    from jaxsync import _distributed
+
+    compiled = None
+    name = f"{name} #{next(_BARRIERS)}"  # a barrier's name is used once per run
+
+    def run(*args):
+        nonlocal compiled
+        if compiled is None:
+            compiled = fn.lower(*args).compile()
+            _distributed.barrier(name)
+        return compiled(*args)
+
+    return run
 
 
 def population_values(loss, unravel, n_total: int):
@@ -104,7 +130,9 @@ def population_values(loss, unravel, n_total: int):
 
     fn = jax.jit(jax.shard_map(local, mesh=_mesh(), in_specs=(P(), P("batch")), out_specs=P(), check_vma=False))
 
+    run = _compiled_together(fn, "tune: population compiled")
+
     def call(X, batch):
-        return np.asarray(fn(replicate(np.asarray(X)), shard(batch)))
+        return np.asarray(run(replicate(np.asarray(X)), shard(batch)))
 
     return call
