@@ -219,6 +219,7 @@ def sim_to_sim(
     n: int = 4,
     tolerance: float = SIM_TOLERANCE,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
+    mjx_rows: dict | None = None,
 ) -> dict:
     """``gains`` against ``baseline`` (e.g. tuned against default gains) on MJX and on
     MuJoCo C, with the same jitted synchronous control law (``rollout(backend=...)``),
@@ -234,6 +235,11 @@ def sim_to_sim(
     ``factor_mjx``, ``factor_mujoco``, ``agree``, ``tolerance``, ``scenarios``) and adds
     the grip force errors and each scenario's values.
 
+    ``mjx_rows`` (``{"before": rows, "after": rows}``, either or both; rows as
+    :func:`metric_rows` makes them) are MJX's metrics of the same scenarios and
+    duration that the caller already has (``jaxsync tune``'s held-out scoring):
+    those rollouts are not run again.
+
     Example:
       >>> from jaxsync.optimize import tasks, tune
       >>> held = tasks.heldout_scenarios(tune.TuneConfig())
@@ -246,8 +252,12 @@ def sim_to_sim(
     if n < 1:
         raise ConfigError("the sim-to-sim check needs at least one scenario")
     per: dict = {}
+    given = mjx_rows or {}
     for backend in BACKENDS:
         for which, g in (("before", baseline), ("after", gains)):
+            if backend == "mjx" and len(given.get(which) or []) >= n:
+                per[f"{backend}_{which}"] = list(given[which][:n])
+                continue
             rows = []
             t0 = time.perf_counter()
             for i in range(n):
@@ -269,6 +279,20 @@ def sim_to_sim(
             log(f"sim-to-sim: {name} on {BACKENDS[backend]}, {n} scenarios, {time.perf_counter() - t0:.1f} s")
             per[f"{backend}_{which}"] = rows
     return sim_to_sim_verdict(per, n, duration, tolerance)
+
+
+def metric_rows(m) -> list[dict]:
+    """A batch of metrics as :func:`sim_to_sim`'s per-scenario rows."""
+    a = _metrics.to_arrays(m)
+    lost = np.asarray(a["dropped"]) | np.asarray(a["nonfinite"])
+    return [
+        {
+            "settled_peak_resultant_N": float(a["settled_peak_resultant_N"][i]),
+            "grip_force_error_rel": float(a["grip_force_error_rel"][i]),
+            "lost": bool(lost[i]),
+        }
+        for i in range(len(lost))
+    ]
 
 
 def sim_to_sim_verdict(per: dict, n: int, duration: float, tolerance: float = SIM_TOLERANCE) -> dict:

@@ -159,49 +159,13 @@ def make_evaluator(model, duration: float):
     return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
 
 
-MUJOCO_TOLERANCE = 0.10  # relative disagreement of the improvement factors (MuJoCo C against MJX) flagged
-
-
-def mujoco_check(model, before, after, scenarios, duration: float, n: int = 4) -> dict:
-    """The gains before and after tuning on MuJoCo C (the same jitted control law,
-    ``rollout(backend="mujoco")``) on the first ``n`` of ``scenarios``, beside MJX's
-    settled peaks of the same scenarios: the two improvement factors and whether
-    they agree within :data:`MUJOCO_TOLERANCE`."""
-    import numpy as np
-
-    from jaxsync._rollout import rollout
-
-    n = min(n, int(jax.tree_util.tree_leaves(scenarios)[0].shape[0]))
-    one = lambda i: jax.tree_util.tree_map(lambda x: x[i], scenarios)  # noqa: E731
-    out = {"scenarios": n, "tolerance": MUJOCO_TOLERANCE}
-    for name, gains in (("before", before), ("after", after)):
-        mj = []
-        for i in range(n):
-            traj = rollout(model, gains, one(i), duration=duration, backend="mujoco")
-            m = _metrics.summarize(traj, one(i))
-            mj.append(float(m.settled_peak_resultant_N) if not bool(m.dropped) else float("nan"))
-        out[f"mujoco_{name}_N"] = float(np.mean(mj))
-    return out
-
-
-def mujoco_verdict(check: dict, mjx_before_per: list, mjx_after_per: list) -> dict:
-    """Adds MJX's means over the same scenarios, both factors and the verdict to ``check``."""
-    import numpy as np
-
-    n = check["scenarios"]
-    check["mjx_before_N"] = float(np.mean(mjx_before_per[:n]))
-    check["mjx_after_N"] = float(np.mean(mjx_after_per[:n]))
-    f_mjx = check["mjx_before_N"] / check["mjx_after_N"]
-    f_c = check["mujoco_before_N"] / check["mujoco_after_N"]
-    check["factor_mjx"], check["factor_mujoco"] = f_mjx, f_c
-    check["agree"] = bool(np.isfinite(f_c) and abs(f_c / f_mjx - 1.0) <= check["tolerance"])
-    return check
-
-
 def eval_summary(m) -> dict:
     """A batch of metrics as the loop records it: means over the rollouts kept (not dropped, finite)."""
     import numpy as np
 
+    from jaxsync._compare import metric_rows
+
+    rows = metric_rows(m)
     m = _metrics.to_arrays(m)
     kept = ~(m["dropped"] | m["nonfinite"])
     mean = lambda x: float(np.mean(x[kept])) if kept.any() else None  # noqa: E731
@@ -211,6 +175,7 @@ def eval_summary(m) -> dict:
         "dropped": int(m["dropped"].sum()),
         "nonfinite": int(m["nonfinite"].sum()),
         "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
+        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync._compare.sim_to_sim)
     }
 
 

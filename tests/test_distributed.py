@@ -155,8 +155,8 @@ def _chunks(out) -> set[int]:
 @pytest.fixture(scope="module")
 def killed_then_resumed(tmp_path_factory):
     """One process's 8-point sweep; then two processes on it, process 1 killed
-    (SIGKILL) as soon as it has written its first chunk; then the two again
-    with --resume."""
+    (SIGKILL) as soon as it has written its first chunk; then the same command
+    with --resume, in one process (a re-run on the machines that are left)."""
     root = tmp_path_factory.mktemp("distributed_sweep")
     ref = root / "one"
     assert run_cli(["sweep", *FAST, *GRID8, "--out", str(ref)]) == 0
@@ -174,12 +174,9 @@ def killed_then_resumed(tmp_path_factory):
         # process 0 finishes its own chunks, then the coordination service stops it (heartbeat 5 s)
         rc0 = _wait([p0], run1)[0]
     after_kill = {"chunks": _chunks(out), "computed": _computed(out), "rc0": rc0}
-    run2 = root / "run2"
-    run2.mkdir()
-    with _processes([*argv, "--resume"], run2) as procs:
-        rcs = _wait(procs, run2)
-    assert rcs == [0, 0], _logs(run2)
-    return {"ref": ref, "out": out, "after_kill": after_kill, "run2_log": (run2 / "p0.log").read_text()}
+    # re-run on what is left (here one process, this one: its chunk function is compiled already)
+    assert run_cli([*argv, "--resume"]) == 0
+    return {"ref": ref, "out": out, "after_kill": after_kill}
 
 
 def test_killed_sweep_resumes_with_every_point_computed_once(killed_then_resumed):
@@ -189,7 +186,7 @@ def test_killed_sweep_resumes_with_every_point_computed_once(killed_then_resumed
     assert {c["chunk"] for c in first["computed"] if c["process"] == 1} == {1}  # then it was killed
     assert 0 < len(first["chunks"]) < 4 and 3 not in first["chunks"]  # its second chunk was lost
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["complete"] and summary["n_points"] == 8 and summary["process_count"] == 2
+    assert summary["complete"] and summary["n_points"] == 8
     assert summary["timing"]["chunks_loaded"] == len(first["chunks"])
     assert summary["timing"]["chunks_computed"] == 4 - len(first["chunks"])
     # every chunk computed and written exactly once over both runs, by the process it was given to
@@ -199,7 +196,7 @@ def test_killed_sweep_resumes_with_every_point_computed_once(killed_then_resumed
 
 
 def test_two_processes_give_the_rows_of_one(killed_then_resumed):
-    """Rows of the two-process run (killed and resumed) byte for byte those of one process."""
+    """Rows of the killed two-process run, completed, byte for byte those of one process."""
     r = killed_then_resumed
     with open(r["out"] / "results.csv") as f:
         rows = list(csv.DictReader(f))

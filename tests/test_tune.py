@@ -199,11 +199,22 @@ def fake_tuning(monkeypatch):
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
 
-    def fake_check(model, before, after, scenarios, duration, n=4):
-        calls["mujoco_check"] = n
-        return {"scenarios": 2, "tolerance": 0.1, "mujoco_before_N": 0.015, "mujoco_after_N": 0.03}
+    from jaxsync import _compare
 
-    monkeypatch.setattr(tune_mod, "mujoco_check", fake_check)
+    def fake_sim_to_sim(model, gains, baseline, scenarios, duration, *, n=4, mjx_rows=None, **kw):
+        """MuJoCo C's rollouts replaced: the held-out MJX rows as given, MuJoCo C's
+        settled peak after tuning 0.03 N in every scenario (MJX: 0.01, 0.02)."""
+        calls["mujoco_check"], calls["mjx_rows"] = n, mjx_rows
+        m = min(n, len(mjx_rows["before"]))
+        per = {
+            "mjx_before": mjx_rows["before"][:m],
+            "mjx_after": mjx_rows["after"][:m],
+            "mujoco_before": mjx_rows["before"][:m],
+            "mujoco_after": [dict(r, settled_peak_resultant_N=0.03) for r in mjx_rows["after"][:m]],
+        }
+        return _compare.sim_to_sim_verdict(per, m, duration)
+
+    monkeypatch.setattr(_compare, "sim_to_sim", fake_sim_to_sim)
     return calls
 
 
@@ -240,6 +251,8 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
     # the MuJoCo C check ran (a stand-in here) and is recorded beside MJX's figures
     assert calls["mujoco_check"] == 4 and summary["mujoco_check"]["factor_mujoco"] == pytest.approx(0.5)
     assert summary["mujoco_check"]["mjx_before_N"] == pytest.approx(0.015) and summary["mujoco_check"]["agree"] is False
+    # MJX's side is the held-out scoring's rows, passed on, not rolled out again
+    assert [r["settled_peak_resultant_N"] for r in calls["mjx_rows"]["before"]] == [0.01, 0.02]
     selected = json.loads((out / "gains.json").read_text())["gains"]
     last = json.loads((out / "gains_last.json").read_text())["gains"]
     assert selected["k_rl"] == 0.5 and last["k_rl"] == 0.4
@@ -481,28 +494,34 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
 
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts):
-    """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX; the
-    factors agree here (the same control law, the same scenario), and a
-    disagreement is flagged in the printed line."""
+    """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX, through
+    the one sim-to-sim check (jaxsync._compare.sim_to_sim) with MJX's rows as tune
+    has them from its held-out scoring; the factors agree here (the same control
+    law, the same scenario), and a disagreement is flagged in the printed line."""
     from conftest import TEST_DURATION
-    from jaxsync.optimize import tune as tune_mod
 
-    from jaxsync import _metrics
+    from jaxsync import _compare, _metrics
     from jaxsync._rollout import rollout
     from jaxsync.cli.tune import mujoco_text
 
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
-    check = tune_mod.mujoco_check(model, g, g2, batch, TEST_DURATION, n=4)
+    one = lambda x: jax.tree_util.tree_map(lambda v: jax.numpy.asarray(v)[None], x)  # noqa: E731
+    mjx = {
+        which: _compare.metric_rows(one(_metrics.summarize(rollout(model, x, s, duration=TEST_DURATION), s)))
+        for which, x in (("before", g), ("after", g2))
+    }
+    check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, mjx_rows=mjx, log=lambda m: None)
     assert check["scenarios"] == 1
-    mjx = [
-        float(_metrics.summarize(rollout(model, x, s, duration=TEST_DURATION), s).settled_peak_resultant_N)
-        for x in (g, g2)
-    ]
-    check = tune_mod.mujoco_verdict(check, [mjx[0]], [mjx[1]])
-    assert check["mujoco_before_N"] == pytest.approx(mjx[0], rel=0.05)
-    assert check["mujoco_after_N"] == pytest.approx(mjx[1], rel=0.05)
+    assert check["per_scenario"]["mjx_before"] == mjx["before"]  # taken as given
+    assert check["mjx_before_N"] == mjx["before"][0]["settled_peak_resultant_N"]
+    assert check["mujoco_before_N"] == pytest.approx(check["mjx_before_N"], rel=0.05)
+    assert check["mujoco_after_N"] == pytest.approx(check["mjx_after_N"], rel=0.05)
+    assert check["mujoco_after_N"] != check["mjx_after_N"]  # MuJoCo C's own rollout, not MJX's row
     assert check["agree"] and "agree within 10 %" in mujoco_text(check)
-    off = tune_mod.mujoco_verdict(dict(check, mujoco_after_N=check["mujoco_after_N"] * 2), [mjx[0]], [mjx[1]])
-    assert not off["agree"] and "WARNING" in mujoco_text(off)
+    per = dict(check["per_scenario"])
+    double = lambda r: dict(r, settled_peak_resultant_N=2 * r["settled_peak_resultant_N"])  # noqa: E731
+    per["mujoco_after"] = [double(r) for r in per["mujoco_after"]]
+    off = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    assert not off["agree"] and "WARNING" in mujoco_text(off) and "below MJX's" in mujoco_text(off)

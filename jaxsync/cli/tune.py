@@ -158,8 +158,13 @@ def run(args) -> int:
     check = None
     if args.mujoco_check:
         say(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
-        check = tuning.mujoco_check(model, base, gains, held, cfg.eval_duration, n=4)
-        check = tuning.mujoco_verdict(check, before["per_scenario_peak_N"], after["per_scenario_peak_N"])
+        from jaxsync import _compare
+
+        # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
+        mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
+        check = _compare.sim_to_sim(
+            model, gains, base, held, cfg.eval_duration, n=4, mjx_rows=mjx_rows, log=lambda m: None
+        )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
         _io.write_csv(os.path.join(args.out, "history.csv"), cols)
@@ -207,15 +212,21 @@ def history_columns(history: list[dict]) -> list[str]:
 
 
 def mujoco_text(c: dict) -> str:
-    """The MuJoCo C check's line: both improvement factors, flagged when they disagree."""
+    """The MuJoCo C check's line (jaxsync._compare.sim_to_sim's result): both
+    improvement factors, flagged when they disagree or an object was dropped."""
+
+    def f(v, fmt):
+        return "n/a" if v is None else format(v, fmt)
+
     head = (
-        f"on {c['scenarios']} held-out scenarios, settled peak before -> after: MJX {c['mjx_before_N']:.5f} -> "
-        f"{c['mjx_after_N']:.5f} N ({c['factor_mjx']:.2f}x), MuJoCo C {c['mujoco_before_N']:.5f} -> "
-        f"{c['mujoco_after_N']:.5f} N ({c['factor_mujoco']:.2f}x): "
+        f"on {c['scenarios']} held-out scenarios, settled peak before -> after: MJX {f(c['mjx_before_N'], '.5f')} -> "
+        f"{f(c['mjx_after_N'], '.5f')} N ({f(c['factor_mjx'], '.2f')}x), MuJoCo C {f(c['mujoco_before_N'], '.5f')} -> "
+        f"{f(c['mujoco_after_N'], '.5f')} N ({f(c['factor_mujoco'], '.2f')}x): "
     )
     if c["agree"]:
         return head + f"agree within {100 * c['tolerance']:.0f} %"
-    return head + f"WARNING: MuJoCo C and MJX disagree by more than {100 * c['tolerance']:.0f} % (docs/export.md)"
+    why = "; ".join(c.get("problems") or [f"they differ by more than {100 * c['tolerance']:.0f} %"])
+    return head + f"WARNING: MuJoCo C and MJX disagree: {why} (docs/export.md)"
 
 
 def change_text(before: float | None, after: float | None) -> str:
