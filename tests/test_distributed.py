@@ -179,6 +179,7 @@ def killed_then_resumed(tmp_path_factory):
     return {"ref": ref, "out": out, "after_kill": after_kill}
 
 
+@pytest.mark.slow
 def test_killed_sweep_resumes_with_every_point_computed_once(killed_then_resumed):
     r = killed_then_resumed
     out, first = r["out"], r["after_kill"]
@@ -195,6 +196,7 @@ def test_killed_sweep_resumes_with_every_point_computed_once(killed_then_resumed
     assert _chunks(out) == {0, 1, 2, 3}
 
 
+@pytest.mark.slow
 def test_two_processes_give_the_rows_of_one(killed_then_resumed):
     """Rows of the killed two-process run, completed, byte for byte those of one process."""
     r = killed_then_resumed
@@ -204,6 +206,7 @@ def test_two_processes_give_the_rows_of_one(killed_then_resumed):
     assert (r["out"] / "results.csv").read_bytes() == (r["ref"] / "results.csv").read_bytes()
 
 
+@pytest.mark.slow
 def test_two_process_tuning_equals_one_process_with_both_batches(model, tuning_program, tmp_path):
     """Two processes with --batch 1 each take the same two L-BFGS iterations as one
     process with batch 2 (the scenarios of both), to float64 rounding: the

@@ -100,6 +100,7 @@ def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
         assert np.hypot(f[0], f[2]) > 1e-3 * normal  # friction acts
 
 
+@pytest.mark.slow
 def test_implicit_equals_unrolled_where_both_converge(one_step):
     g_implicit = np.asarray(one_step["grad"](one_step["p0"], False))
     g_unrolled = np.asarray(one_step["grad"](one_step["p0"], True))

@@ -207,6 +207,7 @@ def test_passive_trajectory_mjx_matches_c(model):
     assert err < 1e-6, f"max |qpos_mjx - qpos_c| over 1 s = {err:.2e}"
 
 
+@pytest.mark.slow
 def test_grad_of_sensed_quantities_matches_central_differences(model):
     """jax.grad through one physics step (the converged solve, implicit
     adjoint) and ``sense`` of the next state, the right pad pressed 2 mm into

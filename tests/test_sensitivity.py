@@ -26,6 +26,7 @@ def computed(model):
     return scen, sensitivity(model, _gains.default_gains(), scen, DURATION)
 
 
+@pytest.mark.slow
 def test_elasticities_match_central_differences(model, computed):
     """Seven gain entries (three signed k's, four positive gains of both arms
     and the inner loop), each metric: 4-point central differences in log gain
@@ -69,6 +70,7 @@ def test_elasticity_scaling():
     np.testing.assert_allclose(e, [[1.5, 1.0]])  # k: (1/m) dm/dk; positive gain: (g/m) dm/dg
 
 
+@pytest.mark.slow
 def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monkeypatch, capsys):
     from jaxsync import _model
     from jaxsync.cli import main

@@ -251,6 +251,7 @@ def test_memory_budget_too_small_even_for_one(tmp_path, capsys):
     assert "exceed --memory-budget-gib 1e-06 even in chunks of one" in err
 
 
+@pytest.mark.slow
 def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
     out = tmp_path / "sharded"
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
