@@ -14,6 +14,19 @@ jax.config.update("jax_enable_x64", True)
 enable_compilation_cache()
 
 
+def pytest_collection_modifyitems(config, items):
+    """The default run (the README's test command, .ci/run) leaves out the
+    tests marked slow: deep checks that compile for minutes on a small CPU.
+    ``-m`` decides instead when given (``-m slow``: only those), and a test
+    named on the command line (``path::name``) runs whatever its mark."""
+    if config.option.markexpr or any("::" in str(a) for a in config.args):
+        return
+    slow = [item for item in items if item.get_closest_marker("slow")]
+    if slow:
+        config.hook.pytest_deselected(items=slow)
+        items[:] = [item for item in items if not item.get_closest_marker("slow")]
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _free_compiled_programs():
     """After each test module, drop the compiled programs it left in memory
