@@ -17,15 +17,18 @@ def default_cache_dir() -> str:
     return os.path.join(base, "jaxsync", "xla")
 
 
-def enable_compilation_cache(path: str | None = None) -> str | None:
+def enable_compilation_cache(path: str | None = None, min_compile_time_s: float = 0.5) -> str | None:
     """Point JAX's persistent compilation cache at ``path``.
 
     A rollout of this model compiles for tens of seconds, its gradient for
     minutes; with the cache a later process (a script run again, the CLI, the
     tests) reads the compiled program back instead. Call it once, before the
     first compile. ``path`` defaults to ``$JAXSYNC_CACHE_DIR`` or
-    ``~/.cache/jaxsync/xla``; the string ``"off"`` disables it. Returns the
-    directory used, or None.
+    ``~/.cache/jaxsync/xla``; the string ``"off"`` disables it. Programs that
+    compile in less than ``min_compile_time_s`` are not kept (0 keeps every
+    one, also the hundreds of small programs of eager operations, each 20-100
+    ms to compile and a few ms to read back: the test suite does that).
+    Returns the directory used, or None.
 
     Example:
       >>> import jaxsync
@@ -46,7 +49,11 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
 
         raise ConfigError(f"compilation cache folder {path}: not writable (--cache-dir, $JAXSYNC_CACHE_DIR or 'off')")
     jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    if not min_compile_time_s >= 0:
+        from jaxsync._errors import ConfigError
+
+        raise ConfigError(f"min_compile_time_s must be a number of seconds >= 0, got {min_compile_time_s!r}")
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
 
@@ -207,6 +214,9 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
     avals = jax.tree_util.tree_map(lambda x: (jax.numpy.shape(x), str(jax.numpy.result_type(x))), args)
     digest = hashlib.sha256(f"{key}|{avals}|{jax.tree_util.tree_structure(args)}|{_source_fingerprint()}".encode())
     path = os.path.join(cache, f"jaxsync-export-{digest.hexdigest()[:32]}.bin")
+    if path in _LOADED:  # this process has it already: no deserialising, no reading the executable again
+        _LOADED[path] = _LOADED.pop(path)
+        return _LOADED[path]
     try:
         _register_export_types()
         if os.path.exists(path):
@@ -217,8 +227,27 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
             from jaxsync._io import atomic_write_bytes
 
             atomic_write_bytes(path, exp.serialize())
-        return _one_placement(jax.jit(exp.call))
+        loaded = _one_placement(jax.jit(exp.call))
     except Exception as err:  # noqa: BLE001  (an optimisation only: fall back to tracing)
         if log is not None:
             log(f"(not keeping the traced function on disk: {type(err).__name__}: {err})")
         return jitted
+    _LOADED[path] = loaded
+    while len(_LOADED) > _LOADED_MAX:
+        _LOADED.pop(next(iter(_LOADED)))
+    return loaded
+
+
+# The traced functions this process has loaded (or exported), newest last, by
+# their file: a second ``traced_on_disk`` of the same function (a second
+# ``tune()`` call in one session) gets the same jitted callable back, whose
+# compiled program is already in memory. Reading a full-task gradient's
+# compiled program back from the persistent cache takes 6-8 s on 2 cores.
+_LOADED: dict = {}
+_LOADED_MAX = 4
+
+
+def forget_loaded() -> None:
+    """Drop the traced functions held by :func:`traced_on_disk` (their compiled
+    programs go with them once nothing else holds them)."""
+    _LOADED.clear()

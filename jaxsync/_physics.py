@@ -19,6 +19,7 @@ module only.
 
 from __future__ import annotations
 
+import functools
 import types
 
 import jax
@@ -77,6 +78,7 @@ def patch_mjx_elliptic_gradient() -> None:
         _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
 
 
+@jax.jit
 def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1)."""
     d = mjx.fwd_position(m, d)
@@ -165,6 +167,7 @@ def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     )
 
 
+@functools.partial(jax.jit, static_argnames="solver_unroll")
 def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int = 1) -> mjx.Data:
     """Actuation, constraint solve, acceleration sensors and integration (mj_step2).
 

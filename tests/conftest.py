@@ -11,7 +11,9 @@ import pytest
 from jaxsync._cache import enable_compilation_cache
 
 jax.config.update("jax_enable_x64", True)
-enable_compilation_cache()
+# every program, also the small ones of eager operations (about 600 of them in
+# three test files, 24 s of compiling that a warm run now reads back)
+enable_compilation_cache(min_compile_time_s=0.0)
 
 
 def pytest_collection_modifyitems(config, items):
@@ -44,8 +46,25 @@ def _free_compiled_programs():
     sensitivity.program.cache_clear()
     sweep_eval._compiled.cache_clear()
     sweep_eval.evaluator.cache_clear()
-    jax.clear_caches()
+    _clear_compiled()
     gc.collect()
+
+
+def _clear_compiled():
+    """``jax.clear_caches()`` less the traces: the compiled executables and
+    lowered modules go, the traced jaxprs stay, so that the MJX physics traced
+    once (``jaxsync._physics``'s jitted stages) is not traced again by every
+    test module (4-5 s each time)."""
+    from jax._src import pjit
+    from jax._src.interpreters import pxla
+    from jax._src.lib import _jax
+
+    pxla._cached_compilation.cache_clear()
+    pxla._cached_lowering_to_hlo.cache_clear()
+    pjit._pjit_lower.cache_clear()
+    pjit._cpp_pjit_cache_fun_only.clear()
+    pjit._cpp_pjit_cache_explicit_attributes.clear()
+    _jax.PjitFunctionCache.clear_all()
 
 
 @pytest.fixture(scope="session")

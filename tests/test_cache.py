@@ -13,8 +13,10 @@ from jaxsync._gains import default_gains
 
 
 def test_traced_function_kept_on_disk(tmp_path):
-    """jaxsync._cache.traced_on_disk: exported once, read back by a later call,
-    same results as plain jit; a different key or shape is a different file."""
+    """jaxsync._cache.traced_on_disk: exported once, held in memory for a second
+    call in the same process, read back from disk once forgotten (a later
+    process), same results as plain jit; a different key or shape is a
+    different file."""
 
     def f(g, x):
         return {"y": jnp.sin(x) * g.k_rl, "s": jnp.sum(x**2)}
@@ -24,7 +26,10 @@ def test_traced_function_kept_on_disk(tmp_path):
     a = _cache.traced_on_disk(f, args, "k1", cache_dir=d)
     files = sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin"))
     assert len(files) == 1
+    assert _cache.traced_on_disk(f, args, "k1", cache_dir=d) is a  # held: nothing read or compiled again
+    _cache.forget_loaded()
     b = _cache.traced_on_disk(f, args, "k1", cache_dir=d)  # read back
+    assert b is not a
     assert sorted(p.name for p in tmp_path.glob("jaxsync-export-*.bin")) == files
     ref = jax.jit(f)(*args)
     for out in (a(*args), b(*args)):

@@ -20,9 +20,9 @@ from jaxsync import _gains
 # The resumed-run test tunes with jaxsync tune's defaults (the full task, the
 # exact gradient) at batch 2: the program of the session fixture
 # ``tuning_program``, whose gradient tests/test_gradient.py checks against
-# central differences in every parameter. Four iterations, a checkpoint every
-# two.
-RESUME = dict(iterations=4, checkpoint_every=2, validate_every=2, method="adam")
+# central differences in every parameter. Two iterations, a checkpoint and a
+# validation after each: the run is stopped after the first and resumed.
+RESUME = dict(iterations=2, checkpoint_every=1, validate_every=1, method="adam")
 
 
 def test_parametrisation_is_constrained_and_round_trips():
@@ -86,11 +86,11 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
     kw = dict(progress=False, validate=_fake_validation)
     r_full = tune(model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
     full, hist_full = r_full.gains, r_full.history
-    # Ctrl-C during the second iteration's callback (before its validation): a
+    # Ctrl-C during the first iteration's callback (before its validation): a
     # checkpoint is written, then resume to the end
 
     def interrupt(i, theta, row):
-        if i == 1:
+        if i == 0:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
@@ -106,9 +106,9 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
     untimed = lambda h: [{k: v for k, v in r.items() if k != "seconds"} for r in h]  # noqa: E731
     assert untimed(hist_res) == untimed(hist_full)
     assert hist_full[-1]["cost"] != hist_full[0]["cost"]  # it did move
-    # validated at 0, 2, 4 in both runs; the selection is the same
-    assert [v["iteration"] for v in r_full.validation] == [0, 2, 4]
-    assert [v["iteration"] for v in r_res.validation] == [0, 2, 4]
+    # validated at 0, 1, 2 in both runs; the selection is the same
+    assert [v["iteration"] for v in r_full.validation] == [0, 1, 2]
+    assert [v["iteration"] for v in r_res.validation] == [0, 1, 2]
     assert r_res.selected["iteration"] == r_full.selected["iteration"]
     # the returned gains are the selected iterate's, which the fake validation agrees is best allowed
     scores = {v["iteration"]: v for v in r_full.validation}
