@@ -73,6 +73,29 @@ def _as_arrays(g: Gains) -> Gains:
     return Gains(*(jnp.asarray(np.asarray(v, dtype=np.float64)) for v in g))
 
 
+def strongly_typed(g: Gains) -> Gains:
+    """``g`` with every weakly typed or non-float leaf (a Python number, or
+    ``jnp.asarray(0.2)``) made a strongly typed float array; float arrays are
+    kept as they are. Works on traced values too. A jitted rollout compiles
+    once per argument type, and a weak float is another type: ``k_rl=0.2``
+    beside the default gains compiled a second 1.7 s rollout for 29 s on 2
+    cores (measured); :func:`jaxsync.rollout` calls this first.
+
+    Example:
+      >>> g = strongly_typed(default_gains()._replace(k_rl=0.2))
+      >>> g.k_rl.weak_type, g.k_rl.dtype == g.k_ll.dtype
+      (False, True)
+    """
+
+    def strong(x):
+        x = jnp.asarray(x)
+        if x.weak_type or not jnp.issubdtype(x.dtype, jnp.floating):
+            return jnp.asarray(x, dtype=jnp.result_type(float))
+        return x
+
+    return Gains(*(strong(v) for v in g))
+
+
 def classical_equivalent(g: Gains) -> Gains:
     """The synchronous gains that reduce it to the classical controller
     (k_rk = k_lk = 0, k_rl = k_ll = 1; the cross term is switched off

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from jaxsync import _controller, _physics, _scenario, _task, _trajectory
+from jaxsync import _controller, _gains, _physics, _scenario, _task, _trajectory
 from jaxsync._controller import ControllerOptions
 from jaxsync._errors import ConfigError
 from jaxsync._gains import Gains
@@ -148,7 +148,8 @@ def rollout(
       (1000, 14)
     """
     if backend == "mjx":
-        return _jitted(model, controller, float(duration), int(control_substeps), cross_term)(gains, scenario)
+        fn = _jitted(model, controller, float(duration), int(control_substeps), cross_term)
+        return fn(_gains.strongly_typed(gains), scenario)
     if backend == "mujoco":
         from jaxsync._rollout_mujoco import rollout_mujoco
 

@@ -134,6 +134,22 @@ def test_no_recompilation_on_new_values(model, batched):
     assert fn._cache_size() == before
 
 
+def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollouts):
+    """rollout() makes weak-typed gains (a Python number, jnp.asarray(0.2)) strong
+    first: one program for all of them (a weak float was another argument type,
+    another 29 s compile), with the same values as the strong array."""
+    from jaxsync import _rollout
+
+    s, g = rollouts["scenario"], rollouts["gains"]
+    program = _rollout._jitted(model, "synchronous", TEST_DURATION, 1, "squeeze")
+    strong = rollout(model, g._replace(k_rl=jnp.asarray(np.float64(0.2))), s, duration=TEST_DURATION)
+    n = program._cache_size()
+    for weak in (0.2, jnp.asarray(0.2)):
+        tr = rollout(model, g._replace(k_rl=weak), s, duration=TEST_DURATION)
+        np.testing.assert_array_equal(np.asarray(tr.pad_forces), np.asarray(strong.pad_forces))
+    assert program._cache_size() == n == 1
+
+
 def test_dropped_object_is_flagged(model):
     """A heavy object in a weak grip slips out: flagged with a time, not averaged in."""
     s = fast_scenario(object_mass=3.0, mass_estimate=3.0, grip_force=2.0)
