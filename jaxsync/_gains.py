@@ -73,8 +73,8 @@ def _as_arrays(g: Gains) -> Gains:
     return Gains(*(jnp.asarray(np.asarray(v, dtype=np.float64)) for v in g))
 
 
-def strongly_typed(g: Gains) -> Gains:
-    """``g`` with every weakly typed or non-float leaf (a Python number, or
+def strongly_typed(g):
+    """``g`` (gains, or any pytree of them: a schedule) with every weakly typed or non-float leaf (a Python number, or
     ``jnp.asarray(0.2)``) made a strongly typed float array; float arrays are
     kept as they are. Works on traced values too. A jitted rollout compiles
     once per argument type, and a weak float is another type: ``k_rl=0.2``
@@ -93,7 +93,7 @@ def strongly_typed(g: Gains) -> Gains:
             return jnp.asarray(x, dtype=jnp.result_type(float))
         return x
 
-    return Gains(*(strong(v) for v in g))
+    return jax.tree_util.tree_map(strong, g)
 
 
 def classical_equivalent(g: Gains) -> Gains:
