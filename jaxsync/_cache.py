@@ -17,7 +17,11 @@ def default_cache_dir() -> str:
     return os.path.join(base, "jaxsync", "xla")
 
 
-def enable_compilation_cache(path: str | None = None, min_compile_time_s: float = 0.5) -> str | None:
+_MIN_COMPILE_TIME_S = 0.5
+_chosen_min_compile_time_s: float | None = None  # what a caller of this process asked for
+
+
+def enable_compilation_cache(path: str | None = None, min_compile_time_s: float | None = None) -> str | None:
     """Point JAX's persistent compilation cache at ``path``.
 
     A rollout of this model compiles for tens of seconds, its gradient for
@@ -27,7 +31,10 @@ def enable_compilation_cache(path: str | None = None, min_compile_time_s: float 
     ``~/.cache/jaxsync/xla``; the string ``"off"`` disables it. Programs that
     compile in less than ``min_compile_time_s`` are not kept (0 keeps every
     one, also the hundreds of small programs of eager operations, each 20-100
-    ms to compile and a few ms to read back: the test suite does that).
+    ms to compile and a few ms to read back: the test suite does that). When
+    not given: what an earlier call in this process chose, else 0.5 s (so a
+    command run in-process, ``jaxsync.cli.main([...])``, keeps its caller's
+    choice).
     Returns the directory used, or None.
 
     Example:
@@ -49,10 +56,17 @@ def enable_compilation_cache(path: str | None = None, min_compile_time_s: float 
 
         raise ConfigError(f"compilation cache folder {path}: not writable (--cache-dir, $JAXSYNC_CACHE_DIR or 'off')")
     jax.config.update("jax_compilation_cache_dir", path)
-    if not min_compile_time_s >= 0:
+    global _chosen_min_compile_time_s
+    if min_compile_time_s is None:
+        min_compile_time_s = (
+            _MIN_COMPILE_TIME_S if _chosen_min_compile_time_s is None else _chosen_min_compile_time_s
+        )
+    elif not min_compile_time_s >= 0:
         from jaxsync._errors import ConfigError
 
         raise ConfigError(f"min_compile_time_s must be a number of seconds >= 0, got {min_compile_time_s!r}")
+    else:
+        _chosen_min_compile_time_s = float(min_compile_time_s)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
