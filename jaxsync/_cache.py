@@ -58,9 +58,7 @@ def enable_compilation_cache(path: str | None = None, min_compile_time_s: float 
     jax.config.update("jax_compilation_cache_dir", path)
     global _chosen_min_compile_time_s
     if min_compile_time_s is None:
-        min_compile_time_s = (
-            _MIN_COMPILE_TIME_S if _chosen_min_compile_time_s is None else _chosen_min_compile_time_s
-        )
+        min_compile_time_s = _MIN_COMPILE_TIME_S if _chosen_min_compile_time_s is None else _chosen_min_compile_time_s
     elif not min_compile_time_s >= 0:
         from jaxsync._errors import ConfigError
 
