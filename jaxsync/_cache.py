@@ -79,16 +79,17 @@ _RETRIEVAL_EVENT = "/jax/compilation_cache/cache_retrieval_time_sec"  # a read f
 
 class CompileWatch:
     """What JAX compiled inside a ``with compile_watch() as w:`` block:
-    ``w.compile_s`` seconds of XLA compiling of programs big enough for the
-    persistent cache (at least its minimum compile time; the many small
-    programs of eager operations are left out, they are compiled again in
-    every process), and ``w.cache_hits`` programs read back from that cache."""
+    ``w.compile_s`` seconds of XLA compiling of programs that take at least
+    0.5 s (or the persistent cache's minimum compile time, if higher) to
+    compile: the many small programs of eager operations are left out, also
+    when the cache keeps them (``min_compile_time_s=0``), and ``w.cache_hits``
+    programs read back from that cache."""
 
     def __init__(self):
         self.compile_s = 0.0
         self.cache_hits = 0
         self._read_s = 0.0  # the cache read inside the compile event that follows it
-        self._min_s = max(float(jax.config.jax_persistent_cache_min_compile_time_secs), 0.1)
+        self._min_s = max(float(jax.config.jax_persistent_cache_min_compile_time_secs), _MIN_COMPILE_TIME_S)
 
     def _on_duration(self, event, seconds, **_):
         if event == _RETRIEVAL_EVENT:
