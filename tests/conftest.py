@@ -20,13 +20,19 @@ def pytest_collection_modifyitems(config, items):
     """The default run (the README's test command, .ci/run) leaves out the
     tests marked slow: deep checks that compile for minutes on a small CPU.
     ``-m`` decides instead when given (``-m slow``: only those), and a test
-    named on the command line (``path::name``) runs whatever its mark."""
-    if config.option.markexpr or any("::" in str(a) for a in config.args):
+    named on the command line (``path::name``) runs whatever its mark; the
+    other slow tests of the same run stay out."""
+    if config.option.markexpr:
         return
-    slow = [item for item in items if item.get_closest_marker("slow")]
+    named = [str(a).split("::", 1)[1] for a in config.args if "::" in str(a)]
+
+    def asked_for(item):  # named on the command line, alone or by its parametrised name
+        return any(item.name == n or item.name.startswith(n + "[") for n in named)
+
+    slow = [item for item in items if item.get_closest_marker("slow") and not asked_for(item)]
     if slow:
         config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if not item.get_closest_marker("slow")]
+        items[:] = [item for item in items if item not in slow]
 
 
 @pytest.fixture(scope="module", autouse=True)
