@@ -200,6 +200,15 @@ def _one_placement(jitted):
     return call
 
 
+# The traced functions this process has loaded (or exported), newest last, by
+# their file: a second ``traced_on_disk`` of the same function (a second
+# ``tune()`` call in one session) gets the same jitted callable back, whose
+# compiled program is already in memory. Reading a full-task gradient's
+# compiled program back from the persistent cache takes 6-8 s on 2 cores.
+_LOADED: dict = {}
+_LOADED_MAX = 4
+
+
 def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = None):
     """``jax.jit(fn)``, with its traced and lowered form kept on disk (``jax.export``).
 
@@ -249,15 +258,6 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
     while len(_LOADED) > _LOADED_MAX:
         _LOADED.pop(next(iter(_LOADED)))
     return loaded
-
-
-# The traced functions this process has loaded (or exported), newest last, by
-# their file: a second ``traced_on_disk`` of the same function (a second
-# ``tune()`` call in one session) gets the same jitted callable back, whose
-# compiled program is already in memory. Reading a full-task gradient's
-# compiled program back from the persistent cache takes 6-8 s on 2 cores.
-_LOADED: dict = {}
-_LOADED_MAX = 4
 
 
 def forget_loaded() -> None:

@@ -64,19 +64,14 @@ def default_gains() -> Gains:
         kp_null=100.0,
         kd_null=20.0,
     )
-    return _as_arrays(g)
-
-
-def _as_arrays(g: Gains) -> Gains:
-    """Strongly typed float arrays (numpy first), so that gains built by users
-    share the compiled rollout instead of recompiling for weak types."""
-    return Gains(*(jnp.asarray(np.asarray(v, dtype=np.float64)) for v in g))
+    return strongly_typed(g)
 
 
 def strongly_typed(g):
-    """``g`` (gains, or any pytree of them: a schedule) with every weakly typed or non-float leaf (a Python number, or
-    ``jnp.asarray(0.2)``) made a strongly typed float array; float arrays are
-    kept as they are. Works on traced values too. A jitted rollout compiles
+    """``g`` (gains, or any pytree of them: a schedule) with every weakly
+    typed or non-float leaf (a Python number, or ``jnp.asarray(0.2)``) made a
+    strongly typed float array; float arrays are kept as they are. Works on
+    traced values too. A jitted rollout compiles
     once per argument type, and a weak float is another type: ``k_rl=0.2``
     beside the default gains compiled a second 1.7 s rollout for 29 s on 2
     cores (measured); :func:`jaxsync.rollout` calls this first.
@@ -173,7 +168,7 @@ def from_dict(d: dict, base: Gains | None = None) -> Gains:
         elif arr.shape == (6,) and ref.shape == (2, 6):
             arr = np.stack([arr, arr])  # the same per-axis values for both arms
         fields[k] = arr
-    return validate(_as_arrays(Gains(**fields)))
+    return validate(strongly_typed(Gains(**fields)))
 
 
 def load_constant(path: str | os.PathLike, command: str) -> Gains:

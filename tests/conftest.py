@@ -32,7 +32,8 @@ def pytest_collection_modifyitems(config, items):
     slow = [item for item in items if item.get_closest_marker("slow") and not asked_for(item)]
     if slow:
         config.hook.pytest_deselected(items=slow)
-        items[:] = [item for item in items if item not in slow]
+        dropped = set(map(id, slow))
+        items[:] = [item for item in items if id(item) not in dropped]
 
 
 @pytest.fixture(scope="module", autouse=True)
