@@ -24,13 +24,14 @@ import types
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
 from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
-from mujoco.mjx._src.types import ConeType, IntegratorType
+from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -197,7 +198,8 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
             d, _ = jax.lax.scan(one_solve, d, None, length=solver_unroll)
         else:
             d = mjx.solve(m, d)
-        d = mjx.sensor_acc(m, d)
+        plan = leaf_sensor_plan(m)
+        d = mjx.sensor_acc(m, d) if plan is None else leaf_sensor_acc(m, d, plan)
     if m.opt.integrator != IntegratorType.EULER:
         raise NotImplementedError("jaxsync steps the Euler integrator only")
     return mjx.euler(m, d)
@@ -265,6 +267,95 @@ def inertial_wrench(cinert: jax.Array, cvel: jax.Array, cacc: jax.Array) -> jax.
     it minus the external (contact) wrench.
     """
     return _math.inert_mul(cinert, cacc) + _math.motion_cross_force(cvel, _math.inert_mul(cinert, cvel))
+
+
+# ------------------------------------------------ the wrist force/torque sensors
+
+
+def leaf_sensor_plan(m: mjx.Model) -> tuple | None:
+    """What :func:`leaf_sensor_acc` reads from the model (all static), or None
+    when MJX's own ``sensor_acc`` has to run: every acceleration-stage sensor
+    must be a force or torque sensor on a site of a leaf body (no child
+    bodies) that no equality constraint holds, as the dual-arm model's two
+    wrist sensors are. One row per sensor: (type, adr, site, body, root,
+    cutoff, dof mask of the body's chain)."""
+    stage_acc = np.asarray(m.sensor_needstage) == mujoco.mjtStage.mjSTAGE_ACC
+    if m.opt.disableflags & DisableBit.SENSOR or not stage_acc.any():
+        return ()
+    rows = np.nonzero(stage_acc)[0]
+    if not all(int(m.sensor_type[i]) in (SensorType.FORCE, SensorType.TORQUE) for i in rows):
+        return None
+    parent = np.asarray(m.body_parentid)
+    held = set(np.asarray(m.eq_obj1id).tolist()) | set(np.asarray(m.eq_obj2id).tolist()) if m.neq else set()
+    plan = []
+    for i in rows:
+        site = int(m.sensor_objid[i])
+        body = int(m.site_bodyid[site])
+        if body == 0 or (parent[1:] == body).any() or body in held or site in held:
+            return None
+        chain = np.zeros(m.nv)
+        b = body
+        while b > 0:  # the dofs between the world and the body
+            chain[int(m.body_dofadr[b]) : int(m.body_dofadr[b]) + int(m.body_dofnum[b])] = 1.0
+            b = int(parent[b])
+        row = (int(m.sensor_type[i]), int(m.sensor_adr[i]), site, body, int(m.body_rootid[body]))
+        plan.append((*row, float(m.sensor_cutoff[i]), chain))
+    return tuple(plan)
+
+
+def leaf_sensor_acc(m: mjx.Model, d: mjx.Data, plan: tuple) -> mjx.Data:
+    """MJX's ``sensor_acc`` for force/torque sensors on leaf bodies (``plan``
+    from :func:`leaf_sensor_plan`), without its RNE over the whole tree.
+
+    MuJoCo's force sensor reads ``cfrc_int`` of the site's body, the wrench its
+    parent exerts on it; for a leaf body that is its inertial wrench
+    (cinert cacc + cvel x* cinert cvel) less the external (contact and applied)
+    wrench on it. ``cacc`` of the body is the sum along its chain of
+    cdof_dot qvel + cdof qacc from the world's -g (MJX's forward pass,
+    summed in one go). The same values as ``mjx.sensor_acc`` to rounding
+    (tests/test_sensing.py); ``d._impl.cacc`` is set for the sensors' bodies
+    only (the controller's wrist compensation reads it), ``cfrc_int`` and
+    ``cfrc_ext`` are not set. MJX's RNE runs the tree level by level, a
+    quarter of a step's program; this is a few dozen operations.
+    """
+    if not plan:
+        return d
+    if m.opt.disableflags & DisableBit.GRAVITY:
+        cacc0 = jnp.zeros(6)
+    else:
+        cacc0 = jnp.concatenate([jnp.zeros(3), -m.opt.gravity])
+    geom_body = np.asarray(m.geom_bodyid)[static_contact_geoms(m)] if d._impl.contact.dim.size else np.zeros((0, 2))
+
+    def com_based(frc, offset):  # [force, torque] at a point -> [torque, force] about point + offset
+        return jnp.concatenate([frc[3:] - jnp.cross(offset, frc[:3]), frc[:3]])
+
+    inner, cacc_of = {}, {}
+    for _, _, _, body, root, _, chain in plan:
+        if body in inner:
+            continue
+        com = d.subtree_com[root]
+        cacc = cacc0 + d.cdof_dot.T @ (chain * d.qvel) + d.cdof.T @ (chain * d.qacc)
+        ext = com_based(d.xfrc_applied[body], com - d.xipos[body])
+        for i, (b1, b2) in enumerate(geom_body):
+            if body in (b1, b2):  # the contact force acts on geom2 as it is, on geom1 opposed
+                f = _support.contact_force(m, d, i, to_world_frame=True)
+                ext = ext + (1.0 if b2 == body else -1.0) * com_based(f, com - d._impl.contact.pos[i])
+        inner[body] = inertial_wrench(d._impl.cinert[body], d.cvel[body], cacc) - ext
+        cacc_of[body] = cacc
+
+    sensordata = d.sensordata
+    for kind, adr, site, body, root, cutoff, _ in plan:
+        frc, rot = inner[body], d.site_xmat[site]
+        if kind == SensorType.FORCE:
+            value = rot.T @ frc[3:]
+        else:
+            value = rot.T @ (frc[:3] - jnp.cross(d.site_xpos[site] - d.subtree_com[root], frc[3:]))
+        if cutoff > 0:  # mjDATATYPE_REAL
+            value = jnp.clip(value, -cutoff, cutoff)
+        sensordata = sensordata.at[adr : adr + 3].set(value)
+    bodies = np.array(list(cacc_of))
+    cacc = d._impl.cacc.at[bodies].set(jnp.stack([cacc_of[b] for b in bodies]))
+    return d.replace(sensordata=sensordata).tree_replace({"_impl.cacc": cacc})
 
 
 def full_mass_matrix(m: mjx.Model, d: mjx.Data) -> jax.Array:

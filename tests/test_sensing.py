@@ -78,6 +78,56 @@ def test_static_contact_order_matches_mjx(model, random_pairs):
     np.testing.assert_array_equal(np.asarray(dx._impl.contact.geom), static_contact_geoms(model.mjx_model))
 
 
+def test_leaf_sensors_equal_mjx_sensor_acc_in_contact(model, forward_sense):
+    """The wrist sensors of a step (``_physics.leaf_sensor_acc``: each wrist
+    body's inertial wrench less its contact wrench, no RNE over the whole
+    tree) against MJX's ``sensor_acc`` (run by ``mjx.forward``), both pads
+    pressed into the object, the arms moving: the same readings and the same
+    end-effector accelerations to 1e-12."""
+    from jaxsync import _physics
+
+    m, index = model.mj_model, model.index
+    rng = np.random.default_rng(4)
+    d = mujoco.MjData(m)
+    d.qpos[:] = model.keyframe_qpos("grasp")
+    d.qpos[index.right.qpos_adr[1]] += 0.05  # the right pad pushes the object into the left one
+    d.qvel[:14] = rng.uniform(-0.3, 0.3, 14)
+    d.ctrl[:] = rng.uniform(-0.3, 0.3, m.nu) * m.actuator_ctrlrange[:, 1]
+    dx, _ = forward_sense(model.mjx_model, mjx.put_data(m, d, impl="jax"))
+    for arm in index.arms:  # both pads in contact: the contact part of the wrench is exercised
+        assert np.linalg.norm(np.asarray(_physics.contact_force_on(model.mjx_model, dx, arm.contact_id, True))) > 1.0
+    plan = _physics.leaf_sensor_plan(model.mjx_model)
+    assert [row[3] for row in plan] == [index.right.ee_body] * 2 + [index.left.ee_body] * 2
+    blank = dx.replace(sensordata=jnp.zeros_like(dx.sensordata)).tree_replace(
+        {"_impl.cacc": jnp.zeros_like(dx._impl.cacc)}
+    )
+    got = jax.jit(lambda x: _physics.leaf_sensor_acc(model.mjx_model, x, plan))(blank)
+    want = np.asarray(dx.sensordata)
+    assert np.abs(want).max() > 1.0
+    np.testing.assert_allclose(np.asarray(got.sensordata), want, rtol=0, atol=1e-12 * np.abs(want).max())
+    for arm in index.arms:
+        np.testing.assert_allclose(
+            np.asarray(got._impl.cacc[arm.ee_body]), np.asarray(dx._impl.cacc[arm.ee_body]), rtol=0, atol=1e-12
+        )
+
+
+def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
+    """A force sensor on a body with children needs the children's wrenches:
+    the plan is None and ``after_control`` runs MJX's own ``sensor_acc``."""
+    from jaxsync import _physics
+
+    xml = """<mujoco><worldbody><body name="a"><joint type="hinge"/><geom size=".1"/><site name="sa"/>
+      <body name="b" pos="0 0 -.3"><joint type="hinge"/><geom size=".1"/><site name="sb"/></body>
+      </body></worldbody><sensor><force site="%s"/><torque site="%s"/></sensor></mujoco>"""
+    leaf = mjx.put_model(mujoco.MjModel.from_xml_string(xml % ("sb", "sb")), impl="jax")
+    inner = mjx.put_model(mujoco.MjModel.from_xml_string(xml % ("sb", "sa")), impl="jax")
+    assert [row[:5] for row in _physics.leaf_sensor_plan(leaf)] == [
+        (int(mujoco.mjtSensor.mjSENS_FORCE), 0, 1, 2, 1),
+        (int(mujoco.mjtSensor.mjSENS_TORQUE), 3, 1, 2, 1),
+    ]
+    assert _physics.leaf_sensor_plan(inner) is None
+
+
 @pytest.mark.parametrize(
     "field,rtol,atol",
     [
