@@ -80,21 +80,25 @@ def make_rollout(
     def fn(gains: Gains, s: Scenario) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
         d0 = d_template.replace(qpos=_task.initial_qpos(model, consts, s))
-        d0 = _physics.before_control(mx, d0)
-        pad_start = jnp.stack([d0.site_xpos[a.pad_site] for a in index.arms])
 
         def body(carry, k):
+            state, pad_start = carry
             if truncate_every is not None:
                 cut = (k % truncate_every == 0) & (k > 0)
-                carry = jax.tree_util.tree_map(
+                state = jax.tree_util.tree_map(
                     lambda x: (
                         jnp.where(cut, jax.lax.stop_gradient(x), x) if jnp.issubdtype(x.dtype, jnp.inexact) else x
                     ),
-                    carry,
+                    state,
                 )
-            d, cstate = carry
+            d, cstate = state
             t = k * dt
             d = _physics.before_control(mx, d)
+            # the pads where the task starts, read at the first step: the
+            # program holds MJX's position stages once (in the loop), not a
+            # second time for the initial state (a third less to compile)
+            pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
+            pad_start = jnp.where(k == 0, pads, pad_start)
             noisy = d.replace(sensordata=d.sensordata + _task.noise(s, consts, k))
             sensed = sense(mx, noisy, index)
             arms = (sensed.right, sensed.left)
@@ -107,11 +111,12 @@ def make_rollout(
             row = _trajectory.row(
                 t, noisy.qpos, noisy.qvel, sensed.obj.pos, sensed.obj.linvel, pl, arms, forces, tau, info, cstate
             )
-            return (d, cstate), row
+            return ((d, cstate), pad_start), row
 
         if remat:
             body = jax.checkpoint(body)
-        _, traj = jax.lax.scan(body, (d0, _controller.init()), jnp.arange(n_steps))
+        init = ((d0, _controller.init()), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
+        _, traj = jax.lax.scan(body, init, jnp.arange(n_steps))
         return traj
 
     fn.n_steps = n_steps
@@ -149,7 +154,13 @@ def rollout(
     """
     if backend == "mjx":
         fn = _jitted(model, controller, float(duration), int(control_substeps), cross_term)
-        return fn(_gains.strongly_typed(gains), scenario)
+        # one program whatever the arguments' origin: strong dtypes (a Python
+        # number is weak-typed) and committed to this process's device (an
+        # array that a computation on the model's committed arrays returned is
+        # committed, one built from Python or NumPy is not, and jit compiles a
+        # program for each)
+        args = jax.device_put((_gains.strongly_typed(gains), scenario), _physics.local_device())
+        return fn(*args)
     if backend == "mujoco":
         from jaxsync._rollout_mujoco import rollout_mujoco
 

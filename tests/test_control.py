@@ -136,16 +136,20 @@ def test_no_recompilation_on_new_values(model, batched):
 
 def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollouts):
     """rollout() makes weak-typed gains (a Python number, jnp.asarray(0.2)) strong
-    first: one program for all of them (a weak float was another argument type,
-    another 29 s compile), with the same values as the strong array."""
-    from jaxsync import _rollout
+    and every argument committed to the device first: one program for all of
+    them (a weak float, or an array committed to a device, as a computation on
+    the model's arrays returns it, was another argument type, another 29 s
+    compile), with the same values as the strong array."""
+    from jaxsync import _physics, _rollout
 
     s, g = rollouts["scenario"], rollouts["gains"]
     program = _rollout._jitted(model, "synchronous", TEST_DURATION, 1, "squeeze")
     strong = rollout(model, g._replace(k_rl=jnp.asarray(np.float64(0.2))), s, duration=TEST_DURATION)
     n = program._cache_size()
-    for weak in (0.2, jnp.asarray(0.2)):
-        tr = rollout(model, g._replace(k_rl=weak), s, duration=TEST_DURATION)
+    committed = jax.device_put(np.float64(0.2), _physics.local_device())
+    assert committed.committed and not jnp.asarray(0.2).committed
+    for weak, scenario in ((0.2, s), (jnp.asarray(0.2), s), (committed, jax.device_put(s, _physics.local_device()))):
+        tr = rollout(model, g._replace(k_rl=weak), scenario, duration=TEST_DURATION)
         np.testing.assert_array_equal(np.asarray(tr.pad_forces), np.asarray(strong.pad_forces))
     assert program._cache_size() == n == 1
 

@@ -68,7 +68,8 @@ def test_torques_produce_the_commanded_pad_acceleration(model, forward_sense, fr
     tau = np.asarray(jnp.concatenate(taus))
     assert np.all(np.abs(tau) < m.actuator_ctrlrange[:, 1])  # within the actuators' range: no clipping
     ctrl = tau[_task.consts(model).act_order]
-    stepped, _ = forward_sense(model.mjx_model, dx.replace(ctrl=jnp.asarray(ctrl)))
+    # committed to dx's device like the rest of dx (an uncommitted argument compiles another program)
+    stepped, _ = forward_sense(model.mjx_model, dx.replace(ctrl=jax.device_put(ctrl, dx.ctrl.device)))
     qacc = np.asarray(stepped.qacc)
     for index, arm, want in zip(model.index.arms, arms, ddx, strict=True):
         dofs = list(index.dof_adr)
