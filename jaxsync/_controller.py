@@ -42,6 +42,28 @@ class ControllerOptions:
             raise ConfigError(f"cross_term must be one of {_sync.CROSS_TERMS}, got {self.cross_term!r}")
 
 
+class ControllerSwitch(NamedTuple):
+    """The controller choice as arrays, traced: one compiled program serves
+    both controllers and every cross term (``jaxsync.rollout``'s program; a
+    static :class:`ControllerOptions` compiles one per choice). Each choice
+    computes exactly what its static counterpart computes.
+
+    Example:
+      >>> ControllerSwitch.of(ControllerOptions(kind="classical")).synchronous
+      Array(False, dtype=bool)
+    """
+
+    synchronous: jax.Array  # bool: the synchronous controller, else the classical one
+    cross_term: jax.Array  # int: index into jaxsync._sync.CROSS_TERMS
+
+    @classmethod
+    def of(cls, options: ControllerOptions) -> ControllerSwitch:
+        return cls(
+            synchronous=jnp.asarray(options.kind == "synchronous"),
+            cross_term=jnp.asarray(_sync.CROSS_TERMS.index(options.cross_term)),
+        )
+
+
 class Reference(NamedTuple):
     """The planned pad poses x_id and what the arms should feel, at one instant.
 
@@ -86,7 +108,7 @@ def init() -> ControllerState:
 
 
 def step(
-    options: ControllerOptions,
+    options: ControllerOptions | ControllerSwitch,
     gains: Gains,
     state: ControllerState,
     arms: tuple[ArmState, ArmState],
@@ -96,7 +118,7 @@ def step(
     """One control period of either controller.
 
     Args:
-      options: static controller choice.
+      options: static controller choice (or a traced :class:`ControllerSwitch`).
       gains: the gain pytree.
       state: the admittance filters.
       arms: sensed (right, left) arm states; ``wrench`` is the wrist reading.
@@ -121,15 +143,17 @@ def step(
     delta = jnp.stack(
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
     )
-    if options.kind == "classical":
+    if isinstance(options, ControllerSwitch):  # both, the choice traced
+        terms = _sync.CROSS_TERMS
+        cross = lambda v: jnp.stack([_sync.cross_mapped(v, ref.pad_pos, t) for t in terms])[options.cross_term]  # noqa: E731
+        synchronous = _synchronous_offsets(gains, delta, e, de, dde, cross)
+        pick = lambda a, b: jnp.where(options.synchronous, a, b)  # noqa: E731
+        off, off_vel, off_acc = (pick(a, b) for a, b in zip(synchronous, (e, de, dde), strict=True))
+    elif options.kind == "classical":
         off, off_vel, off_acc = e, de, dde  # x_ic = x_id + e_i (eq. 11)
     else:
-        k_il = jnp.stack([gains.k_rl, gains.k_ll])
-        delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
         cross = lambda v: _sync.cross_mapped(v, ref.pad_pos, options.cross_term)  # noqa: E731
-        off = _sync.synchronous_offset(delta_k, k_il, cross(e))
-        off_vel = k_il[:, None] * cross(de)
-        off_acc = k_il[:, None] * cross(dde)
+        off, off_vel, off_acc = _synchronous_offsets(gains, delta, e, de, dde, cross)
 
     taus = []
     for i in range(2):
@@ -147,3 +171,12 @@ def step(
         taus.append(_joint_space.torques(arms[i], ddx, ref.q_rest[i], gains.kp_null, gains.kd_null, ref.wrench[i]))
     info = ControlInfo(offset=off, delta=delta, force_error=force_error)
     return jnp.concatenate(taus), ControllerState(impedance=imp), info
+
+
+def _synchronous_offsets(gains: Gains, delta, e, de, dde, cross):
+    """x_ik - x_id and its rate and acceleration (eqs. 13-17); ``cross`` maps
+    (2, 6) offsets through eq. 16's cross term."""
+    k_il = jnp.stack([gains.k_rl, gains.k_ll])
+    delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
+    off = _sync.synchronous_offset(delta_k, k_il, cross(e))
+    return off, k_il[:, None] * cross(de), k_il[:, None] * cross(dde)

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import mujoco
 
 from jaxsync import _controller, _gains, _physics, _scenario, _task, _trajectory
-from jaxsync._controller import ControllerOptions
+from jaxsync._controller import ControllerOptions, ControllerSwitch
 from jaxsync._errors import ConfigError
 from jaxsync._gains import Gains
 from jaxsync._model import DualArmModel
@@ -60,11 +60,27 @@ def make_rollout(
       >>> traj.pad_forces.shape  # doctest: +SKIP
       (B, 1000, 2, 3)
     """
+    options = ControllerOptions(kind=controller, cross_term=cross_term)
+    core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start)
+
+    def fn(gains: Gains, s: Scenario) -> Trajectory:
+        return core(gains, s, options)
+
+    fn.n_steps = core.n_steps
+    fn.dt = core.dt
+    fn.options = options
+    return fn
+
+
+def _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start):
+    """``fn(gains, scenario, options) -> Trajectory``: ``options`` a static
+    :class:`ControllerOptions` (closed over by :func:`make_rollout`) or a
+    traced :class:`~jaxsync._controller.ControllerSwitch` (one program for
+    every controller choice: :func:`rollout`'s)."""
     if start not in (START_KEY, REST_KEY):
         raise ConfigError(f"start must be {START_KEY!r} or {REST_KEY!r}, got {start!r}")
     if truncate_every is not None and truncate_every < 1:
         raise ConfigError(f"truncate_every must be a positive number of steps, got {truncate_every}")
-    options = ControllerOptions(kind=controller, cross_term=cross_term)
     if control_substeps < 1 or int(control_substeps) != control_substeps:
         raise ConfigError(f"control_substeps must be a positive integer, got {control_substeps}")
     sim_dt = float(model.mj_model.opt.timestep)
@@ -77,7 +93,7 @@ def make_rollout(
     unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
 
-    def fn(gains: Gains, s: Scenario) -> Trajectory:
+    def fn(gains: Gains, s: Scenario, options) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
         d0 = d_template.replace(qpos=_task.initial_qpos(model, consts, s))
 
@@ -121,13 +137,13 @@ def make_rollout(
 
     fn.n_steps = n_steps
     fn.dt = dt
-    fn.options = options
     return fn
 
 
 @functools.lru_cache(maxsize=32)
-def _jitted(model, controller, duration, control_substeps, cross_term):
-    return jax.jit(make_rollout(model, controller, duration, control_substeps, cross_term))
+def _jitted(model, duration, control_substeps):
+    """``rollout()``'s program: one for both controllers and every cross term."""
+    return jax.jit(_controlled_rollout(model, duration, control_substeps, False, None, START_KEY))
 
 
 def rollout(
@@ -143,8 +159,10 @@ def rollout(
 ) -> Trajectory:
     """Run one closed-loop rollout (or a batch: vmap ``make_rollout`` instead).
 
-    ``backend="mjx"`` compiles once per static configuration and model;
-    ``backend="mujoco"`` steps MuJoCo C with the same jitted control law.
+    ``backend="mjx"`` compiles once per model, duration and substep count:
+    the controller and the cross term are arguments of one program
+    (:class:`~jaxsync._controller.ControllerSwitch`), so the classical and the
+    synchronous rollouts of a comparison share it; ``backend="mujoco"`` steps MuJoCo C with the same jitted control law.
 
     Example:
       >>> model, s = jaxsync.load_model(), jaxsync.short_task()
@@ -153,13 +171,14 @@ def rollout(
       (1000, 14)
     """
     if backend == "mjx":
-        fn = _jitted(model, controller, float(duration), int(control_substeps), cross_term)
+        switch = ControllerSwitch.of(ControllerOptions(kind=controller, cross_term=cross_term))
+        fn = _jitted(model, float(duration), int(control_substeps))
         # one program whatever the arguments' origin: strong dtypes (a Python
         # number is weak-typed) and committed to this process's device (an
         # array that a computation on the model's committed arrays returned is
         # committed, one built from Python or NumPy is not, and jit compiles a
         # program for each)
-        args = jax.device_put((_gains.strongly_typed(gains), scenario), _physics.local_device())
+        args = jax.device_put((_gains.strongly_typed(gains), scenario, switch), _physics.local_device())
         return fn(*args)
     if backend == "mujoco":
         from jaxsync._rollout_mujoco import rollout_mujoco

@@ -143,7 +143,7 @@ def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollout
     from jaxsync import _physics, _rollout
 
     s, g = rollouts["scenario"], rollouts["gains"]
-    program = _rollout._jitted(model, "synchronous", TEST_DURATION, 1, "squeeze")
+    program = _rollout._jitted(model, TEST_DURATION, 1)
     strong = rollout(model, g._replace(k_rl=jnp.asarray(np.float64(0.2))), s, duration=TEST_DURATION)
     n = program._cache_size()
     committed = jax.device_put(np.float64(0.2), _physics.local_device())

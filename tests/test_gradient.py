@@ -69,9 +69,17 @@ def one_step(model):
         )
 
     p0 = jnp.zeros(nv + model.mj_model.nu + 1)
-    value = jax.jit(f, static_argnums=1)
-    grad = jax.jit(jax.grad(f), static_argnums=1)
-    return {"f": value, "grad": grad, "p0": p0, "mx": mx, "d": d, "ctrl": ctrl}
+    # one program gives both the values (central differences) and the gradient
+    value_and_grad = jax.jit(jax.value_and_grad(f), static_argnums=1)
+    return {
+        "fn": f,
+        "f": lambda p, unrolled: value_and_grad(p, unrolled)[0],
+        "grad": lambda p, unrolled: value_and_grad(p, unrolled)[1],
+        "p0": p0,
+        "mx": mx,
+        "d": d,
+        "ctrl": ctrl,
+    }
 
 
 def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
@@ -182,7 +190,7 @@ def test_full_task_gradient_along_two_directions(tuning_program):
 
 def test_forward_mode_agrees_with_reverse_mode(one_step):
     """jax.jvp through the implicit solve (custom_root supports both modes)."""
-    f, p0 = one_step["f"], one_step["p0"]
+    f, p0 = one_step["fn"], one_step["p0"]
     v = jnp.asarray(np.random.default_rng(11).standard_normal(p0.size))
     g = one_step["grad"](p0, False)
     _, dv = jax.jit(lambda p, v: jax.jvp(lambda q: f(q, False), (p,), (v,)))(p0, v)
