@@ -56,25 +56,32 @@ def one_step(model):
     weights = jnp.asarray(np.random.default_rng(5).standard_normal(20))
     nv = model.mj_model.nv
 
-    def f(p, unrolled):
+    def step(p, unrolled):
         m = _unrolled_model(mx) if unrolled else mx
         fr = m.pair_friction.at[:, :2].multiply(1.0 + p[-1])
         m = m.replace(pair_friction=fr)
         dd = _physics.before_control(m, d.replace(qvel=d.qvel + p[:nv]))
-        out = _physics.after_control(m, dd, ctrl + p[nv : nv + model.mj_model.nu], UNROLLED_ITERATIONS)
-        return (
+        u = ctrl + p[nv : nv + model.mj_model.nu]
+        out = _physics.after_control(m, dd, u, UNROLLED_ITERATIONS)
+        value = (
             jnp.dot(weights, out.qacc)
             + jnp.sum(out._impl.efc_force**2) * 1e-2
             + jnp.sum(out.sensordata[:12] * weights[:12])
         )
+        # the step's solve, plain (MJX's) and implicit (jaxsync's), values only:
+        # the sliding-clamp test reads them from this same program
+        m = m.replace(pair_friction=jax.lax.stop_gradient(fr))
+        accel = jax.lax.stop_gradient(mjx.fwd_acceleration(m, mjx.fwd_actuation(m, dd.replace(ctrl=u))))
+        return value, (mjx.solve(m, accel), _physics.solve_implicit(m, accel))
 
     p0 = jnp.zeros(nv + model.mj_model.nu + 1)
-    # one program gives both the values (central differences) and the gradient
-    value_and_grad = jax.jit(jax.value_and_grad(f), static_argnums=1)
+    # one program gives the values (central differences), the gradient and the solves
+    value_and_grad = jax.jit(jax.value_and_grad(step, has_aux=True), static_argnums=1)
     return {
-        "fn": f,
-        "f": lambda p, unrolled: value_and_grad(p, unrolled)[0],
+        "fn": lambda p, unrolled: step(p, unrolled)[0],
+        "f": lambda p, unrolled: value_and_grad(p, unrolled)[0][0],
         "grad": lambda p, unrolled: value_and_grad(p, unrolled)[1],
+        "solves": lambda: value_and_grad(p0, False)[0][1],
         "p0": p0,
         "mx": mx,
         "d": d,
@@ -87,15 +94,8 @@ def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
     mjx.solve's, bit for bit. And the step under test is the hard case: both
     pads pressed in with a normal force, friction acting (the elliptic cone's
     middle zone)."""
-    mx, d, ctrl = one_step["mx"], one_step["d"], one_step["ctrl"]
-
-    @jax.jit
-    def both(d, u):
-        d = _physics.before_control(mx, d).replace(ctrl=u)
-        d = mjx.fwd_acceleration(mx, mjx.fwd_actuation(mx, d))
-        return mjx.solve(mx, d), _physics.solve_implicit(mx, d)
-
-    plain, implicit = both(d, ctrl)
+    mx = one_step["mx"]
+    plain, implicit = one_step["solves"]()  # at p = 0: the clamp state as it is
     np.testing.assert_array_equal(np.asarray(plain.qacc), np.asarray(implicit.qacc))
     np.testing.assert_array_equal(np.asarray(plain._impl.efc_force), np.asarray(implicit._impl.efc_force))
     r = _physics.constraint_residual(mx, plain, plain.qacc)[0]
