@@ -88,6 +88,19 @@ def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.sensor_vel(m, d)
 
 
+def forget_stage_traces() -> None:
+    """Drop the traces of :func:`before_control` and :func:`after_control`
+    (and the derivatives built on them). Called once a gradient has been
+    traced (``optimize.tune``): the stage traces it leaves made programs traced
+    after it lower differently from the same programs in a process that read
+    the gradient from disk instead, so the persistent cache missed them
+    (measured in the test suite: three programs compiled again, 77 s, in the
+    first warm run after a cold one). The next program traces the stages
+    again (a few seconds)."""
+    before_control.clear_cache()
+    after_control.clear_cache()
+
+
 # ------------------------------------------------ implicit adjoint of the solve
 
 

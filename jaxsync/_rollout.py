@@ -162,7 +162,8 @@ def rollout(
     ``backend="mjx"`` compiles once per model, duration and substep count:
     the controller and the cross term are arguments of one program
     (:class:`~jaxsync._controller.ControllerSwitch`), so the classical and the
-    synchronous rollouts of a comparison share it; ``backend="mujoco"`` steps MuJoCo C with the same jitted control law.
+    synchronous rollouts of a comparison share it; ``backend="mujoco"``
+    steps MuJoCo C with the same jitted control law.
 
     Example:
       >>> model, s = jaxsync.load_model(), jaxsync.short_task()

@@ -32,7 +32,7 @@ from jaxsync.optimize.loop import apply_update, make_optimizer
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tasks import training_base, training_batch
 
-from jaxsync import _gains, _io, _metrics, _schedule
+from jaxsync import _gains, _io, _metrics, _physics, _schedule
 from jaxsync._cache import traced_on_disk
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync._rollout import make_rollout
@@ -343,7 +343,9 @@ def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
             model.solver,
         )
     )
-    return traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
+    value_and_grad = traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
+    _physics.forget_stage_traces()
+    return value_and_grad
 
 
 def _method_options(cfg: TuneConfig) -> dict:

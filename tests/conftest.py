@@ -161,15 +161,6 @@ def tuning_program(model):
     scen = sample_scenarios(jax.random.key(7), cfg.batch, training_base(cfg)[0])
     theta0 = spec.init(base)
     value_and_grad = tune_mod._traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta0, scen), None)
-    # A cold run traces this gradient here (a warm one reads its traced form
-    # from disk): forget the physics stages' traces and their derivatives that
-    # it left, so that the programs traced after it come out as in a warm run
-    # (else three of them lowered differently and compiled again, 77 s, in the
-    # first warm run after a cold one)
-    from jaxsync import _physics
-
-    _physics.before_control.clear_cache()
-    _physics.after_control.clear_cache()
     return {
         "cfg": cfg,
         "spec": spec,

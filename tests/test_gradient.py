@@ -84,8 +84,6 @@ def one_step(model):
         "solves": lambda: value_and_grad(p0, False)[0][1],
         "p0": p0,
         "mx": mx,
-        "d": d,
-        "ctrl": ctrl,
     }
 
 
