@@ -28,10 +28,14 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
+from mujoco.mjx._src import constraint as _constraint
 from mujoco.mjx._src import math as _math
 from mujoco.mjx._src import solver as _solver
+from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
+
+from jaxsync import _kinematics
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -79,10 +83,27 @@ def patch_mjx_elliptic_gradient() -> None:
         _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
 
 
+def fwd_position(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """``mjx.fwd_position`` (MJX 3.17's stages, in its order) with jaxsync's
+    level-by-level kinematics (:mod:`jaxsync._kinematics`) in place of MJX's
+    where the model's tree allows: the same values to rounding, and its
+    backward pass compiled in a quarter of the time (docs/performance.md)."""
+    d = _kinematics.kinematics(m, d) if _kinematics.kinematics_plan(m) is not None else _smooth.kinematics(m, d)
+    d = _smooth.com_pos(m, d)
+    d = _smooth.camlight(m, d)
+    d = _smooth.tendon(m, d)
+    d = _smooth.crb(m, d)
+    d = _smooth.tendon_armature(m, d)
+    d = _smooth.factor_m(m, d)
+    d = _collision_driver.collision(m, d)
+    d = _constraint.make_constraint(m, d)
+    return _smooth.transmission(m, d)
+
+
 @jax.jit
 def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1)."""
-    d = mjx.fwd_position(m, d)
+    d = fwd_position(m, d)
     d = mjx.sensor_pos(m, d)
     d = mjx.fwd_velocity(m, d)
     return mjx.sensor_vel(m, d)

@@ -128,6 +128,81 @@ def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
     assert _physics.leaf_sensor_plan(inner) is None
 
 
+_POSITION_FIELDS = (
+    "qpos", "xanchor", "xaxis", "xpos", "xquat", "xmat", "xipos", "ximat", "geom_xpos", "geom_xmat",
+    "site_xpos", "site_xmat", "subtree_com", "cdof", "actuator_length", "_impl.M", "_impl.qLD",
+    "_impl.actuator_moment", "_impl.cinert", "_impl.crb", "_impl.contact.dist", "_impl.contact.pos", "_impl.contact.frame",
+    "_impl.efc_J", "_impl.efc_pos", "_impl.efc_aref",
+)  # fmt: skip
+
+
+def _field(d, name):
+    for part in name.split("."):
+        d = getattr(d, part)
+    return np.asarray(d)
+
+
+def test_position_stage_equals_mjx(model, forward_sense, random_pairs):
+    """``_physics.fwd_position`` (jaxsync's level-by-level kinematics, then
+    MJX's other position stages) against ``mjx.forward``'s, at random states
+    and at a clamp with both pads in contact, the object's quaternion not of
+    unit length (kinematics normalises it, in ``qpos`` too): every position
+    field the step reads, to 1e-12 (rounding: the two sum in other orders)."""
+    from jaxsync import _kinematics, _physics
+
+    m, mx, index = model.mj_model, model.mjx_model, model.index
+    assert _kinematics.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
+    clamp = mujoco.MjData(m)
+    clamp.qpos[:] = model.keyframe_qpos("grasp")
+    clamp.qpos[index.right.qpos_adr[1]] += 0.05
+    quat = slice(index.object_qpos_adr + 3, index.object_qpos_adr + 7)
+    clamp.qpos[quat] = 1.3 * (clamp.qpos[quat] + 0.1)
+    mujoco.mj_forward(m, clamp)
+    position = jax.jit(_physics.fwd_position)
+    for d in [clamp] + [d for d, _, _ in random_pairs[:3]]:
+        state = mjx.put_data(m, d, impl="jax")
+        want, _ = forward_sense(mx, state)  # mjx.forward, MJX's kinematics
+        got = position(mx, state)
+        for name in _POSITION_FIELDS:
+            w = _field(want, name)
+            np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12 * max(1.0, np.abs(w).max()), err_msg=name)
+
+
+def test_kinematics_covers_each_joint_type():
+    """Free, ball, slide and hinge joints (off-centre), bodies without joints,
+    two subtrees whose parents lie at different places: the same fields as
+    MJX's kinematics; a body with two joints or a mocap body is left to MJX."""
+    from mujoco.mjx._src import smooth
+
+    from jaxsync import _kinematics
+
+    xml = """<mujoco><worldbody>
+      <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
+        <body pos="0 .2 0" quat=".9 .1 .3 .2"><joint type="ball" pos=".05 0 0"/><geom size=".1"/><site/>
+          <body pos=".3 0 0"><joint type="slide" axis="1 1 0"/><geom size=".1"/></body></body>
+        <body pos="0 0 .4"><geom size=".1"/>
+          <body pos=".1 0 0" euler="10 20 30"><joint type="hinge" pos="0 .1 0" axis="0 1 1"/><geom size=".1"/></body>
+        </body></body>
+      <body pos="1 0 0"><joint type="hinge" axis="1 0 0" ref=".3"/><geom size=".1" pos=".1 0 0"/><site pos="0 .1 0"/>
+        <body pos="0 0 .2"><joint type="hinge" axis="0 0 1"/><geom size=".1"/></body></body>
+    </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    mx = mjx.put_model(m, impl="jax")
+    assert _kinematics.kinematics_plan(mx) is not None
+    d = mujoco.MjData(m)
+    d.qpos[:] = np.random.default_rng(0).normal(size=m.nq)  # quaternions of any length: both normalise them
+    dx = mjx.put_data(m, d, impl="jax")
+    want, got = jax.jit(smooth.kinematics)(mx, dx), jax.jit(_kinematics.kinematics)(mx, dx)
+    for name in _POSITION_FIELDS[:12]:
+        w = _field(want, name)
+        assert np.abs(w).max() > 0.0, name
+        np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12, err_msg=name)
+    two = mujoco.MjModel.from_xml_string(xml.replace('<joint type="ball" pos=".05 0 0"/>', '<joint/><joint/>'))
+    assert _kinematics.kinematics_plan(mjx.put_model(two, impl="jax")) is None
+    mocap = mujoco.MjModel.from_xml_string(xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">'))
+    assert _kinematics.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
+
+
 @pytest.mark.parametrize(
     "field,rtol,atol",
     [
