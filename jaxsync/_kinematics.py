@@ -21,12 +21,19 @@ import functools
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import mujoco
+import numpy as np
 from mujoco import mjx
 
-_FREE, _BALL, _SLIDE, _HINGE = (int(t) for t in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_BALL,
-                                                 mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE))
+_FREE, _BALL, _SLIDE, _HINGE = (
+    int(t)
+    for t in (
+        mujoco.mjtJoint.mjJNT_FREE,
+        mujoco.mjtJoint.mjJNT_BALL,
+        mujoco.mjtJoint.mjJNT_SLIDE,
+        mujoco.mjtJoint.mjJNT_HINGE,
+    )
+)
 
 # quat_mul(u, v)[i] = sum_jk _QMUL[i, j, k] u[j] v[k] (w, x, y, z)
 _QMUL = np.zeros((4, 4, 4))
@@ -133,7 +140,14 @@ def _plan_cached(parent: tuple, jntnum: tuple, jntadr: tuple, jnt_type: tuple, q
     order = np.array(order)
     joints = np.array([jntadr[b] for b in order if jntnum[b]], dtype=int)
     joint_rows = np.cumsum([0] + [jntnum[b] for b in order])  # row in `joints` of each body's joint
-    return tuple(levels), order, np.argsort(order), joints, joint_rows, np.array([qposadr[j] for j in joints], dtype=int)
+    return (
+        tuple(levels),
+        order,
+        np.argsort(order),
+        joints,
+        joint_rows,
+        np.array([qposadr[j] for j in joints], dtype=int),
+    )
 
 
 def kinematics_plan(m: mjx.Model) -> tuple | None:

@@ -30,8 +30,8 @@ from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
 from mujoco.mjx._src import constraint as _constraint
 from mujoco.mjx._src import math as _math
-from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import smooth as _smooth
+from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
 

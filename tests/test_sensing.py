@@ -131,7 +131,8 @@ def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
 _POSITION_FIELDS = (
     "qpos", "xanchor", "xaxis", "xpos", "xquat", "xmat", "xipos", "ximat", "geom_xpos", "geom_xmat",
     "site_xpos", "site_xmat", "subtree_com", "cdof", "actuator_length", "_impl.M", "_impl.qLD",
-    "_impl.actuator_moment", "_impl.cinert", "_impl.crb", "_impl.contact.dist", "_impl.contact.pos", "_impl.contact.frame",
+    "_impl.actuator_moment", "_impl.cinert", "_impl.crb", "_impl.contact.dist", "_impl.contact.pos",
+    "_impl.contact.frame",
     "_impl.efc_J", "_impl.efc_pos", "_impl.efc_aref",
 )  # fmt: skip
 
@@ -165,7 +166,9 @@ def test_position_stage_equals_mjx(model, forward_sense, random_pairs):
         got = position(mx, state)
         for name in _POSITION_FIELDS:
             w = _field(want, name)
-            np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12 * max(1.0, np.abs(w).max()), err_msg=name)
+            np.testing.assert_allclose(
+                _field(got, name), w, rtol=0, atol=1e-12 * max(1.0, np.abs(w).max()), err_msg=name
+            )
 
 
 def test_kinematics_covers_each_joint_type():
@@ -197,9 +200,11 @@ def test_kinematics_covers_each_joint_type():
         w = _field(want, name)
         assert np.abs(w).max() > 0.0, name
         np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12, err_msg=name)
-    two = mujoco.MjModel.from_xml_string(xml.replace('<joint type="ball" pos=".05 0 0"/>', '<joint/><joint/>'))
+    two = mujoco.MjModel.from_xml_string(xml.replace('<joint type="ball" pos=".05 0 0"/>', "<joint/><joint/>"))
     assert _kinematics.kinematics_plan(mjx.put_model(two, impl="jax")) is None
-    mocap = mujoco.MjModel.from_xml_string(xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">'))
+    mocap = mujoco.MjModel.from_xml_string(
+        xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">')
+    )
     assert _kinematics.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
 
 
