@@ -240,3 +240,172 @@ def kinematics(m: mjx.Model, d: mjx.Data) -> mjx.Data:
         site_xpos, site_xmat = local_to_global(np.asarray(m.site_bodyid), m.site_pos, m.site_quat)
         d = d.replace(site_xpos=site_xpos, site_xmat=site_xmat)
     return d
+
+
+# ------------------------------------------------ the tree's sums as matrices
+
+# what a dof is, for the per-dof formulas
+_DOF_HINGE, _DOF_SLIDE, _DOF_BALL, _DOF_FREE_LIN, _DOF_FREE_ROT = range(5)
+
+
+@functools.lru_cache(maxsize=8)
+def _tree_cached(parent: tuple, dof_body: tuple, dof_kind: tuple, dof_first: tuple) -> tuple:
+    nbody, nv = len(parent), len(dof_body)
+    ancestor = np.eye(nbody)  # ancestor[b, a] = 1 when a is b or one of its ancestors
+    for b in range(1, nbody):
+        ancestor[b] = ancestor[parent[b]]
+        ancestor[b, b] = 1.0
+    chain = ancestor[:, list(dof_body)] if nv else np.zeros((nbody, 0))
+    before = np.zeros((nv, nv))
+    for i in range(nv):
+        if dof_kind[i] == _DOF_FREE_LIN:
+            continue  # MJX sets its cdof_dot to zero
+        before[i] = chain[parent[dof_body[i]]]
+        if dof_kind[i] == _DOF_FREE_ROT:  # crossed with the velocity after the joint's translation
+            before[i, dof_first[i] : dof_first[i] + 3] = 1.0
+    return ancestor.T.copy(), chain, before, np.array(dof_kind)
+
+
+def tree_matrices(m: mjx.Model) -> tuple:
+    """Static matrices of the body tree of ``m`` (at most one joint per body):
+
+    - ``subtree`` (nbody, nbody): [a, b] = 1 when b is in a's subtree; a pass
+      from the leaves to the root (MJX's ``scan.body_tree(..., reverse=True)``)
+      is one product with it;
+    - ``chain`` (nbody, nv): [b, i] = 1 when dof i moves body b; a pass from
+      the root accumulating per-dof motions is one product with it;
+    - ``before`` (nv, nv): [i, j] = 1 when dof j's motion is in the velocity
+      that dof i's ``cdof_dot`` crosses (MJX's ``com_vel``: the ancestors'
+      dofs, and for a free joint's rotation its translation);
+    - the kind of each dof (``_DOF_*``).
+    """
+    jnt_type, dof_jnt, dofadr = np.asarray(m.jnt_type), np.asarray(m.dof_jntid), np.asarray(m.jnt_dofadr)
+    kinds, firsts = [], []
+    for i in range(m.nv):
+        t, first = int(jnt_type[dof_jnt[i]]), int(dofadr[dof_jnt[i]])
+        if t == _FREE:
+            kinds.append(_DOF_FREE_LIN if i - first < 3 else _DOF_FREE_ROT)
+        else:
+            kinds.append({_HINGE: _DOF_HINGE, _SLIDE: _DOF_SLIDE, _BALL: _DOF_BALL}[t])
+        firsts.append(first)
+    return _tree_cached(
+        tuple(int(p) for p in np.asarray(m.body_parentid)),
+        tuple(int(b) for b in np.asarray(m.dof_bodyid)),
+        tuple(kinds),
+        tuple(firsts),
+    )
+
+
+def cross(u: jax.Array, v: jax.Array) -> jax.Array:
+    """Batched cross product (..., 3)."""
+    return jnp.einsum("ijk,...j,...k->...i", _CROSS, u, v)
+
+
+def motion_cross(u: jax.Array, v: jax.Array) -> jax.Array:
+    """Batched ``math.motion_cross`` of spatial motions (..., 6) [rotation, translation]."""
+    return jnp.concatenate(
+        [cross(u[..., :3], v[..., :3]), cross(u[..., 3:], v[..., :3]) + cross(u[..., :3], v[..., 3:])], -1
+    )
+
+
+def motion_cross_force(v: jax.Array, f: jax.Array) -> jax.Array:
+    """Batched ``math.motion_cross_force`` (..., 6)."""
+    return jnp.concatenate(
+        [cross(v[..., :3], f[..., :3]) + cross(v[..., 3:], f[..., 3:]), cross(v[..., :3], f[..., 3:])], -1
+    )
+
+
+_TRI = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])  # cinert's (xx, yy, zz, xy, xz, yz) as a matrix
+
+
+def inert_mul(i: jax.Array, v: jax.Array) -> jax.Array:
+    """Batched ``math.inert_mul``: com-based inertias (..., 10) times motions (..., 6)."""
+    inr, pos, mass = i[..., _TRI], i[..., 6:9], i[..., 9:]
+    ang = jnp.einsum("...ij,...j->...i", inr, v[..., :3]) + cross(pos, v[..., 3:])
+    return jnp.concatenate([ang, mass * v[..., 3:] - cross(pos, v[..., :3])], -1)
+
+
+def com_pos(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.com_pos``: ``subtree_com``, ``cinert``, ``cdof``; the
+    subtree sums as one product, every body and dof at once."""
+    subtree, _, _, kind = tree_matrices(m)
+    mass = m.body_mass
+    total = subtree @ mass
+    subtree_com = (subtree @ (d.xipos * mass[:, None])) / jnp.maximum(total, mujoco.mjMINVAL)[:, None]
+    subtree_com = jnp.where((total < mujoco.mjMINVAL)[:, None], d.xipos, subtree_com)
+    root_com = _rows(subtree_com, np.asarray(m.body_rootid))
+    off = d.xipos - root_com
+    inert = jnp.einsum("bij,bj,bkj->bik", d.ximat, m.body_inertia, d.ximat)
+    inert = inert + mass[:, None, None] * (
+        jnp.sum(off * off, -1)[:, None, None] * np.eye(3) - off[:, :, None] * off[:, None, :]
+    )
+    iu = ([0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2])
+    cinert = jnp.concatenate([inert[:, iu[0], iu[1]], off * mass[:, None], mass[:, None]], -1)
+    # per dof: the motion axis a, and [a, a x offset] (rotation) or [0, a] (translation)
+    dof_body, dof_jnt = np.asarray(m.dof_bodyid), np.asarray(m.dof_jntid)
+    col = np.arange(m.nv) - np.asarray(m.jnt_dofadr)[dof_jnt]  # the dof's column in its joint
+    rot3 = (kind == _DOF_BALL) | (kind == _DOF_FREE_ROT)
+    axis = _rows(d.xaxis, dof_jnt)
+    if rot3.any():
+        frame = jnp.swapaxes(_rows(d.xmat, dof_body), -1, -2)[
+            np.arange(m.nv), np.where(kind == _DOF_FREE_ROT, col - 3, col) % 3
+        ]
+        axis = jnp.where(rot3[:, None], frame, axis)
+    if (kind == _DOF_FREE_LIN).any():
+        axis = jnp.where((kind == _DOF_FREE_LIN)[:, None], np.eye(3)[col % 3], axis)
+    offset = _rows(root_com, dof_body) - _rows(d.xanchor, dof_jnt)
+    rotational = ((kind == _DOF_HINGE) | rot3)[:, None]
+    cdof = jnp.concatenate([jnp.where(rotational, axis, 0.0), jnp.where(rotational, cross(axis, offset), axis)], -1)
+    return d.replace(subtree_com=subtree_com, cdof=cdof).tree_replace({"_impl.cinert": cinert})
+
+
+def crb_body(m: mjx.Model, d: mjx.Data) -> jax.Array:
+    """MJX's composite inertias (``smooth.crb``'s ``crb``): subtree sums of ``cinert``, the world's zero."""
+    subtree = tree_matrices(m)[0]
+    return (subtree @ d._impl.cinert).at[0].set(0.0)
+
+
+def com_vel(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """MJX's ``smooth.com_vel``: ``cvel`` (accumulated down the tree, one
+    product) and ``cdof_dot`` (each dof's motion crossed with the velocity
+    before it)."""
+    _, chain, before, _ = tree_matrices(m)
+    motion = d.cdof * d.qvel[:, None]
+    cvel = chain @ motion
+    cdof_dot = motion_cross(before @ motion, d.cdof)
+    return d.replace(cvel=cvel, cdof_dot=cdof_dot)
+
+
+def bias_force(m: mjx.Model, d: mjx.Data, gravity: jax.Array) -> jax.Array:
+    """MJX's ``smooth.rne`` without accelerations (``qfrc_bias``): each body's
+    ``cacc`` from ``gravity`` (6,) ([0, -g], or zero) and cdof_dot qvel down the
+    tree, its inertial wrench, the wrenches summed up the tree."""
+    subtree, chain, _, _ = tree_matrices(m)
+    cacc = gravity + chain @ (d.cdof_dot * d.qvel[:, None])
+    cinert = d._impl.cinert
+    frc = inert_mul(cinert, cacc) + motion_cross_force(d.cvel, inert_mul(cinert, d.cvel))
+    cfrc = subtree @ frc
+    return jnp.sum(d.cdof * _rows(cfrc, np.asarray(m.dof_bodyid)), -1)
+
+
+def jac(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int) -> tuple[jax.Array, jax.Array]:
+    """MJX's ``support.jac`` ((nv, 3) translational and rotational Jacobians of a
+    point on a body) with the chain's mask static."""
+    mask = tree_matrices(m)[1][body_id][:, None]
+    offset = point - d.subtree_com[int(np.asarray(m.body_rootid)[body_id])]
+    return (d.cdof[:, 3:] + cross(d.cdof[:, :3], offset)) * mask, d.cdof[:, :3] * mask
+
+
+def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int) -> tuple[jax.Array, jax.Array]:
+    """MJX's ``support.jac_dot`` (their time derivatives) with the chain's mask static."""
+    _, chain, _, kind = tree_matrices(m)
+    mask = chain[body_id][:, None]
+    offset = point - d.subtree_com[int(np.asarray(m.body_rootid)[body_id])]
+    cvel = d.cvel[body_id]
+    pvel_lin = cvel[3:] - cross(offset, cvel[:3])
+    cdof_dot = d.cdof_dot
+    quat = (kind == _DOF_BALL) | (kind == _DOF_FREE_ROT)
+    if quat.any():  # MJX uses the body's own velocity for quaternion dofs
+        cdof_dot = jnp.where(quat[:, None], motion_cross(_rows(d.cvel, np.asarray(m.dof_bodyid)), d.cdof), cdof_dot)
+    jacp = cdof_dot[:, 3:] + cross(cdof_dot[:, :3], offset) + cross(d.cdof[:, :3], pvel_lin)
+    return jacp * mask, cdof_dot[:, :3] * mask

@@ -132,7 +132,7 @@ _POSITION_FIELDS = (
     "qpos", "xanchor", "xaxis", "xpos", "xquat", "xmat", "xipos", "ximat", "geom_xpos", "geom_xmat",
     "site_xpos", "site_xmat", "subtree_com", "cdof", "actuator_length", "_impl.M", "_impl.qLD",
     "_impl.actuator_moment", "_impl.cinert", "_impl.crb", "_impl.contact.dist", "_impl.contact.pos",
-    "_impl.contact.frame",
+    "_impl.contact.frame", "cvel", "cdof_dot", "qfrc_bias", "_impl.actuator_velocity",
     "_impl.efc_J", "_impl.efc_pos", "_impl.efc_aref",
 )  # fmt: skip
 
@@ -143,12 +143,14 @@ def _field(d, name):
     return np.asarray(d)
 
 
-def test_position_stage_equals_mjx(model, forward_sense, random_pairs):
-    """``_physics.fwd_position`` (jaxsync's level-by-level kinematics, then
-    MJX's other position stages) against ``mjx.forward``'s, at random states
+def test_position_and_velocity_stages_equal_mjx(model, forward_sense, random_pairs):
+    """``_physics.before_control`` (jaxsync's tree passes: kinematics level by
+    level, com_pos, crb, com_vel and the bias forces as products with static
+    tree matrices; MJX's other stages) against ``mjx.forward``'s, at random states
     and at a clamp with both pads in contact, the object's quaternion not of
     unit length (kinematics normalises it, in ``qpos`` too): every position
-    field the step reads, to 1e-12 (rounding: the two sum in other orders)."""
+    and velocity field the step reads, to 1e-12 (rounding: the two sum in
+    other orders)."""
     from jaxsync import _kinematics, _physics
 
     m, mx, index = model.mj_model, model.mjx_model, model.index
@@ -159,11 +161,10 @@ def test_position_stage_equals_mjx(model, forward_sense, random_pairs):
     quat = slice(index.object_qpos_adr + 3, index.object_qpos_adr + 7)
     clamp.qpos[quat] = 1.3 * (clamp.qpos[quat] + 0.1)
     mujoco.mj_forward(m, clamp)
-    position = jax.jit(_physics.fwd_position)
     for d in [clamp] + [d for d, _, _ in random_pairs[:3]]:
         state = mjx.put_data(m, d, impl="jax")
         want, _ = forward_sense(mx, state)  # mjx.forward, MJX's kinematics
-        got = position(mx, state)
+        got = _physics.before_control(mx, state)
         for name in _POSITION_FIELDS:
             w = _field(want, name)
             np.testing.assert_allclose(
@@ -171,13 +172,14 @@ def test_position_stage_equals_mjx(model, forward_sense, random_pairs):
             )
 
 
-def test_kinematics_covers_each_joint_type():
+def test_tree_passes_cover_each_joint_type():
     """Free, ball, slide and hinge joints (off-centre), bodies without joints,
-    two subtrees whose parents lie at different places: the same fields as
-    MJX's kinematics; a body with two joints or a mocap body is left to MJX."""
-    from mujoco.mjx._src import smooth
+    two subtrees whose parents lie at different places, everything moving:
+    jaxsync's position and velocity stages and Jacobians give MJX's fields;
+    a body with two joints or a mocap body is left to MJX."""
+    from mujoco.mjx._src import support
 
-    from jaxsync import _kinematics
+    from jaxsync import _kinematics, _physics
 
     xml = """<mujoco><worldbody>
       <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
@@ -195,11 +197,27 @@ def test_kinematics_covers_each_joint_type():
     d = mujoco.MjData(m)
     d.qpos[:] = np.random.default_rng(0).normal(size=m.nq)  # quaternions of any length: both normalise them
     dx = mjx.put_data(m, d, impl="jax")
-    want, got = jax.jit(smooth.kinematics)(mx, dx), jax.jit(_kinematics.kinematics)(mx, dx)
-    for name in _POSITION_FIELDS[:12]:
+    d.qvel[:] = np.random.default_rng(1).normal(size=m.nv)
+    dx = mjx.put_data(m, d, impl="jax")
+
+    @jax.jit
+    def mjx_stages(mx, dx):
+        dx = mjx.fwd_velocity(mx, mjx.fwd_position(mx, dx))
+        return dx, [f(mx, dx, dx.xpos[b] + 0.1, b) for f in (mjx.jac, support.jac_dot) for b in (3, 5)]
+
+    @jax.jit
+    def jaxsync_stages(mx, dx):
+        dx = _physics.fwd_velocity(mx, _physics.fwd_position(mx, dx))
+        return dx, [f(mx, dx, dx.xpos[b] + 0.1, b) for f in (_physics.jac, _physics.jac_dot) for b in (3, 5)]
+
+    (want, want_jac), (got, got_jac) = mjx_stages(mx, dx), jaxsync_stages(mx, dx)
+    for name in _POSITION_FIELDS[:14] + ("_impl.cinert", "_impl.crb", "_impl.M", "cvel", "cdof_dot", "qfrc_bias"):
         w = _field(want, name)
         assert np.abs(w).max() > 0.0, name
-        np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-12 * max(1.0, np.abs(w).max()), err_msg=name)
+    for w, g in zip(jax.tree.leaves(want_jac), jax.tree.leaves(got_jac), strict=True):
+        assert np.abs(np.asarray(w)).max() > 0.0
+        np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=0, atol=1e-12)
     two = mujoco.MjModel.from_xml_string(xml.replace('<joint type="ball" pos=".05 0 0"/>', "<joint/><joint/>"))
     assert _kinematics.kinematics_plan(mjx.put_model(two, impl="jax")) is None
     mocap = mujoco.MjModel.from_xml_string(
