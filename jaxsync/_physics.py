@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
 from mujoco.mjx._src import constraint as _constraint
@@ -192,6 +193,13 @@ def newton_hessian(m: mjx.Model, d: mjx.Data, qacc: jax.Array) -> jax.Array:
     return 0.5 * (h + h.T)
 
 
+SOLVE_OUTPUTS = "jaxsync_solve_outputs"
+"""The name (``jax.ad_checkpoint.checkpoint_name``) of the converged solve's
+outputs: ``jax.checkpoint(..., policy=REMAT_POLICY)`` saves them."""
+
+REMAT_POLICY = jax.checkpoint_policies.save_only_these_names(SOLVE_OUTPUTS)
+
+
 def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """``mjx.solve`` (converged, its ``while_loop``) with an implicit derivative.
 
@@ -209,6 +217,15 @@ def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """
     d_const = jax.lax.stop_gradient(d)
     solved = mjx.solve(m, d_const)
+    # named so that a rematerialised scan keeps them (SOLVE_OUTPUTS): the
+    # backward pass then never runs the solve's while loops again
+    solved = solved.tree_replace(
+        {
+            "qacc": checkpoint_name(solved.qacc, SOLVE_OUTPUTS),
+            "qfrc_constraint": checkpoint_name(solved.qfrc_constraint, SOLVE_OUTPUTS),
+            "_impl.efc_force": checkpoint_name(solved._impl.efc_force, SOLVE_OUTPUTS),
+        }
+    )
     chol = jax.scipy.linalg.cho_factor(newton_hessian(m, d_const, solved.qacc))
 
     def residual(qacc):

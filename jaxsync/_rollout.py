@@ -129,8 +129,8 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
             )
             return ((d, cstate), pad_start), row
 
-        if remat:
-            body = jax.checkpoint(body)
+        if remat:  # the solve's outputs are kept: the backward pass does not solve again
+            body = jax.checkpoint(body, policy=_physics.REMAT_POLICY)
         init = ((d0, _controller.init()), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
         _, traj = jax.lax.scan(body, init, jnp.arange(n_steps))
         return traj
