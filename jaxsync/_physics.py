@@ -37,7 +37,7 @@ from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
 
-from jaxsync import _kinematics
+from jaxsync import _tree
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -93,24 +93,24 @@ def _world_acc(m: mjx.Model) -> jax.Array:
 
 
 def _tree_plan(m: mjx.Model) -> bool:
-    """Whether :mod:`jaxsync._kinematics` covers ``m``'s tree (else MJX's own stages run)."""
-    return _kinematics.kinematics_plan(m) is not None
+    """Whether :mod:`jaxsync._tree` covers ``m``'s tree (else MJX's own stages run)."""
+    return _tree.kinematics_plan(m) is not None
 
 
 def fwd_position(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """``mjx.fwd_position`` (MJX 3.17's stages, in its order) with jaxsync's
-    tree passes (:mod:`jaxsync._kinematics`: kinematics level by level, the
+    tree passes (:mod:`jaxsync._tree`: kinematics level by level, the
     subtree sums of ``com_pos`` and ``crb`` as products with static matrices)
     in place of MJX's where the model's tree allows: the same values to
     rounding, and a far smaller program (docs/performance.md)."""
     if not _tree_plan(m):
         return mjx.fwd_position(m, d)
-    d = _kinematics.kinematics(m, d)
-    d = _kinematics.com_pos(m, d)
+    d = _tree.kinematics(m, d)
+    d = _tree.com_pos(m, d)
     d = _smooth.camlight(m, d)
     d = _smooth.tendon(m, d)
-    crb = _kinematics.crb_body(m, d)
-    crb_cdof = _kinematics.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
+    crb = _tree.crb_body(m, d)
+    crb_cdof = _tree.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
     d = d.tree_replace({"_impl.crb": crb, "_impl.M": _support.make_m(m, crb_cdof, d.cdof, m.dof_armature)})
     d = _smooth.tendon_armature(m, d)
     d = _smooth.factor_m(m, d)
@@ -127,9 +127,9 @@ def fwd_velocity(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     d = d.tree_replace(
         {"_impl.actuator_velocity": d._impl.actuator_moment @ d.qvel, "_impl.ten_velocity": d._impl.ten_J @ d.qvel}
     )
-    d = _kinematics.com_vel(m, d)
+    d = _tree.com_vel(m, d)
     d = _passive.passive(m, d)
-    d = d.replace(qfrc_bias=_kinematics.bias_force(m, d, _world_acc(m)))
+    d = d.replace(qfrc_bias=_tree.bias_force(m, d, _world_acc(m)))
     return _smooth.tendon_bias(m, d)
 
 
@@ -339,13 +339,13 @@ def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
 
 def jac(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
     """(nv, 3) translational and rotational Jacobians of a point on a body (MJX's
-    ``jac``; the chain's mask static where :mod:`jaxsync._kinematics` covers the tree)."""
-    return _kinematics.jac(m, d, point, body_id) if _tree_plan(m) else mjx.jac(m, d, point, body_id)
+    ``jac``; the chain's mask static where :mod:`jaxsync._tree` covers the tree)."""
+    return _tree.jac(m, d, point, body_id) if _tree_plan(m) else mjx.jac(m, d, point, body_id)
 
 
 def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
     """(nv, 3) time derivatives of the translational and rotational Jacobians."""
-    return _kinematics.jac_dot(m, d, point, body_id) if _tree_plan(m) else _support.jac_dot(m, d, point, body_id)
+    return _tree.jac_dot(m, d, point, body_id) if _tree_plan(m) else _support.jac_dot(m, d, point, body_id)
 
 
 def inertial_wrench(cinert: jax.Array, cvel: jax.Array, cacc: jax.Array) -> jax.Array:

@@ -151,10 +151,10 @@ def test_position_and_velocity_stages_equal_mjx(model, forward_sense, random_pai
     unit length (kinematics normalises it, in ``qpos`` too): every position
     and velocity field the step reads, to 1e-12 (rounding: the two sum in
     other orders)."""
-    from jaxsync import _kinematics, _physics
+    from jaxsync import _physics, _tree
 
     m, mx, index = model.mj_model, model.mjx_model, model.index
-    assert _kinematics.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
+    assert _tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
     clamp = mujoco.MjData(m)
     clamp.qpos[:] = model.keyframe_qpos("grasp")
     clamp.qpos[index.right.qpos_adr[1]] += 0.05
@@ -179,7 +179,7 @@ def test_tree_passes_cover_each_joint_type():
     a body with two joints or a mocap body is left to MJX."""
     from mujoco.mjx._src import support
 
-    from jaxsync import _kinematics, _physics
+    from jaxsync import _physics, _tree
 
     xml = """<mujoco><worldbody>
       <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
@@ -193,7 +193,7 @@ def test_tree_passes_cover_each_joint_type():
     </worldbody></mujoco>"""
     m = mujoco.MjModel.from_xml_string(xml)
     mx = mjx.put_model(m, impl="jax")
-    assert _kinematics.kinematics_plan(mx) is not None
+    assert _tree.kinematics_plan(mx) is not None
     d = mujoco.MjData(m)
     d.qpos[:] = np.random.default_rng(0).normal(size=m.nq)  # quaternions of any length: both normalise them
     dx = mjx.put_data(m, d, impl="jax")
@@ -219,11 +219,11 @@ def test_tree_passes_cover_each_joint_type():
         assert np.abs(np.asarray(w)).max() > 0.0
         np.testing.assert_allclose(np.asarray(g), np.asarray(w), rtol=0, atol=1e-12)
     two = mujoco.MjModel.from_xml_string(xml.replace('<joint type="ball" pos=".05 0 0"/>', "<joint/><joint/>"))
-    assert _kinematics.kinematics_plan(mjx.put_model(two, impl="jax")) is None
+    assert _tree.kinematics_plan(mjx.put_model(two, impl="jax")) is None
     mocap = mujoco.MjModel.from_xml_string(
         xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">')
     )
-    assert _kinematics.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
+    assert _tree.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
 
 
 @pytest.mark.parametrize(

@@ -1,18 +1,24 @@
-"""Forward kinematics over the body tree, one vectorised step per tree level.
+"""The body tree's passes of MJX's position and velocity stages, vectorised.
 
-MJX's ``smooth.kinematics`` walks the tree with its generic ``scan.body_tree``
-and writes every quaternion operation scalar by scalar: on the dual-arm model
-it is a third of a physics step's program and about half of the time XLA
-spends compiling the backward pass of the position stage (docs/performance.md).
-:func:`kinematics` computes the same fields (``qpos`` with its quaternions
-normalised, ``xanchor``, ``xaxis``, ``xpos``, ``xquat``, ``xmat``, ``xipos``,
-``ximat``, ``geom_xpos``/``geom_xmat``, ``site_xpos``/``site_xmat``) with the
-same formulas, each tree level as a few batched array operations on the
-bodies of that level: the same values to rounding (tests/test_sensing.py).
+MJX walks the tree with its generic ``scan.body_tree``, level by level, and
+writes every quaternion and spatial-vector operation scalar by scalar: on the
+dual-arm model its kinematics alone was a third of a physics step's program
+and about half of the time XLA spent compiling the backward pass of the
+position stage (docs/performance.md). Here, with the same formulas and the
+same fields to rounding (tests/test_sensing.py):
+
+- :func:`kinematics` (``qpos`` with its quaternions normalised, ``xanchor``,
+  ``xaxis``, ``xpos``, ``xquat``, ``xmat``, ``xipos``, ``ximat``, geom and
+  site frames): each tree level a few batched operations on its bodies;
+- :func:`com_pos`, :func:`crb_body`, :func:`com_vel`, :func:`bias_force`,
+  :func:`jac`, :func:`jac_dot`: a pass from the leaves up (subtree sums) or
+  from the root down (motion accumulated along each chain) is one product
+  with a static 0/1 matrix of the tree (:func:`tree_matrices`), every body
+  and dof at once.
 
 :func:`kinematics_plan` says whether a model's tree fits (at most one joint
-per body, no mocap bodies); ``_physics.before_control`` runs MJX's own
-otherwise.
+per body, no mocap bodies); ``_physics`` runs MJX's own stages otherwise.
+Pure JAX over ``mjx.Model`` fields; MJX's private modules stay in ``_physics``.
 """
 
 from __future__ import annotations
