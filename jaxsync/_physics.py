@@ -29,15 +29,10 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
-from mujoco.mjx._src import constraint as _constraint
 from mujoco.mjx._src import math as _math
-from mujoco.mjx._src import passive as _passive
-from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
-
-from jaxsync import _tree
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -85,60 +80,12 @@ def patch_mjx_elliptic_gradient() -> None:
         _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
 
 
-def _world_acc(m: mjx.Model) -> jax.Array:
-    """The world's ``cacc`` (6,): [0, -g], zero with gravity disabled (MJX's RNE)."""
-    if m.opt.disableflags & DisableBit.GRAVITY:
-        return jnp.zeros(6)
-    return jnp.concatenate([jnp.zeros(3), -m.opt.gravity])
-
-
-def _tree_plan(m: mjx.Model) -> bool:
-    """Whether :mod:`jaxsync._tree` covers ``m``'s tree (else MJX's own stages run)."""
-    return _tree.kinematics_plan(m) is not None
-
-
-def fwd_position(m: mjx.Model, d: mjx.Data) -> mjx.Data:
-    """``mjx.fwd_position`` (MJX 3.17's stages, in its order) with jaxsync's
-    tree passes (:mod:`jaxsync._tree`: kinematics level by level, the
-    subtree sums of ``com_pos`` and ``crb`` as products with static matrices)
-    in place of MJX's where the model's tree allows: the same values to
-    rounding, and a far smaller program (docs/performance.md)."""
-    if not _tree_plan(m):
-        return mjx.fwd_position(m, d)
-    d = _tree.kinematics(m, d)
-    d = _tree.com_pos(m, d)
-    d = _smooth.camlight(m, d)
-    d = _smooth.tendon(m, d)
-    crb = _tree.crb_body(m, d)
-    crb_cdof = _tree.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
-    d = d.tree_replace({"_impl.crb": crb, "_impl.M": _support.make_m(m, crb_cdof, d.cdof, m.dof_armature)})
-    d = _smooth.tendon_armature(m, d)
-    d = _smooth.factor_m(m, d)
-    d = _collision_driver.collision(m, d)
-    d = _constraint.make_constraint(m, d)
-    return _smooth.transmission(m, d)
-
-
-def fwd_velocity(m: mjx.Model, d: mjx.Data) -> mjx.Data:
-    """``mjx.fwd_velocity`` with jaxsync's ``com_vel`` and bias forces (one
-    product down the tree, one up) where the tree allows."""
-    if not _tree_plan(m):
-        return mjx.fwd_velocity(m, d)
-    d = d.tree_replace(
-        {"_impl.actuator_velocity": d._impl.actuator_moment @ d.qvel, "_impl.ten_velocity": d._impl.ten_J @ d.qvel}
-    )
-    d = _tree.com_vel(m, d)
-    d = _passive.passive(m, d)
-    d = d.replace(qfrc_bias=_tree.bias_force(m, d, _world_acc(m)))
-    return _smooth.tendon_bias(m, d)
-
-
 @jax.jit
 def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1)."""
-    d = fwd_position(m, d)
+    d = mjx.fwd_position(m, d)
     d = mjx.sensor_pos(m, d)
-    d = fwd_velocity(m, d)
+    d = mjx.fwd_velocity(m, d)
     return mjx.sensor_vel(m, d)
 
 
@@ -217,7 +164,7 @@ def solve_implicit(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """
     d_const = jax.lax.stop_gradient(d)
     solved = mjx.solve(m, d_const)
-    # named so that a rematerialised scan keeps them (SOLVE_OUTPUTS): the
+    # named so that a rematerialised scan keeps them (REMAT_POLICY): the
     # backward pass then never runs the solve's while loops again
     solved = solved.tree_replace(
         {
@@ -337,15 +284,9 @@ def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
     return d._impl.contact.dist[contact_id]
 
 
-def jac(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
-    """(nv, 3) translational and rotational Jacobians of a point on a body (MJX's
-    ``jac``; the chain's mask static where :mod:`jaxsync._tree` covers the tree)."""
-    return _tree.jac(m, d, point, body_id) if _tree_plan(m) else mjx.jac(m, d, point, body_id)
-
-
 def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
     """(nv, 3) time derivatives of the translational and rotational Jacobians."""
-    return _tree.jac_dot(m, d, point, body_id) if _tree_plan(m) else _support.jac_dot(m, d, point, body_id)
+    return _support.jac_dot(m, d, point, body_id)
 
 
 def inertial_wrench(cinert: jax.Array, cvel: jax.Array, cacc: jax.Array) -> jax.Array:
@@ -409,7 +350,10 @@ def leaf_sensor_acc(m: mjx.Model, d: mjx.Data, plan: tuple) -> mjx.Data:
     """
     if not plan:
         return d
-    cacc0 = _world_acc(m)
+    if m.opt.disableflags & DisableBit.GRAVITY:
+        cacc0 = jnp.zeros(6)
+    else:
+        cacc0 = jnp.concatenate([jnp.zeros(3), -m.opt.gravity])
     geom_body = np.asarray(m.geom_bodyid)[static_contact_geoms(m)] if d._impl.contact.dim.size else np.zeros((0, 2))
 
     def com_based(frc, offset):  # [force, torque] at a point -> [torque, force] about point + offset

@@ -96,7 +96,7 @@ def compensate_wrist_wrench(
 def sense_arm(m: mjx.Model, d: mjx.Data, arm: ArmIndex, mass_full: jax.Array) -> ArmState:
     dofs = jnp.array(arm.dof_adr)
     pad_pos = d.site_xpos[arm.pad_site]
-    jacp, jacr = _physics.jac(m, d, pad_pos, arm.ee_body)
+    jacp, jacr = mjx.jac(m, d, pad_pos, arm.ee_body)
     jac = jnp.concatenate([jacp.T, jacr.T])  # (6, nv)
     djp, djr = _physics.jac_dot(m, d, pad_pos, arm.ee_body)
     jac_dot_qd = jnp.concatenate([djp.T @ d.qvel, djr.T @ d.qvel])

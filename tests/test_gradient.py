@@ -12,6 +12,7 @@ against central differences.
 from __future__ import annotations
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import mujoco
 import numpy as np
@@ -104,6 +105,32 @@ def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
         normal = abs(f[1])  # the clamping axis is y
         assert normal > 1.0
         assert np.hypot(f[0], f[2]) > 1e-3 * normal  # friction acts
+
+
+def _count(jaxpr, name: str) -> int:
+    """Equations of primitive ``name`` in a jaxpr and all its sub-jaxprs."""
+    n = 0
+    for eqn in jaxpr.eqns:
+        n += eqn.primitive.name == name
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            n += _count(sub, name)
+    return n
+
+
+def test_rematerialised_backward_pass_does_not_solve_again(one_step):
+    """Under ``jax.checkpoint`` with ``_physics.REMAT_POLICY`` (what
+    ``make_rollout(remat=True)`` uses) the converged solve's outputs are kept:
+    the gradient's program holds MJX's solve loops once (the forward pass),
+    not a second time to recompute them in the backward pass."""
+    step, p0 = one_step["fn"], one_step["p0"]
+
+    def loops(policy):
+        f = jax.checkpoint(lambda p: step(p, False), policy=policy)
+        return _count(jax.make_jaxpr(jax.grad(f))(p0).jaxpr, "while")
+
+    kept, default = loops(_physics.REMAT_POLICY), loops(None)
+    assert kept > 0
+    assert kept < default
 
 
 @pytest.mark.slow
