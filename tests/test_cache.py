@@ -74,3 +74,20 @@ def test_editing_the_cost_changes_the_key(tmp_path, monkeypatch):
     assert _cache._source_fingerprint() != before
     _cache.traced_on_disk(lambda g, x: x * g.k_rl, args, "k", cache_dir=str(cache))
     assert len(list(cache.glob("jaxsync-export-*.bin"))) == 2
+
+
+def test_dead_code_elimination_is_memoised_for_the_whole_process():
+    """``stable_lowering`` (on with the persistent cache, as here): the same
+    inner jaxpr pruned the same way is the same object even after more other
+    prunings than JAX's own cache keeps (2048), so a program lowered after a
+    big trace is the module it would be in a fresh process (its cache key)."""
+    from jax._src import core, pjit
+
+    assert _cache.stable_lowering()
+    closed = jax.make_jaxpr(lambda x: (jnp.sin(x), jnp.cos(x)))(1.0)
+    first = pjit._dce_jaxpr_pjit(closed, (True, False))[0]
+    assert len(first.jaxpr.outvars) == 1
+    others = [core.ClosedJaxpr(closed.jaxpr, closed.consts) for _ in range(2100)]
+    for other in others:  # each a new key: JAX's bounded cache alone evicts `closed`
+        pjit._dce_jaxpr_pjit(other, (True, False))
+    assert pjit._dce_jaxpr_pjit(closed, (True, False))[0] is first
