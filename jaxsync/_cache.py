@@ -109,7 +109,7 @@ def stable_lowering() -> bool:
         inners = [getattr(mod, name) for mod, name in targets]
     except (ImportError, AttributeError):
         return False
-    for (mod, name), inner in zip(targets, inners):
+    for (mod, name), inner in zip(targets, inners, strict=True):
         setattr(mod, name, util.weakref_lru_cache(_forwarding(inner), maxsize=None))
     _stable = True
     return True
