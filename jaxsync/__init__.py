@@ -30,7 +30,7 @@ Example:
 """
 
 import contextlib
-import importlib
+import importlib as _importlib
 import io
 
 from jaxsync._gl import import_mujoco
@@ -84,10 +84,10 @@ _RENAMED = {"run_sweep": ("jaxsync.optimize.sweep", "run")}
 
 def __getattr__(name: str):
     if name in _OPTIMIZE:
-        return getattr(importlib.import_module(_OPTIMIZE[name]), name)
+        return getattr(_importlib.import_module(_OPTIMIZE[name]), name)
     if name in _RENAMED:
         module, attr = _RENAMED[name]
-        return getattr(importlib.import_module(module), attr)
+        return getattr(_importlib.import_module(module), attr)
     raise AttributeError(f"module 'jaxsync' has no attribute {name!r}")
 
 

@@ -216,3 +216,21 @@ def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
     assert float(jax.grad(sqrt_zero_safe)(0.0)) == 0.0
     assert abs(float(jax.grad(sqrt_zero_safe)(4.0)) - 0.25) < 1e-15
     assert float(sqrt_zero_safe(9.0)) == 3.0
+
+
+def test_public_names_are_the_documented_ones():
+    """dir(jaxsync) lists the public API (``__all__``) and its subpackages, no
+    plumbing, and every name in ``__all__`` resolves (the lazily imported
+    tuning and sweep API included)."""
+    import types
+
+    import jaxsync.optimize  # noqa: F401  (a subpackage is an attribute once imported)
+
+    import jaxsync
+
+    public = {
+        n for n in dir(jaxsync) if not n.startswith("_") and not isinstance(getattr(jaxsync, n), types.ModuleType)
+    }
+    assert public == set(jaxsync.__all__), public ^ set(jaxsync.__all__)
+    for name in jaxsync.__all__:
+        assert getattr(jaxsync, name) is not None, name
