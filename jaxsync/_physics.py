@@ -29,10 +29,15 @@ import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 from mujoco import mjx
 from mujoco.mjx._src import collision_driver as _collision_driver
+from mujoco.mjx._src import constraint as _constraint
 from mujoco.mjx._src import math as _math
+from mujoco.mjx._src import passive as _passive
+from mujoco.mjx._src import smooth as _smooth
 from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
+
+from jaxsync import _tree
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -80,12 +85,69 @@ def patch_mjx_elliptic_gradient() -> None:
         _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
 
 
-@jax.jit
-def before_control(m: mjx.Model, d: mjx.Data) -> mjx.Data:
-    """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1)."""
-    d = mjx.fwd_position(m, d)
+PASSES = ("mjx", "tree")
+"""How the body tree's passes are computed: ``"mjx"`` MJX's own stages (what
+forward rollouts and batches run), ``"tree"`` jaxsync's vectorised ones
+(:mod:`jaxsync._tree`, the same values to rounding and a far smaller program:
+what gradient programs run)."""
+
+
+def _world_acc(m: mjx.Model) -> jax.Array:
+    """The world's ``cacc`` (6,): [0, -g], zero with gravity disabled (MJX's RNE)."""
+    if m.opt.disableflags & DisableBit.GRAVITY:
+        return jnp.zeros(6)
+    return jnp.concatenate([jnp.zeros(3), -m.opt.gravity])
+
+
+def tree_covered(m: mjx.Model, passes: str) -> bool:
+    """Whether ``passes`` asks for :mod:`jaxsync._tree` and it covers ``m``'s tree."""
+    if passes not in PASSES:
+        raise ValueError(f"passes must be one of {PASSES}, got {passes!r}")
+    return passes == "tree" and _tree.kinematics_plan(m) is not None
+
+
+def fwd_position(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
+    """``mjx.fwd_position`` (MJX 3.17's stages, in its order); with
+    ``passes="tree"`` jaxsync's tree passes (kinematics level by level, the
+    subtree sums of ``com_pos`` and ``crb`` as products with static matrices)
+    in place of MJX's where the model's tree allows."""
+    if not tree_covered(m, passes):
+        return mjx.fwd_position(m, d)
+    d = _tree.kinematics(m, d)
+    d = _tree.com_pos(m, d)
+    d = _smooth.camlight(m, d)
+    d = _smooth.tendon(m, d)
+    crb = _tree.crb_body(m, d)
+    crb_cdof = _tree.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
+    d = d.tree_replace({"_impl.crb": crb, "_impl.M": _support.make_m(m, crb_cdof, d.cdof, m.dof_armature)})
+    d = _smooth.tendon_armature(m, d)
+    d = _smooth.factor_m(m, d)
+    d = _collision_driver.collision(m, d)
+    d = _constraint.make_constraint(m, d)
+    return _smooth.transmission(m, d)
+
+
+def fwd_velocity(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
+    """``mjx.fwd_velocity``; with ``passes="tree"`` jaxsync's ``com_vel`` and
+    bias forces (one product down the tree, one up) where the tree allows."""
+    if not tree_covered(m, passes):
+        return mjx.fwd_velocity(m, d)
+    d = d.tree_replace(
+        {"_impl.actuator_velocity": d._impl.actuator_moment @ d.qvel, "_impl.ten_velocity": d._impl.ten_J @ d.qvel}
+    )
+    d = _tree.com_vel(m, d)
+    d = _passive.passive(m, d)
+    d = d.replace(qfrc_bias=_tree.bias_force(m, d, _world_acc(m)))
+    return _smooth.tendon_bias(m, d)
+
+
+@functools.partial(jax.jit, static_argnames="passes")
+def before_control(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
+    """Position and velocity stages of ``mjx.forward`` (MuJoCo's mj_step1);
+    ``passes`` (:data:`PASSES`) chooses MJX's tree passes or jaxsync's."""
+    d = fwd_position(m, d, passes)
     d = mjx.sensor_pos(m, d)
-    d = mjx.fwd_velocity(m, d)
+    d = fwd_velocity(m, d, passes)
     return mjx.sensor_vel(m, d)
 
 
@@ -284,8 +346,16 @@ def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
     return d._impl.contact.dist[contact_id]
 
 
-def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int):
+def jac(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int, passes: str = "mjx"):
+    """(nv, 3) translational and rotational Jacobians of a point on a body
+    (MJX's ``jac``; with ``passes="tree"`` the chain's mask static)."""
+    return _tree.jac(m, d, point, body_id) if tree_covered(m, passes) else mjx.jac(m, d, point, body_id)
+
+
+def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int, passes: str = "mjx"):
     """(nv, 3) time derivatives of the translational and rotational Jacobians."""
+    if tree_covered(m, passes):
+        return _tree.jac_dot(m, d, point, body_id)
     return _support.jac_dot(m, d, point, body_id)
 
 
@@ -350,10 +420,7 @@ def leaf_sensor_acc(m: mjx.Model, d: mjx.Data, plan: tuple) -> mjx.Data:
     """
     if not plan:
         return d
-    if m.opt.disableflags & DisableBit.GRAVITY:
-        cacc0 = jnp.zeros(6)
-    else:
-        cacc0 = jnp.concatenate([jnp.zeros(3), -m.opt.gravity])
+    cacc0 = _world_acc(m)
     geom_body = np.asarray(m.geom_bodyid)[static_contact_geoms(m)] if d._impl.contact.dim.size else np.zeros((0, 2))
 
     def com_based(frc, offset):  # [force, torque] at a point -> [torque, force] about point + offset

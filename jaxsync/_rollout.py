@@ -92,6 +92,10 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
     index = model.index
     unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
+    # gradient programs run jaxsync's vectorised tree passes (a far smaller
+    # program to differentiate and compile), forward ones MJX's (faster once
+    # vmapped over large batches): the same values to rounding
+    passes = "tree" if remat else "mjx"
 
     def fn(gains: Gains, s: Scenario, options) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
@@ -109,20 +113,20 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
                 )
             d, cstate = state
             t = k * dt
-            d = _physics.before_control(mx, d)
+            d = _physics.before_control(mx, d, passes)
             # the pads where the task starts, read at the first step: the
             # program holds MJX's position stages once (in the loop), not a
             # second time for the initial state (a third less to compile)
             pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
             pad_start = jnp.where(k == 0, pads, pad_start)
             noisy = d.replace(sensordata=d.sensordata + _task.noise(s, consts, k))
-            sensed = sense(mx, noisy, index)
+            sensed = sense(mx, noisy, index, passes)
             arms = (sensed.right, sensed.left)
             tau, cstate, info, pl = _task.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
             ctrl = tau[consts.act_order]
             d = _physics.after_control(mx, d, ctrl, unroll)
             for _ in range(control_substeps - 1):
-                d = _physics.after_control(mx, _physics.before_control(mx, d), ctrl, unroll)
+                d = _physics.after_control(mx, _physics.before_control(mx, d, passes), ctrl, unroll)
             forces = jnp.stack([_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms])
             row = _trajectory.row(
                 t, noisy.qpos, noisy.qvel, sensed.obj.pos, sensed.obj.linvel, pl, arms, forces, tau, info, cstate

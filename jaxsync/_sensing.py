@@ -93,12 +93,12 @@ def compensate_wrist_wrench(
     return jnp.concatenate([force, torque])
 
 
-def sense_arm(m: mjx.Model, d: mjx.Data, arm: ArmIndex, mass_full: jax.Array) -> ArmState:
+def sense_arm(m: mjx.Model, d: mjx.Data, arm: ArmIndex, mass_full: jax.Array, passes: str = "mjx") -> ArmState:
     dofs = jnp.array(arm.dof_adr)
     pad_pos = d.site_xpos[arm.pad_site]
-    jacp, jacr = mjx.jac(m, d, pad_pos, arm.ee_body)
+    jacp, jacr = _physics.jac(m, d, pad_pos, arm.ee_body, passes)
     jac = jnp.concatenate([jacp.T, jacr.T])  # (6, nv)
-    djp, djr = _physics.jac_dot(m, d, pad_pos, arm.ee_body)
+    djp, djr = _physics.jac_dot(m, d, pad_pos, arm.ee_body, passes)
     jac_dot_qd = jnp.concatenate([djp.T @ d.qvel, djr.T @ d.qvel])
     qd = d.qvel[dofs]
     raw = jnp.concatenate(
@@ -143,17 +143,19 @@ def sense_object(m: mjx.Model, d: mjx.Data, index: ModelIndex) -> ObjectState:
     )
 
 
-def sense(m: mjx.Model, d: mjx.Data, index: ModelIndex) -> Sensed:
+def sense(m: mjx.Model, d: mjx.Data, index: ModelIndex, passes: str = "mjx") -> Sensed:
     """Every controller input and the object's true state, as one pytree.
 
     Args:
       m: MJX model (may carry batched or traced parameters).
       d: MJX data after the position and velocity stages (see module doc).
       index: static ids from :func:`jaxsync.load_model` (``model.index``).
+      passes: the Jacobians' tree passes (``jaxsync._physics.PASSES``; the
+        same values): ``"tree"`` in gradient programs.
     """
     mass_full = _physics.full_mass_matrix(m, d)
     return Sensed(
-        right=sense_arm(m, d, index.right, mass_full),
-        left=sense_arm(m, d, index.left, mass_full),
+        right=sense_arm(m, d, index.right, mass_full, passes),
+        left=sense_arm(m, d, index.left, mass_full, passes),
         obj=sense_object(m, d, index),
     )

@@ -61,7 +61,7 @@ def one_step(model):
         m = _unrolled_model(mx) if unrolled else mx
         fr = m.pair_friction.at[:, :2].multiply(1.0 + p[-1])
         m = m.replace(pair_friction=fr)
-        dd = _physics.before_control(m, d.replace(qvel=d.qvel + p[:nv]))
+        dd = _physics.before_control(m, d.replace(qvel=d.qvel + p[:nv]), "tree")  # as gradient programs run it
         u = ctrl + p[nv : nv + model.mj_model.nu]
         out = _physics.after_control(m, dd, u, UNROLLED_ITERATIONS)
         value = (

@@ -132,8 +132,11 @@ def test_synchronous_offset_closed_form():
 
 def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, rollouts):
     """What the tuner differentiates (remat=True, truncate_every windows) rolls
-    out exactly the plain rollout: both only change the backward pass. Checked
-    against the session's plain rollout of the test task (grasp, lift, hold)."""
+    out the plain rollout: both only change the backward pass, and its tree
+    passes (``passes="tree"``: the same formulas summed in another order) only
+    the rounding: every field within 1e-11 of its largest value (measured:
+    7e-13 at most, the contact forces). Checked against the session's plain
+    rollout of the test task (grasp, lift, hold)."""
     from conftest import TEST_DURATION
 
     from jaxsync import _rollout
@@ -143,4 +146,5 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     prod = jax.jit(fn)(rollouts["gains"], rollouts["scenario"])
     assert np.abs(np.asarray(plain.pad_forces)).max() > 1.0  # in contact: the solve matters
     for name, a, b in zip(plain._fields, plain, prod, strict=True):
-        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-12, atol=1e-12, err_msg=name)
+        a = np.asarray(a)
+        np.testing.assert_allclose(np.asarray(b), a, rtol=0, atol=1e-11 * max(1.0, np.abs(a).max()), err_msg=name)

@@ -128,6 +128,125 @@ def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
     assert _physics.leaf_sensor_plan(inner) is None
 
 
+_POSITION_FIELDS = (
+    "qpos", "xanchor", "xaxis", "xpos", "xquat", "xmat", "xipos", "ximat", "geom_xpos", "geom_xmat",
+    "site_xpos", "site_xmat", "subtree_com", "cdof", "actuator_length", "_impl.M", "_impl.qLD",
+    "_impl.actuator_moment", "_impl.cinert", "_impl.crb", "_impl.contact.dist", "_impl.contact.pos",
+    "_impl.contact.frame", "cvel", "cdof_dot", "qfrc_bias", "_impl.actuator_velocity",
+    "_impl.efc_J", "_impl.efc_pos", "_impl.efc_aref",
+)  # fmt: skip
+
+
+def _field(d, name):
+    for part in name.split("."):
+        d = getattr(d, part)
+    return np.asarray(d)
+
+
+def test_position_and_velocity_stages_equal_mjx(model, forward_sense, random_pairs):
+    """``_physics.before_control(..., passes="tree")`` (what gradient programs
+    run: jaxsync's tree passes, kinematics level by level, com_pos, crb, com_vel
+    and the bias forces as products with static tree matrices; MJX's other
+    stages) against ``mjx.forward``'s, and the Jacobians that sensing reads
+    against MJX's, at random states
+    and at a clamp with both pads in contact, the object's quaternion not of
+    unit length (kinematics normalises it, in ``qpos`` too): every position
+    and velocity field the step reads, to 1e-12 (rounding: the two sum in
+    other orders)."""
+    from jaxsync import _physics, _tree
+
+    m, mx, index = model.mj_model, model.mjx_model, model.index
+    assert _tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
+    clamp = mujoco.MjData(m)
+    clamp.qpos[:] = model.keyframe_qpos("grasp")
+    clamp.qpos[index.right.qpos_adr[1]] += 0.05
+    quat = slice(index.object_qpos_adr + 3, index.object_qpos_adr + 7)
+    clamp.qpos[quat] = 1.3 * (clamp.qpos[quat] + 0.1)
+    mujoco.mj_forward(m, clamp)
+    jacobians = jax.jit(lambda f, mx, d, p, b, passes="mjx": f(mx, d, p, b, passes), static_argnums=(0, 4, 5))
+    largest = {}  # the clamp is at rest (no Jacobian derivative), the random states move
+    for d in [clamp] + [d for d, _, _ in random_pairs[:3]]:
+        state = mjx.put_data(m, d, impl="jax")
+        want, _ = forward_sense(mx, state)  # mjx.forward, MJX's kinematics
+        got = _physics.before_control(mx, state, "tree")
+        for name in _POSITION_FIELDS:
+            w = _field(want, name)
+            np.testing.assert_allclose(
+                _field(got, name), w, rtol=0, atol=1e-12 * max(1.0, np.abs(w).max()), err_msg=name
+            )
+        for arm in index.arms:  # the pads' Jacobians and their time derivatives, as sense() reads them
+            point = want.site_xpos[arm.pad_site]
+            for f in (_physics.jac, _physics.jac_dot):
+                tree, mine = (
+                    jacobians(f, mx, got, point, arm.ee_body, "tree"),
+                    jacobians(f, mx, want, point, arm.ee_body),
+                )
+                for a, b in zip(tree, mine, strict=True):
+                    b = np.asarray(b)
+                    largest[f] = max(largest.get(f, 0.0), np.abs(b).max())
+                    np.testing.assert_allclose(np.asarray(a), b, rtol=0, atol=1e-12 * max(1.0, np.abs(b).max()))
+    assert len(largest) == 2 and min(largest.values()) > 0.0
+
+
+def test_tree_passes_cover_each_joint_type():
+    """Free, ball, slide and hinge joints (off-centre), bodies without joints,
+    two subtrees whose parents lie at different places, everything moving:
+    jaxsync's tree passes and Jacobians give MuJoCo C's fields;
+    a body with two joints or a mocap body is left to MJX."""
+    from jaxsync import _tree
+
+    xml = """<mujoco><option><flag contact="disable"/></option><worldbody>
+      <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
+        <body pos="0 .2 0" quat=".9 .1 .3 .2"><joint type="ball" pos=".05 0 0"/><geom size=".1"/><site/>
+          <body pos=".3 0 0"><joint type="slide" axis="1 1 0"/><geom size=".1"/></body></body>
+        <body pos="0 0 .4"><geom size=".1"/>
+          <body pos=".1 0 0" euler="10 20 30"><joint type="hinge" pos="0 .1 0" axis="0 1 1"/><geom size=".1"/></body>
+        </body></body>
+      <body pos="1 0 0"><joint type="hinge" axis="1 0 0" ref=".3"/><geom size=".1" pos=".1 0 0"/><site pos="0 .1 0"/>
+        <body pos="0 0 .2"><joint type="hinge" axis="0 0 1"/><geom size=".1"/></body></body>
+    </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    mx = mjx.put_model(m, impl="jax")
+    assert _tree.kinematics_plan(mx) is not None
+    d = mujoco.MjData(m)
+    d.qpos[:] = np.random.default_rng(0).normal(size=m.nq)  # quaternions of any length: both normalise them
+    d.qvel[:] = np.random.default_rng(1).normal(size=m.nv)
+    dx = mjx.put_data(m, d, impl="jax")
+    mujoco.mj_forward(m, d)  # the reference: MuJoCo C
+
+    @jax.jit
+    def jaxsync_stages(mx, dx):
+        dx = _tree.com_vel(mx, _tree.com_pos(mx, _tree.kinematics(mx, dx)))
+        gravity = jnp.concatenate([jnp.zeros(3), -mx.opt.gravity])
+        dx = dx.replace(qfrc_bias=_tree.bias_force(mx, dx, gravity)).tree_replace({"_impl.crb": _tree.crb_body(mx, dx)})
+        return dx, [f(mx, dx, dx.xpos[b] + 0.1, b) for f in (_tree.jac, _tree.jac_dot) for b in (3, 5)]
+
+    got, got_jac = jaxsync_stages(mx, dx)
+    names = _POSITION_FIELDS[1:14] + ("_impl.cinert", "_impl.crb", "cvel", "cdof_dot", "qfrc_bias")
+    for name in names:
+        w = getattr(d, name.removeprefix("_impl."))
+        w = w.reshape(_field(got, name).shape)
+        assert np.abs(w).max() > 0.0, name
+        np.testing.assert_allclose(_field(got, name), w, rtol=0, atol=1e-10 * max(1.0, np.abs(w).max()), err_msg=name)
+    for adr in (3, 7):  # the free and the ball joint's quaternions, normalised in qpos (as MJX does)
+        q = d.qpos[adr : adr + 4]
+        np.testing.assert_allclose(np.asarray(got.qpos[adr : adr + 4]), q / np.linalg.norm(q), rtol=0, atol=1e-14)
+    for k, (f, b) in enumerate((f, b) for f in (mujoco.mj_jac, mujoco.mj_jacDot) for b in (3, 5)):
+        jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        f(m, d, jp, jr, d.xpos[b] + 0.1, b)
+        for want, g in zip((jp, jr), got_jac[k], strict=True):
+            assert np.abs(want).max() > 0.0
+            np.testing.assert_allclose(np.asarray(g), want.T, rtol=0, atol=1e-10)
+    two = mujoco.MjModel.from_xml_string(
+        xml.replace('<joint type="ball" pos=".05 0 0"/>', '<joint axis="1 0 0"/><joint axis="0 1 0"/>')
+    )
+    assert _tree.kinematics_plan(mjx.put_model(two, impl="jax")) is None
+    mocap = mujoco.MjModel.from_xml_string(
+        xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">')
+    )
+    assert _tree.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
+
+
 @pytest.mark.parametrize(
     "field,rtol,atol",
     [
