@@ -140,6 +140,45 @@ def rollouts(model):
 
 
 @pytest.fixture(scope="session")
+def shared_rollout():
+    """``jaxsync._rollout.rollout`` with the same signature, memoised for the
+    session on the values of its arguments: the MuJoCo C rollouts (about a
+    second each, a Python loop over the steps) and the MJX ones that several
+    tests need (the backends' agreement, both sim-to-sim checks) run once.
+    Tests pass it where ``rollout`` is called, or put it in place of
+    ``jaxsync._compare.rollout``."""
+    import hashlib
+    import inspect
+
+    import numpy as np
+
+    from jaxsync import _rollout
+
+    def digest(tree):
+        h = hashlib.sha256()
+        for x in jax.tree_util.tree_leaves(tree):
+            if jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key):
+                x = jax.random.key_data(x)
+            x = np.asarray(x)
+            h.update(str((x.dtype, x.shape)).encode() + x.tobytes())
+        return h.hexdigest()
+
+    memo, signature = {}, inspect.signature(_rollout.rollout)
+
+    def fn(model, gains, scenario, **kw):
+        bound = signature.bind(model, gains, scenario, **kw)
+        bound.apply_defaults()  # the same call, whichever defaults it spelled out
+        kw = {k: v for k, v in bound.arguments.items() if k not in ("model", "gains", "scenario")}
+        key = (id(model), digest(gains), digest(scenario), tuple(sorted(kw.items())))
+        if key not in memo:
+            memo[key] = jax.block_until_ready(_rollout.rollout(model, gains, scenario, **kw))
+        return memo[key]
+
+    fn.memo = memo
+    return fn
+
+
+@pytest.fixture(scope="session")
 def tuning_program(model):
     """``jaxsync tune``'s own gradient program, compiled once for the session:
     its defaults (the full 4 s task, 2000 steps, the exact full-horizon

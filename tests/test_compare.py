@@ -241,7 +241,7 @@ def test_compile_watch_tells_compiling_from_a_cache_read():
     assert w.compile_s == 0
 
 
-def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts):
+def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
     """Issue 15, item 2: gains against a baseline on MJX and on MuJoCo C with the
     same jitted control law. MJX's side is the session's own rollout to the last
     digit; MuJoCo C lands within 5 % of it; the factors agree and the table says
@@ -251,6 +251,7 @@ def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts):
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
+    monkeypatch.setattr(_compare, "rollout", shared_rollout)  # the same rollouts, run once for the session
     check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, log=lambda m: None)
     assert check["scenarios"] == 1 and check["scenarios_lost"] == []
     assert check["mjx_before_N"] == float(_metrics.summarize(rollouts["synchronous"], s).settled_peak_resultant_N)

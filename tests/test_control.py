@@ -163,14 +163,14 @@ def test_dropped_object_is_flagged(model):
     assert 0.5 <= float(m.drop_time_s) <= TEST_DURATION
 
 
-def test_mjx_and_mujoco_c_backends_agree(model, rollouts):
+def test_mjx_and_mujoco_c_backends_agree(model, rollouts, shared_rollout):
     """The same jitted control law stepping MuJoCo C. Measured on this task:
     once the pads are closed (t >= t_close) the normal forces agree within
     0.03 N; during the first impact a spike shifted by one step differs by up
     to ~6 N, so the force check starts at t_close. The object agrees within
     0.05 mm throughout."""
     s = rollouts["scenario"]
-    c = rollout(model, rollouts["gains"], s, controller="synchronous", duration=TEST_DURATION, backend="mujoco")
+    c = shared_rollout(model, rollouts["gains"], s, controller="synchronous", duration=TEST_DURATION, backend="mujoco")
     x = rollouts["synchronous"]
     fx = np.asarray(_metrics.normal_forces(x.pad_forces, x.pad_normal))
     fc = np.asarray(_metrics.normal_forces(c.pad_forces, c.pad_normal))

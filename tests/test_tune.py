@@ -493,7 +493,7 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
     np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
 
 
-def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts):
+def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
     """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX, through
     the one sim-to-sim check (jaxsync._compare.sim_to_sim) with MJX's rows as tune
     has them from its held-out scoring; the factors agree here (the same control
@@ -501,17 +501,17 @@ def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts):
     from conftest import TEST_DURATION
 
     from jaxsync import _compare, _metrics
-    from jaxsync._rollout import rollout
     from jaxsync.cli.tune import mujoco_text
 
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
     one = lambda x: jax.tree_util.tree_map(lambda v: jax.numpy.asarray(v)[None], x)  # noqa: E731
+    run = lambda x: shared_rollout(model, x, s, controller="synchronous", duration=TEST_DURATION)  # noqa: E731
     mjx = {
-        which: _compare.metric_rows(one(_metrics.summarize(rollout(model, x, s, duration=TEST_DURATION), s)))
-        for which, x in (("before", g), ("after", g2))
+        which: _compare.metric_rows(one(_metrics.summarize(run(x), s))) for which, x in (("before", g), ("after", g2))
     }
+    monkeypatch.setattr(_compare, "rollout", shared_rollout)  # MuJoCo C's rollouts, run once for the session
     check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, mjx_rows=mjx, log=lambda m: None)
     assert check["scenarios"] == 1
     assert check["per_scenario"]["mjx_before"] == mjx["before"]  # taken as given
