@@ -124,8 +124,16 @@ class TuneConfig:
 # ------------------------------------------------------------------- the loss
 
 
-def make_loss(model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights):
+def make_loss(
+    model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights, *, differentiated: bool = True
+):
     """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready.
+
+    ``differentiated=True`` (a loss to take the gradient of) rematerialises the
+    rollout's steps and runs jaxsync's tree passes (a smaller program to
+    differentiate); ``False`` (a loss only evaluated, e.g. over a CMA-ES
+    population) runs MJX's own passes, faster over large vmapped batches. The
+    same values to rounding.
 
     Example:
       >>> loss = make_loss(jaxsync.load_model(), TuneSpec(),
@@ -136,7 +144,7 @@ def make_loss(model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weight
         model,
         "synchronous",
         training_base(cfg)[1],
-        remat=True,
+        remat=differentiated,
         truncate_every=cfg.truncate_every,
         start=cfg.train_start,
     )
@@ -557,7 +565,9 @@ def tune(
             if method is None:
                 state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, say)
             else:
-                oracle = oracle or _MethodOracle(loss, get_value_and_grad, state.theta, scen, cfg, n_total)
+                if oracle is None:  # CMA-ES's populations only evaluate the loss
+                    forward = make_loss(model, spec, base, cfg, weights, differentiated=False)
+                    oracle = _MethodOracle(forward, get_value_and_grad, state.theta, scen, cfg, n_total)
                 state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
             bar.update(1)
             if i == start:

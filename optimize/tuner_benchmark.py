@@ -71,14 +71,17 @@ class Programs:
         base = base if base is not None else _gains.default_gains()
         tcfg = TuneConfig(batch=cfg.batch, task=cfg.task, truncate_every=None)
         self.spec = PROBLEMS["schedule"]
-        loss = make_loss(model, self.spec, base, tcfg, weights or CostWeights())
+        weights = weights or CostWeights()
+        loss = make_loss(model, self.spec, base, tcfg, weights)  # differentiated: jaxsync's tree passes
+        forward = make_loss(model, self.spec, base, tcfg, weights, differentiated=False)  # MJX's passes
         theta0 = self.spec.init(base)
         self.x0, unravel = ravel_pytree(theta0)
         self.x0 = np.asarray(self.x0)
         f = lambda x, s: loss(unravel(x), s)[0]  # noqa: E731
+        f_forward = lambda x, s: forward(unravel(x), s)[0]  # noqa: E731
         self.value_and_grad = jax.jit(jax.value_and_grad(f))
-        self.values = jax.jit(jax.vmap(f, in_axes=(0, None)))
-        self.value = jax.jit(f)
+        self.values = jax.jit(jax.vmap(f_forward, in_axes=(0, None)))
+        self.value = jax.jit(f_forward)
         self.base_task = _scenario.short_task() if cfg.task == "short" else _scenario.default_scenario()
         self.heldout = sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, self.base_task)
         # the tie map of the constant problem: x160 = T @ x22

@@ -120,6 +120,37 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
         assert _gains.to_dict(r_full.last_gains) != _gains.to_dict(full)
 
 
+def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monkeypatch):
+    """make_loss(differentiated=True) (what tune's gradient and the tuner
+    benchmark's differentiate) steps with jaxsync's tree passes, the loss a
+    CMA-ES population or a held-out score only evaluates with MJX's (faster
+    over large vmapped batches): each loss traced once (no compile), the
+    physics stage's ``passes`` recorded."""
+    from jaxsync.optimize.cost import CostWeights
+    from jaxsync.optimize.tasks import training_base
+    from jaxsync.optimize.tune import make_loss
+
+    from jaxsync import _physics
+
+    real, seen = _physics.before_control, []
+
+    def recording(m, d, passes="mjx"):
+        seen.append(passes)
+        return real(m, d, passes)
+
+    monkeypatch.setattr(_physics, "before_control", recording)
+    cfg = TuneConfig(task="short", batch=1)
+    spec, base = TuneSpec(), _gains.default_gains()
+    scen = sample_scenarios(jax.random.key(0), 1, training_base(cfg)[0])
+    passes = {}
+    for differentiated in (True, False):
+        seen.clear()
+        loss = make_loss(model, spec, base, cfg, CostWeights(), differentiated=differentiated)
+        jax.eval_shape(loss, spec.init(base), scen)
+        passes[differentiated] = set(seen)
+    assert passes == {True: {"tree"}, False: {"mjx"}}
+
+
 def test_select_iterate_keeps_the_grip_error():
     from jaxsync.optimize.tune import select_iterate
 
