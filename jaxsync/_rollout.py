@@ -46,7 +46,11 @@ def make_rollout(
       control_substeps: physics steps per control period (1: control at the
         simulation rate, 500 Hz for the paper model).
       cross_term: reading of eq. 16's cross term (see jaxsync._sync).
-      remat: ``jax.checkpoint`` the scan body (for long reverse-mode gradients).
+      remat: ``jax.checkpoint`` the scan body (for long reverse-mode
+        gradients); such a program is one to differentiate, so it also runs
+        jaxsync's vectorised tree passes (``_physics.PASSES``: the same values
+        to rounding, a smaller program to differentiate) where a forward
+        program runs MJX's.
       truncate_every: if set, stop gradients through the simulator and
         controller state every this many control steps (truncated
         backpropagation in windows; the forward values are unchanged).

@@ -193,7 +193,6 @@ def shared_rollout():
             memo[key] = jax.block_until_ready(_rollout.rollout(model, gains, scenario, **kw))
         return memo[key]
 
-    fn.memo = memo
     return fn
 
 
