@@ -33,6 +33,7 @@ def main() -> None:
     p.add_argument("--duration", type=float, default=2.0)
     p.add_argument("--out", default="results/gradient_cost")
     args = p.parse_args()
+    jaxsync.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     jaxsync.enable_compilation_cache()
     s, g = jaxsync.short_task(), jaxsync.default_gains()

@@ -37,11 +37,13 @@ def main(argv=None) -> int:
 
     import jax
 
+    import jaxsync
+
+    jaxsync.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     from jaxsync.optimize import methods as M
     from jaxsync.optimize import tuner_benchmark as B
 
-    import jaxsync
     from jaxsync import _io
     from jaxsync._errors import ConfigError
 

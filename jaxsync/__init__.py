@@ -16,12 +16,16 @@ The public face; everything else lives in private modules
   :class:`TuneConfig`, :class:`TuneSpec`, :class:`CostWeights`,
   :func:`make_loss`, :func:`sample_scenarios`, :func:`make_plan`,
   :func:`run_sweep`;
-- :func:`enable_compilation_cache`: JAX's persistent compilation cache.
+- set-up, first thing in a script: :func:`set_xla_flags` (XLA's CPU settings,
+  before the first JAX computation) and :func:`enable_compilation_cache`
+  (JAX's persistent compilation cache).
 
 Example:
   >>> import jax
-  >>> jax.config.update("jax_enable_x64", True)
   >>> import jaxsync
+  >>> jaxsync.set_xla_flags()  # before the first JAX computation: half the compile memory
+  True
+  >>> jax.config.update("jax_enable_x64", True)
   >>> jaxsync.enable_compilation_cache()  # later runs skip most compiling
   >>> model = jaxsync.load_model()
   >>> s = jaxsync.short_task()
@@ -63,6 +67,7 @@ from jaxsync._rollout_mujoco import rollout_mujoco
 from jaxsync._scenario import Scenario, default_scenario, short_task
 from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
 from jaxsync._trajectory import Trajectory
+from jaxsync._xla import set_xla_flags
 
 __version__ = "0.1.0"
 
@@ -142,6 +147,7 @@ __all__ = [
     "tune",
     # set-up and errors
     "enable_compilation_cache",
+    "set_xla_flags",
     "ConfigError",
     "JaxsyncError",
     "ModelError",

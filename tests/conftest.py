@@ -9,7 +9,9 @@ import jax
 import pytest
 
 from jaxsync._cache import enable_compilation_cache
+from jaxsync._xla import set_xla_flags
 
+set_xla_flags()  # as the command line does (half the memory of compiling); before any JAX computation
 jax.config.update("jax_enable_x64", True)
 # every program, also the small ones of eager operations (about 600 of them in
 # three test files, 24 s of compiling that a warm run now reads back)

@@ -23,7 +23,9 @@ def _setup_jax(args: argparse.Namespace) -> None:
     import jax
 
     from jaxsync._cache import enable_compilation_cache
+    from jaxsync._xla import set_xla_flags
 
+    set_xla_flags()  # before anything starts JAX's backend (a command run in-process may find it started)
     jax.config.update("jax_enable_x64", not getattr(args, "float32", False))
     enable_compilation_cache(getattr(args, "cache_dir", None))
     if hasattr(args, "coordinator"):  # a command that can run over many processes (sweep, tune)

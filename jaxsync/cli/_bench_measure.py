@@ -276,7 +276,9 @@ def _child_setup():
     import jax
 
     from jaxsync._cache import enable_compilation_cache
+    from jaxsync._xla import set_xla_flags
 
+    set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     return enable_compilation_cache()
 
@@ -362,9 +364,17 @@ def child(mode: str, cfg: dict) -> dict:
     raise ValueError(mode)
 
 
-def _run_child(mode: str, cfg: dict, cache_dir: str | None) -> dict:
+# XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync._xla):
+# the benchmark measures the gradient's compile and the tuning step's memory
+# with it too, beside jaxsync's setting
+XLA_DEFAULT_EMITTERS = "--xla_cpu_use_fusion_emitters=true"
+
+
+def _run_child(mode: str, cfg: dict, cache_dir: str | None, xla_flags: str | None = None) -> dict:
     env = dict(os.environ)
     env["JAXSYNC_CACHE_DIR"] = cache_dir or "off"
+    if xla_flags is not None:
+        env["XLA_FLAGS"] = xla_flags
     code = (
         "import json, sys; from jaxsync.cli._bench_measure import child; "
         "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))"
@@ -410,21 +420,37 @@ def compile_times(path: str, duration: float, small: bool, log, exported: bool =
     return out
 
 
+def cold_compile_with_xla_flags(path: str, duration: float, xla_flags: str, log) -> dict:
+    """The cold compile of ``path``'s gradient (fresh process, empty cache) under ``xla_flags``."""
+    cfg = {"path": path, "duration": duration, "small": False}
+    with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
+        r = _run_child("compile", cfg, cache, xla_flags=xla_flags)
+    log(
+        f"  {path} with {xla_flags}: gradient compile cold {r['total_s']:.1f} s "
+        f"(trace {r['trace_s']:.1f} + XLA {r['xla_compile_s']:.1f})"
+    )
+    return r
+
+
 def warm_compile_s(comp: dict) -> float:
     """The warm compile time as ``jaxsync tune`` sees it (traced on disk where measured)."""
     return (comp["warm_exported"] if "warm_exported" in comp else comp["warm"])["total_s"]
 
 
-def tune_step_memory(path: str, batch: int, task: str, small: bool, log, warm: bool = True) -> dict:
+def tune_step_memory(
+    path: str, batch: int, task: str, small: bool, log, warm: bool = True, xla_flags: str | None = None
+) -> dict:
     """Peak memory of a fresh process taking one tuning step: cold (an empty
     persistent cache, so the process compiles the step: a first ``jaxsync
-    tune``) and, with ``warm``, again on the filled cache (a later run)."""
+    tune``) and, with ``warm``, again on the filled cache (a later run).
+    ``xla_flags`` replaces the children's ``$XLA_FLAGS``."""
     cfg = {"path": path, "batch": batch, "task": task, "small": small}
     what = "small stand-in" if small else f"batch {batch}, {task} task"
+    what += f", {xla_flags}" if xla_flags is not None else ""
     out = {}
     with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
         for kind in ("cold", "warm") if warm else ("cold",):
-            out[kind] = r = _run_child("tune_step", cfg, cache)
+            out[kind] = r = _run_child("tune_step", cfg, cache, xla_flags=xla_flags)
             log(
                 f"  {path}: tuning step ({what}), {kind} cache: peak RSS {r['peak_rss_gib']:.2f} GiB "
                 f"(after compiling {r['peak_rss_after_compile_gib']:.2f} GiB; XLA temporaries "

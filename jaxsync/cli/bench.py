@@ -83,8 +83,10 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     from jaxsync._model import load_model
     from jaxsync.cli._bench_measure import (
         PATHS,
+        XLA_DEFAULT_EMITTERS,
         _have_flatbuffers,
         bare_mj_step,
+        cold_compile_with_xla_flags,
         compile_times,
         forward_and_gradient,
         machine,
@@ -118,10 +120,15 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     comp = {"new": compile_times("new", cfg["grad_duration"], small, log, exported=not small)}
     if cfg["old_children"]:
         comp["old"] = compile_times("old", cfg["grad_duration"], small, log, exported=False)
+        # jaxsync turns XLA's CPU fusion emitters off (jaxsync._xla); the same compile with XLA's default
+        comp["new_xla_default"] = cold_compile_with_xla_flags("new", cfg["grad_duration"], XLA_DEFAULT_EMITTERS, log)
     log("[6/6] peak memory of one tuning step, in fresh processes (cold cache: it compiles; warm: from the cache)")
     tune = {"new": tune_step_memory("new", cfg["tune_batch"], cfg["tune_task"], small, log)}
     if cfg["old_children"]:
         tune["old"] = tune_step_memory("old", cfg["tune_batch"], cfg["tune_task"], small, log, warm=False)
+        tune["new_xla_default"] = tune_step_memory(
+            "new", cfg["tune_batch"], cfg["tune_task"], small, log, warm=False, xla_flags=XLA_DEFAULT_EMITTERS
+        )
     best_b = max(mjx["rates"], key=mjx["rates"].get)
 
     def path_figures(p: str) -> dict:
@@ -156,6 +163,12 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
         "grad_compile_warm_persistent_cache_only_s": comp["new"]["warm"]["total_s"],
         "tune_step_peak_rss_gib": new["tune_step_peak_rss_gib"],
         "tune_step_peak_rss_warm_gib": tune["new"]["warm"]["peak_rss_gib"],
+        # the same with XLA's default CPU emitters (jaxsync turns them off); None in --quick
+        "grad_compile_cold_xla_default_s": comp["new_xla_default"]["total_s"] if "new_xla_default" in comp else None,
+        "tune_step_peak_rss_xla_default_gib": tune["new_xla_default"]["peak_rss_gib"]
+        if "new_xla_default" in tune
+        else None,
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "paths": {p: path_figures(p) for p in PATHS},
         "details": {
             "mjx": mjx,
@@ -227,6 +240,18 @@ def table(r: dict) -> str:
             "tune_step_peak_rss_gib",
         ),
         ("tuning step peak RSS (from the cache), GiB", f"{r['tune_step_peak_rss_warm_gib']:.2f}", "", None),
+        (
+            "with XLA's default CPU emitters: gradient compile cold, s",
+            _fmt(r.get("grad_compile_cold_xla_default_s"), ".1f"),
+            "",
+            None,
+        ),
+        (
+            "with XLA's default CPU emitters: tuning step peak RSS (compiling), GiB",
+            _fmt(r.get("tune_step_peak_rss_xla_default_gib"), ".2f"),
+            "",
+            None,
+        ),
     ]
     tg = r.get("targets", {})
     w = max(len(a) for a, *_ in rows)
@@ -238,7 +263,7 @@ def table(r: dict) -> str:
             verdict = "met" if t["met"] else "MISSED"
             mark = f"{t['target']:<8} {verdict}" + ("" if t["judged"] else " (--quick: not a benchmark)")
         lines.append(f"{name:<{w}}  {val:>12}  {val_old:>8}  {mark}".rstrip())
-    lines.append(f"new: {new['label']}; old: {old['label']}")
+    lines.append(f"new: {new['label']}; old: {old['label']}; XLA_FLAGS: {r.get('xla_flags') or '(none)'}")
     return "\n".join(lines)
 
 
