@@ -59,6 +59,9 @@ def test_quick_bench_writes_every_key(tmp_path, capsys):
     assert "cpu_model" in m
     out = capsys.readouterr().out
     assert "gradient / forward" in out and "bench.json" in out
+    # the run's XLA settings are recorded; XLA's default emitters are measured in full runs only
+    assert "--xla_cpu_use_fusion_emitters=false" in r["xla_flags"]
+    assert r["grad_compile_cold_xla_default_s"] is None and r["tune_step_peak_rss_xla_default_gib"] is None
 
 
 def test_table_marks_missed_targets_also_in_quick_mode():
@@ -87,6 +90,9 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         "grad_compile_warm_persistent_cache_only_s": 3.0,
         "tune_step_peak_rss_gib": 1.0,
         "tune_step_peak_rss_warm_gib": 0.5,
+        "grad_compile_cold_xla_default_s": 159.25,
+        "tune_step_peak_rss_xla_default_gib": 2.5,
+        "xla_flags": "--xla_cpu_use_fusion_emitters=false",
         "paths": {"new": path, "old": old},
     }
     for judged in (True, False):
@@ -96,3 +102,6 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         assert "MISSED" in rows["MJX best (batch 1) / MuJoCo C"]
         assert " met" in rows["gradient compile warm (as the CLI), s"] and " met" in rows["gradient s, new / old"]
         assert ("not a benchmark" in rows["gradient / forward"]) is (not judged)
+        assert "159.2" in rows["with XLA's default CPU emitters: gradient compile cold, s"]
+        assert "2.50" in rows["with XLA's default CPU emitters: tuning step peak RSS (compiling), GiB"]
+        assert table(r).splitlines()[-1].endswith("XLA_FLAGS: --xla_cpu_use_fusion_emitters=false")

@@ -196,11 +196,14 @@ def test_cli_info_on_bad_model_exits_nonzero_without_traceback(tmp_path):
 
 
 def test_cli_info_prints_versions_and_model(tmp_path):
-    out = _cli("info", tmp_path=tmp_path)
+    out = _cli("info", tmp_path=tmp_path, XLA_FLAGS="")  # the command sets jaxsync's XLA flags itself
     assert out.returncode == 0, out.stderr
     for word in ("jax", "mujoco-mjx", "devices", "joints_per_arm", "r: 7, l: 7", "contact_pairs", "timestep_s"):
         assert word in out.stdout
     assert "warp" not in out.stdout
+    # set before JAX's backend started (else set_xla_flags warns and leaves $XLA_FLAGS empty)
+    assert "XLA_FLAGS    --xla_cpu_use_fusion_emitters=false" in out.stdout, out.stdout
+    assert "Warning" not in out.stderr, out.stderr
 
 
 def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():

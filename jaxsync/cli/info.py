@@ -58,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"mujoco       {mujoco.__version__}")
     print(f"mujoco-mjx   {version('mujoco-mjx')}")
     print(f"devices      {', '.join(str(d) for d in jax.devices())}")
+    print(f"XLA_FLAGS    {os.environ.get('XLA_FLAGS') or '(none)'}")
     print(f"cpu cores    {os.cpu_count()}")
     print()
     for key, value in model_summary(model).items():
