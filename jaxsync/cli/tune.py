@@ -112,7 +112,7 @@ def run(args) -> int:
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
         + (", per task phase" if spec.schedule else "")
         + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
-        "(the first iteration traces and compiles the gradient: minutes on a small CPU, seconds when the "
+        "(the first iteration traces and compiles the gradient: a minute or two on a 2-core CPU, seconds when the "
         "compilation cache holds it; the ETA leaves it out)",
         flush=True,
     )
