@@ -19,9 +19,10 @@ from __future__ import annotations
 import os
 import warnings
 
+FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
 # name -> value; XLA aborts on a flag it does not know, so each is checked
-# against the pinned jaxlib (tests/test_cache.py)
-FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
+# against the pinned jaxlib (tests/test_xla.py)
+FLAGS = {FUSION_EMITTERS: "false"}
 
 
 def _backend_started() -> bool:

@@ -23,6 +23,8 @@ import time
 
 import numpy as np
 
+from jaxsync import _xla
+
 
 def _scenarios(base, n: int):
     """n copies of ``base`` with noise keys 0..n-1 (a batch with a leading axis)."""
@@ -276,9 +278,8 @@ def _child_setup():
     import jax
 
     from jaxsync._cache import enable_compilation_cache
-    from jaxsync._xla import set_xla_flags
 
-    set_xla_flags()
+    _xla.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     return enable_compilation_cache()
 
@@ -367,7 +368,7 @@ def child(mode: str, cfg: dict) -> dict:
 # XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync._xla):
 # the benchmark measures the gradient's compile and the tuning step's memory
 # with it too, beside jaxsync's setting
-XLA_DEFAULT_EMITTERS = "--xla_cpu_use_fusion_emitters=true"
+XLA_DEFAULT_EMITTERS = f"--{_xla.FUSION_EMITTERS}=true"
 
 
 def _run_child(mode: str, cfg: dict, cache_dir: str | None, xla_flags: str | None = None) -> dict:
