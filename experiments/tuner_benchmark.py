@@ -44,8 +44,8 @@ def main(argv=None) -> int:
     from jaxsync.optimize import methods as M
     from jaxsync.optimize import tuner_benchmark as B
 
-    from jaxsync import _io
     from jaxsync._errors import ConfigError
+    from jaxsync.io import results as _results
 
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
@@ -58,7 +58,7 @@ def main(argv=None) -> int:
             raise ConfigError("--budget must be > 0, --batch and --heldout-batch >= 1, --popsize >= 2")
         if not 0 < args.target < 1:
             raise ConfigError(f"--target must lie in (0, 1), got {args.target}")
-        _io.ensure_writable_dir(args.out)
+        _results.ensure_writable_dir(args.out)
     except (ConfigError, ValueError) as err:
         print(f"tuner_benchmark: {err}", file=sys.stderr)
         return 2
@@ -94,7 +94,7 @@ def main(argv=None) -> int:
         with open(runs_path, "a") as f:
             f.write(json.dumps(r) + "\n")
     summary = B.summarize(runs)
-    _io.write_json(
+    _results.write_json(
         os.path.join(args.out, "summary.json"),
         {
             "summary": summary,

@@ -37,10 +37,10 @@ import contextlib
 import importlib as _importlib
 import io
 
-from jaxsync._gl import import_mujoco
+from jaxsync.runtime.gl import import_mujoco
 
 # mujoco without OpenGL: a MUJOCO_GL backend that is not installed must not
-# break commands that do not render (the first Renderer loads it; jaxsync._gl)
+# break commands that do not render (the first Renderer loads it; jaxsync.runtime.gl)
 import_mujoco()
 
 # MJX prints "Failed to import warp" to stdout when the optional warp backend is
@@ -49,8 +49,6 @@ with contextlib.redirect_stdout(io.StringIO()):
     from mujoco import mjx as _mjx  # noqa: F401
 del contextlib, io, import_mujoco
 
-from jaxsync._cache import enable_compilation_cache
-from jaxsync._controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
 from jaxsync._errors import (
     ConfigError,
     JaxsyncError,
@@ -58,16 +56,18 @@ from jaxsync._errors import (
     ModelFileError,
     ModelStructureError,
 )
-from jaxsync._gains import Gains, classical_equivalent, default_gains
-from jaxsync._metrics import Metrics, series, summarize
-from jaxsync._model import DualArmModel, default_model_path, load_model
-from jaxsync._physics import after_control, before_control, put_data
-from jaxsync._rollout import make_rollout, rollout
-from jaxsync._rollout_mujoco import rollout_mujoco
-from jaxsync._scenario import Scenario, default_scenario, short_task
-from jaxsync._sensing import ArmState, ObjectState, Sensed, sense
-from jaxsync._trajectory import Trajectory
-from jaxsync._xla import set_xla_flags
+from jaxsync.control.controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
+from jaxsync.control.gains import Gains, classical_equivalent, default_gains
+from jaxsync.physics.model import DualArmModel, default_model_path, load_model
+from jaxsync.physics.sensing import ArmState, ObjectState, Sensed, sense
+from jaxsync.physics.step import after_control, before_control, put_data
+from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
+from jaxsync.sim.metrics import Metrics, series, summarize
+from jaxsync.sim.rollout import make_rollout, rollout
+from jaxsync.sim.rollout_mujoco import rollout_mujoco
+from jaxsync.sim.scenario import Scenario, default_scenario, short_task
+from jaxsync.sim.trajectory import Trajectory
 
 __version__ = "0.1.0"
 

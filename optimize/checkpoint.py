@@ -7,8 +7,8 @@ import pickle
 import jax
 import numpy as np
 
-from jaxsync import _io
 from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
 
 # the fields holding JAX arrays; the rest (history rows, validation entries,
 # counters, the options fingerprint) are plain Python and are pickled as they
@@ -20,7 +20,7 @@ ARRAY_FIELDS = ("theta", "opt_state", "kept")
 
 def save(path: str, state: dict) -> None:
     state = {k: jax.tree_util.tree_map(np.asarray, v) if k in ARRAY_FIELDS else v for k, v in state.items()}
-    _io.atomic_write_bytes(path, pickle.dumps(state))
+    _results.atomic_write_bytes(path, pickle.dumps(state))
 
 
 def load(path: str) -> dict:

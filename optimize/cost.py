@@ -1,5 +1,5 @@
 """The tuning cost over one rollout (docs/tuning.md). Built from the metric
-definitions of ``jaxsync._metrics``: nothing is defined twice."""
+definitions of ``jaxsync.sim.metrics``: nothing is defined twice."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxsync import _metrics
+from jaxsync.sim import metrics as _metrics
 
 
 class CostWeights(NamedTuple):

@@ -1,7 +1,7 @@
 """Data-parallel tuning: the training batch sharded over every device of every process.
 
 When a run has more than one JAX device (several local GPUs, or several
-processes joined by ``jaxsync._distributed``), ``tune`` evaluates its loss
+processes joined by ``jaxsync.runtime.distributed``), ``tune`` evaluates its loss
 here: each device takes its slice of the batch, computes the mean cost and
 its gradient over that slice, and an all-reduce (``psum``) weights the slices
 into the mean over the whole batch: the same value and gradient as one device
@@ -104,7 +104,7 @@ def _compiled_together(fn, name: str):
     compile at their own pace (minutes here, not the same in each), but the
     first collective, whose CPU (gloo) set-up waits 30 s at most for the other
     processes, starts only once every process has its program."""
-    from jaxsync import _distributed
+    from jaxsync.runtime import distributed as _distributed
 
     compiled = None
     name = f"{name} #{next(_BARRIERS)}"  # a barrier's name is used once per run

@@ -13,8 +13,8 @@ Impedance parameters are shared by both arms or per arm (``per_arm``), and
 per axis (6 values: the pad frame's x, y, z and rotations about them) or
 isotropic (``isotropic``: one value for translations, one for rotations).
 With ``schedule`` every tuned parameter has one value per task phase (close,
-squeeze, carry, hold; ``jaxsync._schedule``) and the gains are a
-:class:`~jaxsync._schedule.Schedule`: per arm and per axis that is
+squeeze, carry, hold; ``jaxsync.control.schedule``) and the gains are a
+:class:`~jaxsync.control.schedule.Schedule`: per arm and per axis that is
 4 x (4 + 3 x 2 x 6) = 160 parameters.
 """
 
@@ -26,9 +26,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync import _schedule
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.control.gains import Gains
 
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
 SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
@@ -59,7 +59,7 @@ class TuneSpec:
     tuned: tuple[str, ...] = DEFAULT_TUNED
     per_arm: bool = False
     isotropic: bool = False
-    schedule: bool = False  # one value per task phase (jaxsync._schedule.PHASES)
+    schedule: bool = False  # one value per task phase (jaxsync.control.schedule.PHASES)
 
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
@@ -118,7 +118,7 @@ class TuneSpec:
 
     def to_gains(self, theta: dict, base):
         """Valid gains from theta (differentiable): :class:`Gains`, or a
-        :class:`~jaxsync._schedule.Schedule` when ``schedule`` is set."""
+        :class:`~jaxsync.control.schedule.Schedule` when ``schedule`` is set."""
         if not self.schedule:
             if isinstance(base, _schedule.Schedule):
                 raise ConfigError(

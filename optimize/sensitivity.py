@@ -27,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxsync.optimize.cost import smooth_metrics
 
-from jaxsync import _gains
-from jaxsync._rollout import make_rollout
+from jaxsync.control import gains as _gains
+from jaxsync.sim.rollout import make_rollout
 
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
 SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll")  # elasticity per unit k, not per log k
@@ -156,7 +156,7 @@ def plot(s: Sensitivity, path: str, title: str = "") -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxsync import _io
+    from jaxsync.io import results as _results
 
     n = len(s.names)
     fig, axes = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 0.22 * n + 1.6), sharey=True)
@@ -179,5 +179,5 @@ def plot(s: Sensitivity, path: str, title: str = "") -> None:
         fontsize=9,
     )
     fig.tight_layout()
-    _io.save_figure(fig, path)
+    _results.save_figure(fig, path)
     plt.close(fig)

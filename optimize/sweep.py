@@ -28,8 +28,10 @@ from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS, plot, summarize_
 from jaxsync.optimize.sweep_spec import Param, Target, build_batch, known_names, make_points, parse_param, resolve_name
 from jaxsync.optimize.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
 
-from jaxsync import _distributed, _io, _metrics
 from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
+from jaxsync.runtime import distributed as _distributed
+from jaxsync.sim import metrics as _metrics
 
 __all__ = [
     "DEFAULT_BUDGET_GIB",
@@ -150,7 +152,7 @@ def run(
     continued with ``resume`` (the same plan's finished chunks are read back),
     discarded with ``restart``, and an error with neither.
 
-    In a multi-process run (``jaxsync._distributed.initialize``; ``out`` on a
+    In a multi-process run (``jaxsync.runtime.distributed.initialize``; ``out`` on a
     file system every process sees) process 0 checks the folder and decides
     which chunks are left; process k computes every P-th of them on its own
     devices and writes each as it finishes; process 0 then assembles
@@ -193,7 +195,7 @@ def run(
     n_chunks = -(-n // c)
     if main_proc:
         doc = {"fingerprint": plan.fingerprint, "chunk": c, "n_chunks": n_chunks, "n_devices": n_dev}
-        _io.write_json(os.path.join(out, "plan.json"), {**doc, "spec": plan.spec, "process_count": nproc})
+        _results.write_json(os.path.join(out, "plan.json"), {**doc, "spec": plan.spec, "process_count": nproc})
         todo = [i for i in range(n_chunks) if i not in results]
         if loaded:
             log(f"resuming: {loaded} of {n_chunks} chunks read back from {os.path.join(out, 'chunks')}")
@@ -278,5 +280,5 @@ def _assemble(plan, out, results, n_chunks, c, n_steps, devices, nproc, budget_g
             "files": ["results.csv", "summary.json", "plan.json", "chunks/"] + ([fig] if fig else []),
         }
     )
-    _io.write_json(os.path.join(out, "summary.json"), summary)
+    _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary

@@ -19,8 +19,8 @@ from jaxsync.optimize.sweep_plan import Plan
 from jaxsync.optimize.sweep_spec import build_batch
 
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
-from jaxsync._scenario import Scenario
+from jaxsync.control.gains import Gains
+from jaxsync.sim.scenario import Scenario
 
 DEFAULT_BUDGET_GIB = 2.0
 DEFAULT_CHUNK_PER_DEVICE = {"cpu": 32}  # other platforms (GPU, TPU): 1024 per device
@@ -29,7 +29,7 @@ GIB = 1024.0**3
 
 @functools.lru_cache(maxsize=4)
 def _model(solver: str):
-    from jaxsync._model import load_model
+    from jaxsync.physics.model import load_model
 
     return load_model(solver=solver)
 
@@ -51,8 +51,8 @@ def evaluator(solver: str, controller: str, duration: float, n_devices: int):
     import jax
     from jax.sharding import PartitionSpec as P
 
-    from jaxsync._metrics import summarize
-    from jaxsync._rollout import make_rollout
+    from jaxsync.sim.metrics import summarize
+    from jaxsync.sim.rollout import make_rollout
 
     fn = make_rollout(_model(solver), controller, duration)
     local = jax.vmap(lambda g, s: summarize(fn(g, s), s))
@@ -131,7 +131,7 @@ def choose_chunk(
     search never undershoots a chunk that fits). Raises ConfigError when not
     even one environment per device fits.
     """
-    from jaxsync._rollout import cpu_vmap_limit
+    from jaxsync.sim.rollout import cpu_vmap_limit
 
     budget = budget_gib * GIB
     per_dev_cap = DEFAULT_CHUNK_PER_DEVICE.get(platform, 1024)

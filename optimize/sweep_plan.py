@@ -21,11 +21,12 @@ from jaxsync.optimize.sweep_spec import (
     validate_values,
 )
 
-from jaxsync import _gains, _scenario
-from jaxsync._controller import CONTROLLERS
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
-from jaxsync._scenario import Scenario, min_duration
+from jaxsync.control import gains as _gains
+from jaxsync.control.controller import CONTROLLERS
+from jaxsync.control.gains import Gains
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.scenario import Scenario, min_duration
 
 PLAN_VERSION = 1
 

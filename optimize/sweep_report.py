@@ -7,8 +7,8 @@ import os
 import numpy as np
 from jaxsync.optimize.sweep_plan import Plan
 
-from jaxsync import _io
-from jaxsync._metrics import BOOL_METRICS
+from jaxsync.io import results as _results
+from jaxsync.sim.metrics import BOOL_METRICS
 
 DEFAULT_PLOT_METRICS = ("settled_peak_resultant_N", "grip_force_error_rel")
 
@@ -22,7 +22,7 @@ def write_csv(path: str, plan: Plan, metrics: dict) -> None:
         cols[k] = [int(x) for x in v] if k in BOOL_METRICS else [float(x) for x in v]
     ok = ~(metrics["dropped"].astype(bool) | metrics["nonfinite"].astype(bool))
     cols["ok"] = [int(x) for x in ok]
-    _io.write_csv(path, cols)
+    _results.write_csv(path, cols)
 
 
 def _stats(x: np.ndarray) -> dict | None:
@@ -140,6 +140,6 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
                 _nothing_to_plot(ax)
     fig.suptitle(f"{plan.controller} controller, {plan.duration:g} s rollouts", fontsize=10)
     fig.tight_layout()
-    _io.save_figure(fig, os.path.join(out, name))
+    _results.save_figure(fig, os.path.join(out, name))
     plt.close(fig)
     return name

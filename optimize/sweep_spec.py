@@ -15,10 +15,11 @@ import re
 
 import numpy as np
 
-from jaxsync import _gains, _scenario
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
-from jaxsync._scenario import Scenario
+from jaxsync.control import gains as _gains
+from jaxsync.control.gains import Gains
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.scenario import Scenario
 
 AXES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5}
 ARMS = {"r": 0, "right": 0, "l": 1, "left": 1}

@@ -15,8 +15,8 @@ import shutil
 import numpy as np
 from jaxsync.optimize.sweep_plan import Plan
 
-from jaxsync import _io
 from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
 
 
 def _chunk_path(out: str, i: int) -> str:
@@ -26,7 +26,7 @@ def _chunk_path(out: str, i: int) -> str:
 def save_chunk(out: str, i: int, start: int, stop: int, metrics: dict) -> None:
     buf = io.BytesIO()
     np.savez(buf, start=start, stop=stop, **metrics)
-    _io.atomic_write_bytes(_chunk_path(out, i), buf.getvalue())
+    _results.atomic_write_bytes(_chunk_path(out, i), buf.getvalue())
 
 
 def load_chunk(out: str, i: int, start: int, stop: int, fields) -> dict | None:
@@ -78,7 +78,7 @@ def prepare_out(out: str, plan: Plan, restart: bool, resume: bool = False) -> di
             )
     if resume and stored is None:
         raise ConfigError(f"--resume: no sweep to continue in {out!r} (no readable plan.json)")
-    _io.ensure_writable_dir(out)
+    _results.ensure_writable_dir(out)
     if restart or stored is None:  # --restart, or a new sweep: any old state goes
         stored = None
         shutil.rmtree(os.path.join(out, "chunks"), ignore_errors=True)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxsync import _scenario
+from jaxsync.sim import scenario as _scenario
 
 
 def training_base(cfg) -> tuple[_scenario.Scenario, float]:

@@ -32,10 +32,14 @@ from jaxsync.optimize.loop import apply_update, make_optimizer
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tasks import training_base, training_batch
 
-from jaxsync import _gains, _io, _metrics, _physics, _schedule
-from jaxsync._cache import traced_on_disk
 from jaxsync._errors import ConfigError, JaxsyncError
-from jaxsync._rollout import make_rollout
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.io import results as _results
+from jaxsync.physics import step as _physics
+from jaxsync.runtime.cache import traced_on_disk
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.rollout import make_rollout
 
 # TuneConfig fields the training loss's program depends on (the rest steer the loop)
 _PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")
@@ -170,8 +174,7 @@ def make_evaluator(model, duration: float):
 def eval_summary(m) -> dict:
     """A batch of metrics as the loop records it: means over the rollouts kept (not dropped, finite)."""
     import numpy as np
-
-    from jaxsync._compare import metric_rows
+    from jaxsync.optimize.compare import metric_rows
 
     rows = metric_rows(m)
     m = _metrics.to_arrays(m)
@@ -183,7 +186,7 @@ def eval_summary(m) -> dict:
         "dropped": int(m["dropped"].sum()),
         "nonfinite": int(m["nonfinite"].sum()),
         "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
-        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync._compare.sim_to_sim)
+        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
     }
 
 
@@ -333,7 +336,7 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
 
 def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
     """jit(value_and_grad(loss)), its traced form kept on disk between runs
-    (``jaxsync._cache.traced_on_disk``), keyed by everything the loss closes over."""
+    (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
     import hashlib
 
     with open(model.path, "rb") as f:
@@ -490,7 +493,7 @@ def tune(
     ``on_iteration(i, theta, row)`` is called after each step.
 
     With more than one JAX device (several GPUs, or a multi-process run:
-    ``jaxsync._distributed``) the loss is data-parallel (``optimize.parallel``):
+    ``jaxsync.runtime.distributed``) the loss is data-parallel (``optimize.parallel``):
     ``cfg.batch`` scenarios per process, sharded over every device, the cost and
     gradient averaged over all of them; every process runs the same optimiser
     steps and process 0 alone writes the checkpoint.
@@ -520,7 +523,7 @@ def tune(
     if ckpt and not resume and not restart and os.path.exists(ckpt) and main:
         prepare_out(out)  # the error naming --resume and --restart
     if out and main:
-        _io.ensure_writable_dir(out)
+        _results.ensure_writable_dir(out)
     write_ckpt = ckpt if main else None  # every process reads a checkpoint to resume; process 0 writes them
     state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt, method, cfg.seed)
     every = cfg.validate_every if validate is not None else 0

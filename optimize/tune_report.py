@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from jaxsync import _io
+from jaxsync.io import results as _results
 
 
 def plot_loss(history: list[dict], path: str, validation: list[dict] | None = None, selected=None) -> None:
@@ -41,5 +41,5 @@ def plot_loss(history: list[dict], path: str, validation: list[dict] | None = No
             ax.axvline(selected["iteration"], color="k", lw=0.8, ls="--")
             ax.set_title(f"selected iterate: {selected['iteration']}", fontsize=9)
     fig.tight_layout()
-    _io.save_figure(fig, path)
+    _results.save_figure(fig, path)
     plt.close(fig)

@@ -39,7 +39,7 @@ from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tasks import sample_scenarios
 
-from jaxsync import _scenario
+from jaxsync.sim import scenario as _scenario
 
 PROBLEMS = {
     "constant": TuneSpec(),
@@ -65,7 +65,7 @@ class Programs:
     def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
         from jaxsync.optimize.tune import TuneConfig, make_loss
 
-        from jaxsync import _gains
+        from jaxsync.control import gains as _gains
 
         self.cfg = cfg
         base = base if base is not None else _gains.default_gains()
@@ -235,7 +235,7 @@ def plot(runs: list[dict], path: str, target_fraction: float | None = None) -> N
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from jaxsync import _io
+    from jaxsync.io import results as _results
 
     problems = [p for p in PROBLEMS if any(r["problem"] == p for r in runs)]
     fig, axes = plt.subplots(1, len(problems), figsize=(6.5 * len(problems), 4.2), squeeze=False)
@@ -258,4 +258,4 @@ def plot(runs: list[dict], path: str, target_fraction: float | None = None) -> N
         ax.set_yscale("log")
         ax.grid(alpha=0.3)
         ax.legend(title="dotted: target")
-    _io.save_figure(fig, path)
+    _results.save_figure(fig, path)

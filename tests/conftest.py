@@ -8,8 +8,8 @@ from __future__ import annotations
 import jax
 import pytest
 
-from jaxsync._cache import enable_compilation_cache
-from jaxsync._xla import set_xla_flags
+from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
 
 set_xla_flags()  # as the command line does (half the memory of compiling); before any JAX computation
 jax.config.update("jax_enable_x64", True)
@@ -68,7 +68,7 @@ def _free_compiled_programs():
         return
     from jaxsync.optimize import sensitivity, sweep_eval
 
-    from jaxsync import _rollout
+    from jaxsync.sim import rollout as _rollout
 
     _rollout._jitted.cache_clear()
     sensitivity.program.cache_clear()
@@ -81,7 +81,7 @@ def _free_compiled_programs():
 def _clear_compiled():
     """``jax.clear_caches()`` less the traces: the compiled executables and
     lowered modules go, the traced jaxprs stay, so that the MJX physics traced
-    once (``jaxsync._physics``'s jitted stages) is not traced again by every
+    once (``jaxsync.physics.step``'s jitted stages) is not traced again by every
     test module (4-5 s each time)."""
     from jax._src import pjit
     from jax._src.interpreters import pxla
@@ -134,7 +134,7 @@ TEST_DURATION = 1.7
 
 
 def fast_scenario(**overrides):
-    from jaxsync._scenario import short_task
+    from jaxsync.sim.scenario import short_task
 
     return short_task(**overrides)
 
@@ -142,9 +142,9 @@ def fast_scenario(**overrides):
 @pytest.fixture(scope="session")
 def rollouts(model):
     """Rollouts of the fast scenario, computed once per session and shared."""
-    from jaxsync._gains import classical_equivalent, default_gains
-    from jaxsync._rollout import rollout
-    from jaxsync._scenario import min_duration
+    from jaxsync.control.gains import classical_equivalent, default_gains
+    from jaxsync.sim.rollout import rollout
+    from jaxsync.sim.scenario import min_duration
 
     assert min_duration(fast_scenario()) == TEST_DURATION
 
@@ -162,18 +162,18 @@ def rollouts(model):
 
 @pytest.fixture(scope="session")
 def shared_rollout():
-    """``jaxsync._rollout.rollout`` with the same signature, memoised for the
+    """``jaxsync.sim.rollout.rollout`` with the same signature, memoised for the
     session on the values of its arguments: the MuJoCo C rollouts (about a
     second each, a Python loop over the steps) and the MJX ones that several
     tests need (the backends' agreement, both sim-to-sim checks) run once.
     Tests pass it where ``rollout`` is called, or put it in place of
-    ``jaxsync._compare.rollout``."""
+    ``jaxsync.optimize.compare.rollout``."""
     import hashlib
     import inspect
 
     import numpy as np
 
-    from jaxsync import _rollout
+    from jaxsync.sim import rollout as _rollout
 
     def digest(tree):
         h = hashlib.sha256()
@@ -212,7 +212,7 @@ def tuning_program(model):
     from jaxsync.optimize.params import TuneSpec
     from jaxsync.optimize.tasks import sample_scenarios, training_base
 
-    from jaxsync._gains import default_gains
+    from jaxsync.control.gains import default_gains
 
     cfg = tune_mod.TuneConfig(batch=2)
     spec, base, weights = TuneSpec(), default_gains(), CostWeights()

@@ -8,12 +8,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync import _cache
-from jaxsync._gains import default_gains
+from jaxsync.control.gains import default_gains
+from jaxsync.runtime import cache as _cache
 
 
 def test_traced_function_kept_on_disk(tmp_path):
-    """jaxsync._cache.traced_on_disk: exported once, held in memory for a second
+    """jaxsync.runtime.cache.traced_on_disk: exported once, held in memory for a second
     call in the same process, read back from disk once forgotten (a later
     process), same results as plain jit; a different key or shape is a
     different file."""

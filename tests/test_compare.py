@@ -11,10 +11,11 @@ import sys
 import jax
 import numpy as np
 import pytest
+from jaxsync.optimize import compare as _compare
 
-from jaxsync import _compare, _metrics
-from jaxsync._gains import default_gains
-from jaxsync._scenario import default_scenario
+from jaxsync.control.gains import default_gains
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.scenario import default_scenario
 
 
 def _cli(*args, cwd):
@@ -99,8 +100,8 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts, capsys):
     """``jaxsync render`` writes a non-blank PNG; the comparison video has one
     frame per 1/25 s of slowed-down rollout, its rendering counted on stderr
     (skipped without an OpenGL backend)."""
-    from jaxsync import _render
     from jaxsync.cli.render import VIDEO_FPS, compare_video
+    from jaxsync.io import render as _render
 
     try:
         _render.select_gl_backend()
@@ -150,15 +151,15 @@ def test_a_drop_is_marked_not_measured(tmp_path, rollouts, monkeypatch):
     """When a controller drops the object its settled peak and the ratio mean
     nothing: the progress line and the table say when it dropped, the ratio
     is null, and the plot marks the drop (no settled peak line)."""
-    from jaxsync import _io
+    from jaxsync.io import results as _results
 
     s = rollouts["scenario"]
     results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
     results["classical"] = (results["classical"][0], _dropped(results["classical"][1]))
     figures = {}
-    save = _io.save_figure
+    save = _results.save_figure
     monkeypatch.setattr(
-        _io, "save_figure", lambda fig, path: (figures.update({os.path.basename(path): fig}), save(fig, path))
+        _results, "save_figure", lambda fig, path: (figures.update({os.path.basename(path): fig}), save(fig, path))
     )
     summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {}, 1.0)
     assert summary["resultant_ratio"] is None
@@ -188,8 +189,8 @@ def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, m
     status 4, no settled peak quoted for the dropped controller; the video
     (rendering replaced by a stand-in) is listed in the last line. The
     rollouts are the session's (no compiling)."""
-    from jaxsync import _gl
     from jaxsync.cli import main, render
+    from jaxsync.runtime import gl as _gl
 
     trajs = {id(rollouts[n]): n for n in ("classical", "synchronous")}
     monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
@@ -220,7 +221,7 @@ def test_compile_watch_tells_compiling_from_a_cache_read():
     from the persistent cache, or neither (already compiled in this process;
     only small eager programs compiled, which the cache does not keep). The
     events as jax reports them (a cache read is timed inside its compile event)."""
-    from jaxsync._cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
+    from jaxsync.runtime.cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
 
     with compile_watch() as w:  # a big program read back from the cache
         jax.monitoring.record_event_duration_secs(_RETRIEVAL_EVENT, 2.9)

@@ -8,9 +8,12 @@ import numpy as np
 import pytest
 from conftest import TEST_DURATION, fast_scenario
 
-from jaxsync import _impedance, _metrics, _so3, _sync
-from jaxsync._gains import default_gains
-from jaxsync._rollout import make_rollout, rollout, steps_for
+from jaxsync.control import impedance as _impedance
+from jaxsync.control import so3 as _so3
+from jaxsync.control import sync as _sync
+from jaxsync.control.gains import default_gains
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.rollout import make_rollout, rollout, steps_for
 
 # ------------------------------------------------------------ pure laws
 
@@ -140,7 +143,8 @@ def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollout
     them (a weak float, or an array committed to a device, as a computation on
     the model's arrays returns it, was another argument type, another 29 s
     compile), with the same values as the strong array."""
-    from jaxsync import _physics, _rollout
+    from jaxsync.physics import step as _physics
+    from jaxsync.sim import rollout as _rollout
 
     s, g = rollouts["scenario"], rollouts["gains"]
     program = _rollout._jitted(model, TEST_DURATION, 1)

@@ -24,8 +24,8 @@ import numpy as np
 import pytest
 from test_sweep import FAST, run_cli
 
-from jaxsync import _distributed
 from jaxsync._errors import ConfigError
+from jaxsync.runtime import distributed as _distributed
 
 TIMEOUT_S = 600  # each launched process
 # 8 points in chunks of 2: four chunks, two per process
@@ -214,7 +214,7 @@ def test_two_process_tuning_equals_one_process_with_both_batches(model, tuning_p
     process's batch averages. Process 0 alone writes the results."""
     from jaxsync.optimize.tune import tune
 
-    from jaxsync import _gains
+    from jaxsync.control import gains as _gains
 
     cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, validate_every=0, method="lbfgs")
     assert cfg.batch == 2 and cfg.task == "full"

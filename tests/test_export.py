@@ -7,8 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsync import _export, _gains, _schedule
 from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.io import export as _export
 
 
 def _tuned_like():

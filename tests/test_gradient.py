@@ -1,4 +1,4 @@
-"""Gradient truth: the implicit adjoint of MJX's constraint solve (jaxsync._physics.solve_implicit).
+"""Gradient truth: the implicit adjoint of MJX's constraint solve (jaxsync.physics.step.solve_implicit).
 
 Float64. One physics step in a clamp (both pads and the stand in contact, the
 object sliding so that the elliptic cone's middle zone is active): the
@@ -19,7 +19,9 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from jaxsync import _physics, _scenario, _task
+from jaxsync.physics import step as _physics
+from jaxsync.sim import closed_loop as _closed_loop
+from jaxsync.sim import scenario as _scenario
 
 UNROLLED_ITERATIONS = 40
 
@@ -29,8 +31,8 @@ def _clamp_state(model):
     sliding (tangential contact forces), random joint velocities."""
     s = _scenario.default_scenario(object_offset=[0.0, 0.0, 0.0], object_radius=0.1005)
     mx = _scenario.apply_to_model(model.mjx_model, s, model.index)
-    c = _task.consts(model, _task.REST_KEY)
-    qpos = np.asarray(_task.initial_qpos(model, c, s))
+    c = _closed_loop.consts(model, _closed_loop.REST_KEY)
+    qpos = np.asarray(_closed_loop.initial_qpos(model, c, s))
     rng = np.random.default_rng(3)
     qvel = 0.05 * rng.standard_normal(model.mj_model.nv)
     va = model.index.object_dof_adr

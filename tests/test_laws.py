@@ -11,7 +11,10 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from jaxsync import _joint_space, _so3, _sync, _task
+from jaxsync.control import joint_space as _joint_space
+from jaxsync.control import so3 as _so3
+from jaxsync.control import sync as _sync
+from jaxsync.sim import closed_loop as _closed_loop
 
 # ------------------------------------------------------- joint-space law
 
@@ -67,7 +70,7 @@ def test_torques_produce_the_commanded_pad_acceleration(model, forward_sense, fr
     ]
     tau = np.asarray(jnp.concatenate(taus))
     assert np.all(np.abs(tau) < m.actuator_ctrlrange[:, 1])  # within the actuators' range: no clipping
-    ctrl = tau[_task.consts(model).act_order]
+    ctrl = tau[_closed_loop.consts(model).act_order]
     # committed to dx's device like the rest of dx (an uncommitted argument compiles another program)
     stepped, _ = forward_sense(model.mjx_model, dx.replace(ctrl=jax.device_put(ctrl, dx.ctrl.device)))
     qacc = np.asarray(stepped.qacc)
@@ -139,7 +142,7 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     rollout of the test task (grasp, lift, hold)."""
     from conftest import TEST_DURATION
 
-    from jaxsync import _rollout
+    from jaxsync.sim import rollout as _rollout
 
     plain = rollouts["synchronous"]
     fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, truncate_every=100)

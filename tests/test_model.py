@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync._model import JOINTS_PER_ARM
+from jaxsync.physics.model import JOINTS_PER_ARM
 
 
 def _axes_and_anchors(m, d, prefix):
@@ -207,10 +207,10 @@ def test_cli_info_prints_versions_and_model(tmp_path):
 
 
 def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
-    """The elliptic-cone fix (jaxsync._physics.patch_mjx_elliptic_gradient) is installed by load_model."""
+    """The elliptic-cone fix (jaxsync.physics.step.patch_mjx_elliptic_gradient) is installed by load_model."""
     from mujoco.mjx._src import solver
 
-    from jaxsync._physics import sqrt_zero_safe
+    from jaxsync.physics.step import sqrt_zero_safe
 
     jaxsync.load_model(solver="unrolled")
 

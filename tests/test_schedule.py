@@ -11,8 +11,10 @@ import pytest
 from conftest import TEST_DURATION
 from jaxsync.optimize.params import TuneSpec
 
-from jaxsync import _gains, _scenario, _schedule
 from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.sim import scenario as _scenario
 
 
 def test_weights_are_a_partition_exact_inside_phases_and_smooth_across_boundaries():
@@ -106,7 +108,7 @@ def test_tune_spec_with_a_schedule_has_160_parameters_and_starts_at_the_base():
 
 @pytest.fixture(scope="module")
 def schedule_rollouts(model, rollouts):
-    from jaxsync._rollout import rollout
+    from jaxsync.sim.rollout import rollout
 
     g, s = rollouts["gains"], rollouts["scenario"]
     const = _schedule.constant(g)
@@ -146,7 +148,9 @@ def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
 
 def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
     """compare --gains takes a schedule: its summary.json records it in the gains-file form."""
-    from jaxsync import _compare, _metrics
+    from jaxsync.optimize import compare as _compare
+
+    from jaxsync.sim import metrics as _metrics
 
     s = rollouts["scenario"]
     sched = _schedule.from_dict({"all": {"k_rl": 0.4}, "hold": {"k_rk": -0.2}})

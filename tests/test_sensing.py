@@ -14,7 +14,7 @@ import pytest
 from mujoco import mjx
 
 import jaxsync
-from jaxsync._physics import static_contact_geoms
+from jaxsync.physics.step import static_contact_geoms
 
 N_CONFIGS = 20
 
@@ -84,7 +84,7 @@ def test_leaf_sensors_equal_mjx_sensor_acc_in_contact(model, forward_sense):
     tree) against MJX's ``sensor_acc`` (run by ``mjx.forward``), both pads
     pressed into the object, the arms moving: the same readings and the same
     end-effector accelerations to 1e-12."""
-    from jaxsync import _physics
+    from jaxsync.physics import step as _physics
 
     m, index = model.mj_model, model.index
     rng = np.random.default_rng(4)
@@ -114,7 +114,7 @@ def test_leaf_sensors_equal_mjx_sensor_acc_in_contact(model, forward_sense):
 def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
     """A force sensor on a body with children needs the children's wrenches:
     the plan is None and ``after_control`` runs MJX's own ``sensor_acc``."""
-    from jaxsync import _physics
+    from jaxsync.physics import step as _physics
 
     xml = """<mujoco><worldbody><body name="a"><joint type="hinge"/><geom size=".1"/><site name="sa"/>
       <body name="b" pos="0 0 -.3"><joint type="hinge"/><geom size=".1"/><site name="sb"/></body>
@@ -153,10 +153,11 @@ def test_position_and_velocity_stages_equal_mjx(model, forward_sense, random_pai
     unit length (kinematics normalises it, in ``qpos`` too): every position
     and velocity field the step reads, to 1e-12 (rounding: the two sum in
     other orders)."""
-    from jaxsync import _physics, _tree
+    from jaxsync.physics import body_tree as _body_tree
+    from jaxsync.physics import step as _physics
 
     m, mx, index = model.mj_model, model.mjx_model, model.index
-    assert _tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
+    assert _body_tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
     clamp = mujoco.MjData(m)
     clamp.qpos[:] = model.keyframe_qpos("grasp")
     clamp.qpos[index.right.qpos_adr[1]] += 0.05
@@ -193,7 +194,7 @@ def test_tree_passes_cover_each_joint_type():
     two subtrees whose parents lie at different places, everything moving:
     jaxsync's tree passes and Jacobians give MuJoCo C's fields;
     a body with two joints or a mocap body is left to MJX."""
-    from jaxsync import _tree
+    from jaxsync.physics import body_tree as _body_tree
 
     xml = """<mujoco><option><flag contact="disable"/></option><worldbody>
       <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
@@ -207,7 +208,7 @@ def test_tree_passes_cover_each_joint_type():
     </worldbody></mujoco>"""
     m = mujoco.MjModel.from_xml_string(xml)
     mx = mjx.put_model(m, impl="jax")
-    assert _tree.kinematics_plan(mx) is not None
+    assert _body_tree.kinematics_plan(mx) is not None
     d = mujoco.MjData(m)
     d.qpos[:] = np.random.default_rng(0).normal(size=m.nq)  # quaternions of any length: both normalise them
     d.qvel[:] = np.random.default_rng(1).normal(size=m.nv)
@@ -216,10 +217,12 @@ def test_tree_passes_cover_each_joint_type():
 
     @jax.jit
     def jaxsync_stages(mx, dx):
-        dx = _tree.com_vel(mx, _tree.com_pos(mx, _tree.kinematics(mx, dx)))
+        dx = _body_tree.com_vel(mx, _body_tree.com_pos(mx, _body_tree.kinematics(mx, dx)))
         gravity = jnp.concatenate([jnp.zeros(3), -mx.opt.gravity])
-        dx = dx.replace(qfrc_bias=_tree.bias_force(mx, dx, gravity)).tree_replace({"_impl.crb": _tree.crb_body(mx, dx)})
-        return dx, [f(mx, dx, dx.xpos[b] + 0.1, b) for f in (_tree.jac, _tree.jac_dot) for b in (3, 5)]
+        dx = dx.replace(qfrc_bias=_body_tree.bias_force(mx, dx, gravity)).tree_replace(
+            {"_impl.crb": _body_tree.crb_body(mx, dx)}
+        )
+        return dx, [f(mx, dx, dx.xpos[b] + 0.1, b) for f in (_body_tree.jac, _body_tree.jac_dot) for b in (3, 5)]
 
     got, got_jac = jaxsync_stages(mx, dx)
     names = _POSITION_FIELDS[1:14] + ("_impl.cinert", "_impl.crb", "cvel", "cdof_dot", "qfrc_bias")
@@ -240,11 +243,11 @@ def test_tree_passes_cover_each_joint_type():
     two = mujoco.MjModel.from_xml_string(
         xml.replace('<joint type="ball" pos=".05 0 0"/>', '<joint axis="1 0 0"/><joint axis="0 1 0"/>')
     )
-    assert _tree.kinematics_plan(mjx.put_model(two, impl="jax")) is None
+    assert _body_tree.kinematics_plan(mjx.put_model(two, impl="jax")) is None
     mocap = mujoco.MjModel.from_xml_string(
         xml.replace('<body pos="1 0 0">', '<body mocap="true" pos="2 0 0"/><body pos="1 0 0">')
     )
-    assert _tree.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
+    assert _body_tree.kinematics_plan(mjx.put_model(mocap, impl="jax")) is None
 
 
 @pytest.mark.parametrize(
@@ -381,7 +384,7 @@ def test_grad_of_sensed_quantities_matches_central_differences(model):
     """jax.grad through one physics step (the converged solve, implicit
     adjoint) and ``sense`` of the next state, the right pad pressed 2 mm into
     the object: against a central difference along a random direction."""
-    from jaxsync import _physics
+    from jaxsync.physics import step as _physics
 
     mx, index = model.mjx_model, model.index
     d = mujoco.MjData(model.mj_model)

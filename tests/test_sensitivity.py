@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync import _gains
+from jaxsync.control import gains as _gains
 
 DURATION = 1.7  # the short task's shortest horizon with a settled window
 BATCH = 2
@@ -74,8 +74,8 @@ def test_elasticity_scaling():
 
 @pytest.mark.slow
 def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monkeypatch, capsys):
-    from jaxsync import _model
     from jaxsync.cli import main
+    from jaxsync.physics import model as _model
 
     monkeypatch.setattr(_model, "load_model", lambda *a, **k: model)  # the fixture's compiled program
     out = tmp_path / "sens"

@@ -155,14 +155,15 @@ def test_a_plot_where_every_point_dropped_says_so(tmp_path, monkeypatch, params)
     """Not an empty plot: a note that every point dropped the object."""
     from jaxsync.optimize import sweep_report
 
-    from jaxsync import _io, _metrics
+    from jaxsync.io import results as _results
+    from jaxsync.sim import metrics as _metrics
 
     plan = sweep.make_plan(params, duration=4.0)
     n = len(plan.points)
     metrics = {k: np.full(n, np.nan) if k.endswith("_time_s") else np.ones(n) for k in _metrics.Metrics._fields}
     metrics.update(dropped=np.ones(n, bool), nonfinite=np.zeros(n, bool), drop_time_s=np.full(n, 1.5))
     figures = []
-    monkeypatch.setattr(_io, "save_figure", lambda fig, path: figures.append(fig))
+    monkeypatch.setattr(_results, "save_figure", lambda fig, path: figures.append(fig))
     name = sweep_report.plot(str(tmp_path), plan, metrics, sweep.DEFAULT_PLOT_METRICS)
     assert name == ("line.png" if len(params) == 1 else "heatmap.png")
     (fig,) = figures
@@ -207,7 +208,7 @@ def test_sweep_point_equals_the_direct_rollout(uninterrupted, rollouts):
     """The point k_rk = 0.5, object_mass = 0.5 is the tests' task with the
     default gains: its metrics, from a vmapped chunk, are those of the single
     rollout (tests/conftest.py)."""
-    from jaxsync import _metrics
+    from jaxsync.sim import metrics as _metrics
 
     (row,) = [r for r in _rows(uninterrupted / "results.csv") if (r["k_rk"], r["object_mass"]) == ("0.5", "0.5")]
     want = _metrics.to_dict(_metrics.summarize(rollouts["synchronous"], rollouts["scenario"]))
@@ -285,7 +286,7 @@ def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
 def test_cpu_chunks_stay_below_the_lapack_deadlock(monkeypatch):
     import jax
 
-    from jaxsync._rollout import cpu_vmap_limit
+    from jaxsync.sim.rollout import cpu_vmap_limit
 
     monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT", raising=False)
     if jax.default_backend() == "cpu":

@@ -15,7 +15,7 @@ from jaxsync.optimize.tasks import sample_scenarios
 from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 
 import jaxsync
-from jaxsync import _gains
+from jaxsync.control import gains as _gains
 
 # The resumed-run test tunes with jaxsync tune's defaults (the full task, the
 # exact gradient) at batch 2: the program of the session fixture
@@ -131,7 +131,7 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     from jaxsync.optimize.tasks import training_base
     from jaxsync.optimize.tune import make_loss
 
-    from jaxsync import _physics
+    from jaxsync.physics import step as _physics
 
     class Reached(Exception):
         pass
@@ -235,7 +235,7 @@ def fake_tuning(monkeypatch):
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
 
-    from jaxsync import _compare
+    from jaxsync.optimize import compare as _compare
 
     def fake_sim_to_sim(model, gains, baseline, scenarios, duration, *, n=4, mjx_rows=None, **kw):
         """MuJoCo C's rollouts replaced: the held-out MJX rows as given, MuJoCo C's
@@ -531,13 +531,14 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
     """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX, through
-    the one sim-to-sim check (jaxsync._compare.sim_to_sim) with MJX's rows as tune
+    the one sim-to-sim check (jaxsync.optimize.compare.sim_to_sim) with MJX's rows as tune
     has them from its held-out scoring; the factors agree here (the same control
     law, the same scenario), and a disagreement is flagged in the printed line."""
     from conftest import TEST_DURATION
+    from jaxsync.optimize import compare as _compare
 
-    from jaxsync import _compare, _metrics
     from jaxsync.cli.tune import mujoco_text
+    from jaxsync.sim import metrics as _metrics
 
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))

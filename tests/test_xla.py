@@ -1,4 +1,4 @@
-"""jaxsync's XLA settings (jaxsync._xla): set by scripts before JAX starts, never at import."""
+"""jaxsync's XLA settings (jaxsync.runtime.xla): set by scripts before JAX starts, never at import."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import warnings
 import pytest
 
 import jaxsync
-from jaxsync import _xla
+from jaxsync.runtime import xla as _xla
 
 # compiles a few fused elementwise operations and prints what set_xla_flags()
 # returned, $XLA_FLAGS, and a hash of XLA's compiled module (the CPU fusion

@@ -13,8 +13,8 @@ import importlib
 import os
 import sys
 
-from jaxsync import _io
 from jaxsync._errors import JaxsyncError
+from jaxsync.io import results as _results
 
 COMMANDS = ("info", "compare", "tune", "sensitivity", "export", "sweep", "bench", "render")
 
@@ -22,14 +22,14 @@ COMMANDS = ("info", "compare", "tune", "sensitivity", "export", "sweep", "bench"
 def _setup_jax(args: argparse.Namespace) -> None:
     import jax
 
-    from jaxsync._cache import enable_compilation_cache
-    from jaxsync._xla import set_xla_flags
+    from jaxsync.runtime.cache import enable_compilation_cache
+    from jaxsync.runtime.xla import set_xla_flags
 
     set_xla_flags()  # before anything starts JAX's backend (a command run in-process may find it started)
     jax.config.update("jax_enable_x64", not getattr(args, "float32", False))
     enable_compilation_cache(getattr(args, "cache_dir", None))
     if hasattr(args, "coordinator"):  # a command that can run over many processes (sweep, tune)
-        from jaxsync import _distributed
+        from jaxsync.runtime import distributed as _distributed
 
         _distributed.initialize(args.coordinator, args.num_processes, args.process_id, args.distributed_auto)
 
@@ -56,15 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _io.forget_created_dirs()
+    _results.forget_created_dirs()
     rc = 1
     try:
         rc = _run(args)
         return rc
     finally:
         if rc != 0:  # a rejected or failed run leaves no empty output folder behind
-            _io.remove_created_dirs()
-            from jaxsync import _distributed
+            _results.remove_created_dirs()
+            from jaxsync.runtime import distributed as _distributed
 
             if _distributed.active():  # the other processes stop too, without waiting minutes for this one
                 if sys.exc_info()[0] is not None:  # JAXSYNC_DEBUG's traceback, before leaving

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from jaxsync import _xla
+from jaxsync.runtime import xla as _xla
 
 
 def _scenarios(base, n: int):
@@ -56,10 +56,10 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
     """
     import jax
 
-    from jaxsync._gains import default_gains
-    from jaxsync._metrics import summarize
-    from jaxsync._rollout import make_rollout
-    from jaxsync._scenario import default_scenario
+    from jaxsync.control.gains import default_gains
+    from jaxsync.sim.metrics import summarize
+    from jaxsync.sim.rollout import make_rollout
+    from jaxsync.sim.scenario import default_scenario
 
     fn = make_rollout(model, "synchronous", duration)
 
@@ -67,7 +67,7 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
         return summarize(fn(g, s), s)
 
     ev = jax.jit(jax.vmap(one, in_axes=(None, 0)))
-    from jaxsync._rollout import cpu_vmap_limit
+    from jaxsync.sim.rollout import cpu_vmap_limit
 
     limit = cpu_vmap_limit()
     g = default_gains()
@@ -99,9 +99,9 @@ def mujoco_c_throughput(model, duration: float, log) -> dict:
     """
     import jax
 
-    from jaxsync._gains import default_gains
-    from jaxsync._rollout import rollout, steps_for
-    from jaxsync._scenario import default_scenario
+    from jaxsync.control.gains import default_gains
+    from jaxsync.sim.rollout import rollout, steps_for
+    from jaxsync.sim.scenario import default_scenario
 
     g, s = default_gains(), default_scenario()
     short = min(0.02, duration / 2)
@@ -169,13 +169,13 @@ def tuning_loss(path: str, task: str, batch: int, duration: float | None = None)
     """
     import jax
 
-    from jaxsync._gains import default_gains
-    from jaxsync._model import load_model
-    from jaxsync._rollout import steps_for
+    from jaxsync.control.gains import default_gains
     from jaxsync.optimize.cost import CostWeights
     from jaxsync.optimize.params import TuneSpec
     from jaxsync.optimize.tasks import sample_scenarios, training_base
     from jaxsync.optimize.tune import TuneConfig, make_loss
+    from jaxsync.physics.model import load_model
+    from jaxsync.sim.rollout import steps_for
 
     p = PATHS[path]
     over = {"train_duration": duration} if (duration is not None and task == "short") else {}
@@ -197,9 +197,9 @@ def small_gradient(path: str = "new"):
     import jax.numpy as jnp
     import mujoco
 
-    from jaxsync._model import load_model
-    from jaxsync._physics import before_control, put_data
-    from jaxsync._sensing import sense
+    from jaxsync.physics.model import load_model
+    from jaxsync.physics.sensing import sense
+    from jaxsync.physics.step import before_control, put_data
 
     model = load_model(solver=PATHS[path]["solver"])
     mx, index = model.mjx_model, model.index
@@ -277,7 +277,7 @@ def _have_flatbuffers() -> bool:
 def _child_setup():
     import jax
 
-    from jaxsync._cache import enable_compilation_cache
+    from jaxsync.runtime.cache import enable_compilation_cache
 
     _xla.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
@@ -305,7 +305,7 @@ def _child_compile(cfg: dict) -> dict:
     t0 = time.perf_counter()
     _, grad, args, _ = gradient_functions(cfg["path"], cfg["duration"], cfg.get("small", False))
     if cfg.get("exported"):  # what the CLI does: the traced function from disk (jax.export)
-        from jaxsync._cache import traced_on_disk
+        from jaxsync.runtime.cache import traced_on_disk
 
         grad = traced_on_disk(grad, args, f"bench.gradient.{cfg['path']}.{cfg['duration']}.{cfg.get('small')}")
     t1 = time.perf_counter()
@@ -365,7 +365,7 @@ def child(mode: str, cfg: dict) -> dict:
     raise ValueError(mode)
 
 
-# XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync._xla):
+# XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync.runtime.xla):
 # the benchmark measures the gradient's compile and the tuning step's memory
 # with it too, beside jaxsync's setting
 XLA_DEFAULT_EMITTERS = f"--{_xla.FUSION_EMITTERS}=true"

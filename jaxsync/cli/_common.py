@@ -27,7 +27,7 @@ def add_model_argument(p: argparse.ArgumentParser) -> None:
 
 
 def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
-    """The flags of a multi-process run (jaxsync._distributed, docs/scaling.md)."""
+    """The flags of a multi-process run (jaxsync.runtime.distributed, docs/scaling.md)."""
     g = p.add_argument_group(
         "multi-process runs (JAX's distributed runtime; docs/scaling.md)",
         "Start one process per host or GPU, each with the same command and its own --process-id, or let "

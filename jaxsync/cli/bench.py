@@ -79,8 +79,6 @@ def _log(msg: str) -> None:
 def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dict:
     """Every measurement, in one run; writes ``out/bench.json`` and returns its content."""
 
-    from jaxsync import _io
-    from jaxsync._model import load_model
     from jaxsync.cli._bench_measure import (
         PATHS,
         XLA_DEFAULT_EMITTERS,
@@ -95,11 +93,13 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
         tune_step_memory,
         warm_compile_s,
     )
+    from jaxsync.io import results as _results
+    from jaxsync.physics.model import load_model
 
     cfg = dict(QUICK if quick else FULL)
     if batch_sizes:
         cfg["batch_sizes"] = tuple(batch_sizes)
-    _io.ensure_writable_dir(out)
+    _results.ensure_writable_dir(out)
     t_start = time.perf_counter()
     info = machine()
     log(
@@ -120,7 +120,7 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     comp = {"new": compile_times("new", cfg["grad_duration"], small, log, exported=not small)}
     if cfg["old_children"]:
         comp["old"] = compile_times("old", cfg["grad_duration"], small, log, exported=False)
-        # jaxsync turns XLA's CPU fusion emitters off (jaxsync._xla); the same compile with XLA's default
+        # jaxsync turns XLA's CPU fusion emitters off (jaxsync.runtime.xla); the same compile with XLA's default
         comp["new_xla_default"] = cold_compile_with_xla_flags("new", cfg["grad_duration"], XLA_DEFAULT_EMITTERS, log)
     log("[6/6] peak memory of one tuning step, in fresh processes (cold cache: it compiles; warm: from the cache)")
     tune = {"new": tune_step_memory("new", cfg["tune_batch"], cfg["tune_task"], small, log)}
@@ -182,7 +182,7 @@ def measure(out: str, *, quick: bool = False, batch_sizes=None, log=_log) -> dic
     }
     result["targets"] = targets(result, judged=not quick)
     result["wall_time_s"] = time.perf_counter() - t_start
-    _io.write_json(os.path.join(out, "bench.json"), result)
+    _results.write_json(os.path.join(out, "bench.json"), result)
     return result
 
 

@@ -11,7 +11,7 @@ def scenario_from_args(args: argparse.Namespace):
     import jax
     import numpy as np
 
-    from jaxsync._scenario import default_scenario
+    from jaxsync.sim.scenario import default_scenario
 
     overrides = {}
     if args.object_mass is not None:
@@ -40,16 +40,18 @@ def run(args: argparse.Namespace) -> int:
     import sys
     import time
 
-    from jaxsync import _compare, _gains, _io
-    from jaxsync._io import ensure_writable_dir
-    from jaxsync._model import load_model
+    from jaxsync.control import gains as _gains
+    from jaxsync.io import results as _results
+    from jaxsync.io.results import ensure_writable_dir
+    from jaxsync.optimize import compare as _compare
+    from jaxsync.physics.model import load_model
 
     gains = _gains.load(args.gains) if args.gains else _gains.default_gains()
     scenario = scenario_from_args(args)
     _compare.check_duration(scenario, args.duration)
     model = load_model(args.model, solver="accurate")
     if args.video:  # say now, not after the rollouts, when no OpenGL backend can render it
-        from jaxsync._gl import select_gl_backend
+        from jaxsync.runtime.gl import select_gl_backend
 
         select_gl_backend()
     ensure_writable_dir(args.out)  # the input is checked: only now the folder
@@ -74,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
             model, gains, _gains.default_gains(), tasks.heldout_scenarios(cfg), cfg.eval_duration, n=args.mujoco_check
         )
         summary["sim_to_sim"] = check
-        _io.write_json(os.path.join(args.out, "summary.json"), summary)
+        _results.write_json(os.path.join(args.out, "summary.json"), summary)
         for line in _compare.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
             print(line)
     print(f"results in {args.out}: {', '.join(files)}")

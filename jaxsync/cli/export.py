@@ -4,7 +4,8 @@ from __future__ import annotations
 
 
 def run(args) -> int:
-    from jaxsync import _export, _gains
+    from jaxsync.control import gains as _gains
+    from jaxsync.io import export as _export
 
     # the input is checked before anything is written
     gains = _gains.load(args.gains)
@@ -30,7 +31,7 @@ def _leaves(g):
 
 
 def add_parser(subparsers):
-    from jaxsync._export import FORMATS
+    from jaxsync.io.export import FORMATS
 
     p = subparsers.add_parser(
         "export",

@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     import jax
     import mujoco
 
-    from jaxsync._model import load_model
+    from jaxsync.physics.model import load_model
 
     model = load_model(args.model, solver=args.solver)
     print(f"jaxsync      {version('jaxsync')}")

@@ -1,4 +1,4 @@
-"""``jaxsync render`` and ``jaxsync compare --video``: thin glue over ``jaxsync._render``."""
+"""``jaxsync render`` and ``jaxsync compare --video``: thin glue over ``jaxsync.io.render``."""
 
 from __future__ import annotations
 
@@ -12,12 +12,13 @@ VIDEO_FPS = 25
 
 
 def run(args) -> int:
-    from jaxsync import _io, _render
-    from jaxsync._model import load_model
+    from jaxsync.io import render as _render
+    from jaxsync.io import results as _results
+    from jaxsync.physics.model import load_model
 
     backend = _render.select_gl_backend()
     model = load_model(args.model)
-    _io.ensure_writable_dir(args.out)  # the input is checked: only now the folder
+    _results.ensure_writable_dir(args.out)  # the input is checked: only now the folder
     image = _render.render_pose(model.mj_model, model.keyframe_qpos(args.keyframe), args.width, args.height)
     path = _render.save_png(image, os.path.join(args.out, f"{args.keyframe}.png"))
     print(f"wrote {path} ({args.width}x{args.height}, OpenGL backend: {backend})")
@@ -30,9 +31,9 @@ def compare_video(
     """Both controllers' rollouts side by side, from the states that were
     computed (MJX states drawn by MuJoCo's renderer), with each pad's contact
     force on the object as an arrow; ``speed`` < 1 is slow motion."""
-    from jaxsync import _render
-    from jaxsync._compare import drop_time
-    from jaxsync._metrics import summarize
+    from jaxsync.io import render as _render
+    from jaxsync.optimize.compare import drop_time
+    from jaxsync.sim.metrics import summarize
 
     _render.select_gl_backend()
     dt = float(np.asarray(results["classical"][0].time[1] - results["classical"][0].time[0]))

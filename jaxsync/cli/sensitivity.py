@@ -11,11 +11,12 @@ from jaxsync.cli._common import add_model_argument, positive
 def run(args) -> int:
     import jax
 
-    from jaxsync import _gains, _io
-    from jaxsync._model import load_model
-    from jaxsync._scenario import default_scenario, min_duration, short_task
+    from jaxsync.control import gains as _gains
+    from jaxsync.io import results as _results
     from jaxsync.optimize import sensitivity as sens
     from jaxsync.optimize.tasks import sample_scenarios
+    from jaxsync.physics.model import load_model
+    from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
     # every input is checked before anything is written
     gains = _gains.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
@@ -29,7 +30,7 @@ def run(args) -> int:
             f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
         )
     model = load_model(args.model)
-    _io.ensure_writable_dir(args.out)
+    _results.ensure_writable_dir(args.out)
     scen = sample_scenarios(jax.random.key(args.seed), args.batch, base)
     print(
         f"sensitivities at {'the gains of ' + args.gains if args.gains else 'the default gains'}: "
@@ -42,8 +43,8 @@ def run(args) -> int:
     dt = time.perf_counter() - t0
     print(sens.table(s))
     rows = s.rows()
-    _io.write_csv(os.path.join(args.out, "sensitivity.csv"), {k: [r[k] for r in rows] for k in rows[0]})
-    _io.write_json(
+    _results.write_csv(os.path.join(args.out, "sensitivity.csv"), {k: [r[k] for r in rows] for k in rows[0]})
+    _results.write_json(
         os.path.join(args.out, "sensitivity.json"),
         {
             "metrics": dict(zip(sens.METRICS, s.values.tolist(), strict=True)),

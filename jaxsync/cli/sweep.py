@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from jaxsync._controller import CONTROLLERS
 from jaxsync.cli._common import add_distributed_arguments, positive
+from jaxsync.control.controller import CONTROLLERS
 from jaxsync.optimize.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS
 
@@ -76,7 +76,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxsync import _gains
+    from jaxsync.control import gains as _gains
     from jaxsync.optimize import sweep
 
     gains = _gains.load_constant(args.gains, "jaxsync sweep") if args.gains else None

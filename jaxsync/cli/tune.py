@@ -34,12 +34,15 @@ def _names(text: str | None) -> list[str]:
 
 
 def run(args) -> int:
-    from jaxsync import _distributed, _gains, _io, _schedule
-    from jaxsync._model import load_model
+    from jaxsync.control import gains as _gains
+    from jaxsync.control import schedule as _schedule
+    from jaxsync.io import results as _results
     from jaxsync.optimize import tasks
     from jaxsync.optimize import tune as tuning
     from jaxsync.optimize.params import TUNABLE, TuneSpec
     from jaxsync.optimize.tune_report import plot_loss
+    from jaxsync.physics.model import load_model
+    from jaxsync.runtime import distributed as _distributed
 
     tuned = _names(args.tune) or list(TuneSpec().tuned)
     frozen = _names(args.freeze)
@@ -82,7 +85,7 @@ def run(args) -> int:
         # the input is checked; now the folder: continue (--resume) or discard
         # (--restart) a run there, never overwrite one silently; created only now
         tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
-        _io.ensure_writable_dir(args.out)
+        _results.ensure_writable_dir(args.out)
     _distributed.barrier("tune: output folder ready")
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
@@ -106,7 +109,7 @@ def run(args) -> int:
             f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True
         )
         before = tuning.eval_summary(evaluate(base, held))
-        _io.write_json(os.path.join(args.out, "heldout_before.json"), before)
+        _results.write_json(os.path.join(args.out, "heldout_before.json"), before)
 
     say(
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
@@ -148,17 +151,17 @@ def run(args) -> int:
 
     say("held-out evaluation after tuning...", flush=True)
     after = tuning.eval_summary(evaluate(gains, held))
-    _io.write_json(
+    _results.write_json(
         os.path.join(args.out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": spec.describe()}
     )
-    _io.write_json(
+    _results.write_json(
         os.path.join(args.out, "gains_last.json"),
         {"gains": _schedule.to_file_dict(result.last_gains), "tune": spec.describe()},
     )
     check = None
     if args.mujoco_check:
         say(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
-        from jaxsync import _compare
+        from jaxsync.optimize import compare as _compare
 
         # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
         mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
@@ -167,7 +170,7 @@ def run(args) -> int:
         )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
-        _io.write_csv(os.path.join(args.out, "history.csv"), cols)
+        _results.write_csv(os.path.join(args.out, "history.csv"), cols)
         plot_loss(history, os.path.join(args.out, "loss.png"), result.validation, selected)
     summary = {
         "initial_cost": history[0]["cost"] if history else None,
@@ -188,7 +191,7 @@ def run(args) -> int:
         "tune": spec.describe(),
         "mujoco_check": check,
     }
-    _io.write_json(summary_path, summary)
+    _results.write_json(summary_path, summary)
     b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
     say(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
     say(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
@@ -212,7 +215,7 @@ def history_columns(history: list[dict]) -> list[str]:
 
 
 def mujoco_text(c: dict) -> str:
-    """The MuJoCo C check's line (jaxsync._compare.sim_to_sim's result): both
+    """The MuJoCo C check's line (jaxsync.optimize.compare.sim_to_sim's result): both
     improvement factors, flagged when they disagree or an object was dropped."""
 
     def f(v, fmt):

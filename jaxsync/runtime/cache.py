@@ -223,8 +223,8 @@ def _source_fingerprint(files: list[str] | None = None) -> str:
 def _register_export_types() -> None:
     from jax import export
 
-    from jaxsync._gains import Gains
-    from jaxsync._scenario import Scenario
+    from jaxsync.control.gains import Gains
+    from jaxsync.sim.scenario import Scenario
 
     for cls, name in ((Gains, "jaxsync.Gains"), (Scenario, "jaxsync.Scenario")):
         try:
@@ -298,7 +298,7 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
                 exp = export.deserialize(bytearray(f.read()))
         else:
             exp = export.export(raw)(*args)
-            from jaxsync._io import atomic_write_bytes
+            from jaxsync.io.results import atomic_write_bytes
 
             atomic_write_bytes(path, exp.serialize())
         loaded = _one_placement(jax.jit(exp.call))

@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxsync import _so3
-from jaxsync._sensing import ArmState
+from jaxsync.control import so3 as _so3
+from jaxsync.physics.sensing import ArmState
 
 # Damping of the pseudo-inverse J^T (J J^T + lambda^2 I)^-1: negligible where
 # the arm is well conditioned (sigma_min ~ 0.3 at the grasp), bounded joint

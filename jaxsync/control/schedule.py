@@ -1,7 +1,7 @@
 """Gain schedules: gains that change with the task's phase.
 
 A :class:`Schedule` holds one set of :class:`~jaxsync.Gains` per phase of the
-task (close, squeeze, carry, hold: ``jaxsync._scenario.plan``'s phases),
+task (close, squeeze, carry, hold: ``jaxsync.sim.scenario.plan``'s phases),
 every leaf with a leading axis of 4. At time ``t`` the controller runs with
 
     g(t) = sum_p w_p(t) g_p,
@@ -12,7 +12,7 @@ boundary (C2: the rollout stays differentiable in the gains and in time). Away
 from a boundary one weight is exactly 1 and the others exactly 0, so the gains
 are that phase's (to rounding); a schedule whose phases are equal is the
 constant gains, bit for bit. Both rollout backends evaluate a schedule in the same
-place (``jaxsync._task.control``), so MJX and MuJoCo C run the same law.
+place (``jaxsync.sim.closed_loop.control``), so MJX and MuJoCo C run the same law.
 
 Example:
   >>> sched = constant(jaxsync.default_gains())            # 4 equal phases
@@ -29,9 +29,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync import _gains, _scenario
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
+from jaxsync.control import gains as _gains
+from jaxsync.control.gains import Gains
+from jaxsync.sim import scenario as _scenario
 
 PHASES = ("close", "squeeze", "carry", "hold")
 BLEND_S = 0.05  # width of the blend across each phase boundary, s

@@ -8,8 +8,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxsync import _io
 from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
 
 
 def _font(size: int):
@@ -86,7 +86,7 @@ def save_png(image: np.ndarray, path: str | os.PathLike) -> str:
 
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with _io.atomic_path(path) as tmp:
+    with _results.atomic_path(path) as tmp:
         Image.fromarray(np.asarray(image, np.uint8)).save(tmp, format="PNG")
     return path
 
@@ -124,7 +124,7 @@ def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: floa
         path = root + ".gif"
         ext = ".gif"
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with _io.atomic_path(path) as tmp:
+    with _results.atomic_path(path) as tmp:
         if ext.lower() == ".gif":
             _write_gif(frames, tmp, fps)
         else:

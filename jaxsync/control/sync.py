@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxsync import _so3
+from jaxsync.control import so3 as _so3
 
 
 def absolute_error(pos_d: jax.Array, rot_d: jax.Array, pos: jax.Array, rot: jax.Array) -> jax.Array:

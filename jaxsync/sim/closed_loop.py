@@ -3,8 +3,8 @@
 Per-model constants (the planned pad orientation, the rest posture, actuator
 order, torque limits, which sensor entries are noisy), the initial posture,
 the wrist-sensor noise, and one control period: plan -> reference ->
-controller -> clipped torque. The MJX rollout (``jaxsync._rollout``) and the
-MuJoCo C rollout (``jaxsync._rollout_mujoco``) both call these, so the task is
+controller -> clipped torque. The MJX rollout (``jaxsync.sim.rollout``) and the
+MuJoCo C rollout (``jaxsync.sim.rollout_mujoco``) both call these, so the task is
 defined once.
 """
 
@@ -17,10 +17,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxsync import _controller, _scenario, _schedule
-from jaxsync._controller import Reference
-from jaxsync._model import DualArmModel
-from jaxsync._scenario import Scenario
+from jaxsync.control import controller as _controller
+from jaxsync.control import schedule as _schedule
+from jaxsync.control.controller import Reference
+from jaxsync.physics.model import DualArmModel
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.scenario import Scenario
 
 START_KEY = "approach"
 REST_KEY = "grasp"

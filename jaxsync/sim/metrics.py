@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync._scenario import GRAVITY, Scenario, phase_times
+from jaxsync.sim.scenario import GRAVITY, Scenario, phase_times
 
 # A rollout counts as a drop when, during carry or hold, the object is this
 # far from its planned position (it fell, or slipped out of the grasp).

@@ -1,7 +1,7 @@
 """Pictures and videos of the robot and of rollouts (headless, offscreen).
 
-Scenes and frames here; the OpenGL backend in ``jaxsync._gl``; text,
-side-by-side frames and image and video files in ``jaxsync._video``.
+Scenes and frames here; the OpenGL backend in ``jaxsync.runtime.gl``; text,
+side-by-side frames and image and video files in ``jaxsync.io.video``.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import os
 import numpy as np
 
 from jaxsync._errors import ConfigError
-from jaxsync._gl import RenderUnavailableError, select_gl_backend
-from jaxsync._video import _draw_text, save_png, side_by_side, write_video
+from jaxsync.io.video import _draw_text, save_png, side_by_side, write_video
+from jaxsync.runtime.gl import RenderUnavailableError, select_gl_backend
 
 __all__ = [
     "ForceOverlay",

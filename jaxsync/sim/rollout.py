@@ -16,15 +16,20 @@ import jax
 import jax.numpy as jnp
 import mujoco
 
-from jaxsync import _controller, _gains, _physics, _scenario, _task, _trajectory
-from jaxsync._controller import ControllerOptions, ControllerSwitch
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
-from jaxsync._model import DualArmModel
-from jaxsync._scenario import Scenario
-from jaxsync._sensing import sense
-from jaxsync._task import REST_KEY, START_KEY
-from jaxsync._trajectory import Trajectory
+from jaxsync.control import controller as _controller
+from jaxsync.control import gains as _gains
+from jaxsync.control.controller import ControllerOptions, ControllerSwitch
+from jaxsync.control.gains import Gains
+from jaxsync.physics import step as _physics
+from jaxsync.physics.model import DualArmModel
+from jaxsync.physics.sensing import sense
+from jaxsync.sim import closed_loop as _closed_loop
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim import trajectory as _trajectory
+from jaxsync.sim.closed_loop import REST_KEY, START_KEY
+from jaxsync.sim.scenario import Scenario
+from jaxsync.sim.trajectory import Trajectory
 
 
 def make_rollout(
@@ -45,7 +50,7 @@ def make_rollout(
       duration: seconds simulated.
       control_substeps: physics steps per control period (1: control at the
         simulation rate, 500 Hz for the paper model).
-      cross_term: reading of eq. 16's cross term (see jaxsync._sync).
+      cross_term: reading of eq. 16's cross term (see jaxsync.control.sync).
       remat: ``jax.checkpoint`` the scan body (for long reverse-mode
         gradients); such a program is one to differentiate, so it also runs
         jaxsync's vectorised tree passes (``_physics.PASSES``: the same values
@@ -79,7 +84,7 @@ def make_rollout(
 def _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start):
     """``fn(gains, scenario, options) -> Trajectory``: ``options`` a static
     :class:`ControllerOptions` (closed over by :func:`make_rollout`) or a
-    traced :class:`~jaxsync._controller.ControllerSwitch` (one program for
+    traced :class:`~jaxsync.control.controller.ControllerSwitch` (one program for
     every controller choice: :func:`rollout`'s)."""
     if start not in (START_KEY, REST_KEY):
         raise ConfigError(f"start must be {START_KEY!r} or {REST_KEY!r}, got {start!r}")
@@ -92,7 +97,7 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
     n_steps = int(round(duration / dt))
     if n_steps < 1:
         raise ConfigError(f"duration must be at least one control period ({dt} s), got {duration}")
-    consts = _task.consts(model, start)
+    consts = _closed_loop.consts(model, start)
     index = model.index
     unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
@@ -103,7 +108,7 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
 
     def fn(gains: Gains, s: Scenario, options) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
-        d0 = d_template.replace(qpos=_task.initial_qpos(model, consts, s))
+        d0 = d_template.replace(qpos=_closed_loop.initial_qpos(model, consts, s))
 
         def body(carry, k):
             state, pad_start = carry
@@ -123,10 +128,10 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
             # second time for the initial state (a third less to compile)
             pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
             pad_start = jnp.where(k == 0, pads, pad_start)
-            noisy = d.replace(sensordata=d.sensordata + _task.noise(s, consts, k))
+            noisy = d.replace(sensordata=d.sensordata + _closed_loop.noise(s, consts, k))
             sensed = sense(mx, noisy, index, passes)
             arms = (sensed.right, sensed.left)
-            tau, cstate, info, pl = _task.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
+            tau, cstate, info, pl = _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
             ctrl = tau[consts.act_order]
             d = _physics.after_control(mx, d, ctrl, unroll)
             for _ in range(control_substeps - 1):
@@ -169,7 +174,7 @@ def rollout(
 
     ``backend="mjx"`` compiles once per model, duration and substep count:
     the controller and the cross term are arguments of one program
-    (:class:`~jaxsync._controller.ControllerSwitch`), so the classical and the
+    (:class:`~jaxsync.control.controller.ControllerSwitch`), so the classical and the
     synchronous rollouts of a comparison share it; ``backend="mujoco"``
     steps MuJoCo C with the same jitted control law.
 
@@ -190,7 +195,7 @@ def rollout(
         args = jax.device_put((_gains.strongly_typed(gains), scenario, switch), _physics.local_device())
         return fn(*args)
     if backend == "mujoco":
-        from jaxsync._rollout_mujoco import rollout_mujoco
+        from jaxsync.sim.rollout_mujoco import rollout_mujoco
 
         return rollout_mujoco(
             model,

@@ -37,7 +37,7 @@ from mujoco.mjx._src import solver as _solver
 from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
 
-from jaxsync import _tree
+from jaxsync.physics import body_tree as _body_tree
 
 # ---------------------------------------------------------------- MJX gradient fix
 
@@ -88,7 +88,7 @@ def patch_mjx_elliptic_gradient() -> None:
 PASSES = ("mjx", "tree")
 """How the body tree's passes are computed: ``"mjx"`` MJX's own stages (what
 forward rollouts and batches run), ``"tree"`` jaxsync's vectorised ones
-(:mod:`jaxsync._tree`, the same values to rounding and a far smaller program:
+(:mod:`jaxsync.physics.body_tree`, the same values to rounding and a far smaller program:
 what gradient programs run)."""
 
 
@@ -100,10 +100,10 @@ def _world_acc(m: mjx.Model) -> jax.Array:
 
 
 def tree_covered(m: mjx.Model, passes: str) -> bool:
-    """Whether ``passes`` asks for :mod:`jaxsync._tree` and it covers ``m``'s tree."""
+    """Whether ``passes`` asks for :mod:`jaxsync.physics.body_tree` and it covers ``m``'s tree."""
     if passes not in PASSES:
         raise ValueError(f"passes must be one of {PASSES}, got {passes!r}")
-    return passes == "tree" and _tree.kinematics_plan(m) is not None
+    return passes == "tree" and _body_tree.kinematics_plan(m) is not None
 
 
 def fwd_position(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
@@ -113,12 +113,12 @@ def fwd_position(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
     in place of MJX's where the model's tree allows."""
     if not tree_covered(m, passes):
         return mjx.fwd_position(m, d)
-    d = _tree.kinematics(m, d)
-    d = _tree.com_pos(m, d)
+    d = _body_tree.kinematics(m, d)
+    d = _body_tree.com_pos(m, d)
     d = _smooth.camlight(m, d)
     d = _smooth.tendon(m, d)
-    crb = _tree.crb_body(m, d)
-    crb_cdof = _tree.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
+    crb = _body_tree.crb_body(m, d)
+    crb_cdof = _body_tree.inert_mul(crb[np.asarray(m.dof_bodyid)], d.cdof)
     d = d.tree_replace({"_impl.crb": crb, "_impl.M": _support.make_m(m, crb_cdof, d.cdof, m.dof_armature)})
     d = _smooth.tendon_armature(m, d)
     d = _smooth.factor_m(m, d)
@@ -135,9 +135,9 @@ def fwd_velocity(m: mjx.Model, d: mjx.Data, passes: str = "mjx") -> mjx.Data:
     d = d.tree_replace(
         {"_impl.actuator_velocity": d._impl.actuator_moment @ d.qvel, "_impl.ten_velocity": d._impl.ten_J @ d.qvel}
     )
-    d = _tree.com_vel(m, d)
+    d = _body_tree.com_vel(m, d)
     d = _passive.passive(m, d)
-    d = d.replace(qfrc_bias=_tree.bias_force(m, d, _world_acc(m)))
+    d = d.replace(qfrc_bias=_body_tree.bias_force(m, d, _world_acc(m)))
     return _smooth.tendon_bias(m, d)
 
 
@@ -299,7 +299,7 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
 
 def local_device():
     """This process's first device. MJX's own default is ``jax.devices()[0]``,
-    which in a multi-process run (jaxsync._distributed) is process 0's."""
+    which in a multi-process run (jaxsync.runtime.distributed) is process 0's."""
     return jax.local_devices()[0]
 
 
@@ -349,13 +349,13 @@ def contact_distance(d: mjx.Data, contact_id: int) -> jax.Array:
 def jac(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int, passes: str = "mjx"):
     """(nv, 3) translational and rotational Jacobians of a point on a body
     (MJX's ``jac``; with ``passes="tree"`` the chain's mask static)."""
-    return _tree.jac(m, d, point, body_id) if tree_covered(m, passes) else mjx.jac(m, d, point, body_id)
+    return _body_tree.jac(m, d, point, body_id) if tree_covered(m, passes) else mjx.jac(m, d, point, body_id)
 
 
 def jac_dot(m: mjx.Model, d: mjx.Data, point: jax.Array, body_id: int, passes: str = "mjx"):
     """(nv, 3) time derivatives of the translational and rotational Jacobians."""
     if tree_covered(m, passes):
-        return _tree.jac_dot(m, d, point, body_id)
+        return _body_tree.jac_dot(m, d, point, body_id)
     return _support.jac_dot(m, d, point, body_id)
 
 

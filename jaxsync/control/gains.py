@@ -184,10 +184,10 @@ def load_constant(path: str | os.PathLike, command: str) -> Gains:
 
 def load(path: str | os.PathLike):
     """Read a gains JSON (written by :func:`save` or ``jaxsync tune``): :class:`Gains`,
-    or a :class:`jaxsync._schedule.Schedule` when the file holds ``{"schedule": ...}``; also what
+    or a :class:`jaxsync.control.schedule.Schedule` when the file holds ``{"schedule": ...}``; also what
     ``jaxsync export`` writes (``gains.yaml``, ``gains.json``, a ros2-admittance folder)."""
     if os.path.isdir(path) or str(path).endswith((".yaml", ".yml")):
-        from jaxsync import _export
+        from jaxsync.io import export as _export
 
         return _export.load(str(path))
     try:
@@ -200,13 +200,13 @@ def load(path: str | os.PathLike):
     if not isinstance(data, dict):
         raise ConfigError(f"gains file {path}: expected a JSON object of gains")
     if isinstance(data, dict) and "jaxsync_gains" in data:  # written by jaxsync export --format json
-        from jaxsync import _export
+        from jaxsync.io import export as _export
 
         return _export.from_document(data, str(path))
     data = data.get("gains", data)
     try:
-        if isinstance(data, dict) and "schedule" in data:  # per-phase gains (jaxsync._schedule)
-            from jaxsync import _schedule
+        if isinstance(data, dict) and "schedule" in data:  # per-phase gains (jaxsync.control.schedule)
+            from jaxsync.control import schedule as _schedule
 
             if set(data) != {"schedule"}:
                 raise ConfigError(f"a schedule file holds only 'schedule', got also {sorted(set(data) - {'schedule'})}")

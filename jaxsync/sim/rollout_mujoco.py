@@ -1,7 +1,7 @@
 """The MuJoCo C rollout: the same jitted control law stepping ``mj_step1`` / ``mj_step2``.
 
 One environment, no gradient: a check of MJX against MuJoCo C on the very
-same task (``jaxsync._task``) and controller, and a baseline for speed.
+same task (``jaxsync.sim.closed_loop``) and controller, and a baseline for speed.
 """
 
 from __future__ import annotations
@@ -11,13 +11,16 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from jaxsync import _controller, _scenario, _task, _trajectory
-from jaxsync._controller import ControllerOptions
-from jaxsync._gains import Gains
-from jaxsync._model import DualArmModel
-from jaxsync._scenario import Scenario
-from jaxsync._sensing import ArmState, compensate_wrist_wrench
-from jaxsync._trajectory import Trajectory
+from jaxsync.control import controller as _controller
+from jaxsync.control.controller import ControllerOptions
+from jaxsync.control.gains import Gains
+from jaxsync.physics.model import DualArmModel
+from jaxsync.physics.sensing import ArmState, compensate_wrist_wrench
+from jaxsync.sim import closed_loop as _closed_loop
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim import trajectory as _trajectory
+from jaxsync.sim.scenario import Scenario
+from jaxsync.sim.trajectory import Trajectory
 
 
 def _sense_arm_c(m: mujoco.MjModel, d: mujoco.MjData, arm, raw: np.ndarray, full_m: np.ndarray) -> ArmState:
@@ -90,14 +93,14 @@ def rollout_mujoco(
       True
     """
     options = ControllerOptions(kind=controller, cross_term=cross_term)
-    consts = _task.consts(model)
+    consts = _closed_loop.consts(model)
     m = mujoco.MjModel.from_xml_path(model.path)  # a private copy we can change
     m.opt.iterations, m.opt.ls_iterations = model.mj_model.opt.iterations, model.mj_model.opt.ls_iterations
     m.opt.solver, m.opt.cone = model.mj_model.opt.solver, model.mj_model.opt.cone
     idx = model.index
     _scenario.apply_to_mj_model(m, scenario, idx)
     d = mujoco.MjData(m)
-    d.qpos[:] = np.asarray(_task.initial_qpos(model, consts, scenario))
+    d.qpos[:] = np.asarray(_closed_loop.initial_qpos(model, consts, scenario))
     mujoco.mj_forward(m, d)
     # acceleration-stage quantities start as MJX's do: zero
     d.sensordata[:] = 0.0
@@ -108,9 +111,9 @@ def rollout_mujoco(
 
     @jax.jit
     def control(gains, s, cstate, arms, k):
-        return _task.control(options, gains, s, consts, cstate, arms, pad_start, k * dt, dt)
+        return _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, k * dt, dt)
 
-    noise = jax.jit(lambda s, k: _task.noise(s, consts, k))
+    noise = jax.jit(lambda s, k: _closed_loop.noise(s, consts, k))
     cstate = _controller.init()
     full_m = np.zeros((m.nv, m.nv))
     rows = []

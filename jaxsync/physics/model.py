@@ -15,8 +15,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from jaxsync import _physics
 from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
+from jaxsync.physics import step as _physics
 
 ARMS = ("r", "l")
 JOINTS_PER_ARM = 7

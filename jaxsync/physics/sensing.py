@@ -6,7 +6,7 @@ matching the stacked Jacobian ``J = [J_p; J_r]`` of the pad frame. The wrist
 wrench ``f_i`` is the wrench the *object exerts on arm i*, about the pad-frame
 origin (controller.md's notation).
 
-``sense`` expects ``d`` after :func:`jaxsync._physics.before_control` (or
+``sense`` expects ``d`` after :func:`jaxsync.physics.step.before_control` (or
 ``mjx.forward``): kinematics and dynamics are those of the current state; the
 force/torque sensors and body accelerations come from the last constraint
 solve (one physics step earlier inside a rollout).
@@ -20,8 +20,8 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
-from jaxsync import _physics
-from jaxsync._model import ArmIndex, ModelIndex
+from jaxsync.physics import step as _physics
+from jaxsync.physics.model import ArmIndex, ModelIndex
 
 
 class ArmState(NamedTuple):
@@ -150,7 +150,7 @@ def sense(m: mjx.Model, d: mjx.Data, index: ModelIndex, passes: str = "mjx") -> 
       m: MJX model (may carry batched or traced parameters).
       d: MJX data after the position and velocity stages (see module doc).
       index: static ids from :func:`jaxsync.load_model` (``model.index``).
-      passes: the Jacobians' tree passes (``jaxsync._physics.PASSES``; the
+      passes: the Jacobians' tree passes (``jaxsync.physics.step.PASSES``; the
         same values): ``"tree"`` in gradient programs.
     """
     mass_full = _physics.full_mass_matrix(m, d)

@@ -14,9 +14,12 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxsync import _impedance, _joint_space, _so3, _sync
-from jaxsync._gains import Gains
-from jaxsync._sensing import ArmState
+from jaxsync.control import impedance as _impedance
+from jaxsync.control import joint_space as _joint_space
+from jaxsync.control import so3 as _so3
+from jaxsync.control import sync as _sync
+from jaxsync.control.gains import Gains
+from jaxsync.physics.sensing import ArmState
 
 CONTROLLERS = ("classical", "synchronous")
 
@@ -31,7 +34,7 @@ class ControllerOptions:
     """
 
     kind: str = "synchronous"  # "classical" or "synchronous"
-    cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync._sync.CROSS_TERMS
+    cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync.control.sync.CROSS_TERMS
 
     def __post_init__(self):
         from jaxsync._errors import ConfigError
@@ -54,7 +57,7 @@ class ControllerSwitch(NamedTuple):
     """
 
     synchronous: jax.Array  # bool: the synchronous controller, else the classical one
-    cross_term: jax.Array  # int: index into jaxsync._sync.CROSS_TERMS
+    cross_term: jax.Array  # int: index into jaxsync.control.sync.CROSS_TERMS
 
     @classmethod
     def of(cls, options: ControllerOptions) -> ControllerSwitch:
@@ -67,7 +70,7 @@ class ControllerSwitch(NamedTuple):
 class Reference(NamedTuple):
     """The planned pad poses x_id and what the arms should feel, at one instant.
 
-    Rollouts build it from the scenario's plan (``jaxsync._task.reference``);
+    Rollouts build it from the scenario's plan (``jaxsync.sim.closed_loop.reference``);
     a user's own loop can fill it directly.
 
     Example:

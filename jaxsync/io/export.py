@@ -31,9 +31,11 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync import _gains, _io, _schedule
 from jaxsync._errors import ConfigError
-from jaxsync._gains import Gains
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.control.gains import Gains
+from jaxsync.io import results as _results
 
 FORMATS = ("yaml", "json", "ros2-admittance")
 AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -239,14 +241,14 @@ def _sync_yaml(g: Gains, phase: str | None) -> str:
 
 def _ros2(g: Gains, out: str, phase: str | None) -> list[str]:
     check_admittance(g, phase)
-    _io.ensure_writable_dir(out)
+    _results.ensure_writable_dir(out)
     paths = []
     for arm, name in enumerate(ARMS):
         path = os.path.join(out, f"admittance_{name}.yaml")
-        _io.atomic_write_text(path, _admittance_yaml(g, arm, f"admittance_controller_{name}", phase))
+        _results.atomic_write_text(path, _admittance_yaml(g, arm, f"admittance_controller_{name}", phase))
         paths.append(path)
     path = os.path.join(out, "synchronisation.yaml")
-    _io.atomic_write_text(path, _sync_yaml(g, phase))
+    _results.atomic_write_text(path, _sync_yaml(g, phase))
     return [*paths, path]
 
 
@@ -302,16 +304,18 @@ def export(gains, fmt: str, out: str) -> list[str]:
                 paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p)
             return paths
         return _ros2(gains, out, None)
-    _io.ensure_writable_dir(out)
+    _results.ensure_writable_dir(out)
     doc = document(gains)
     path = os.path.join(out, f"gains.{fmt}")
     if fmt == "json":
-        _io.write_json(path, doc)
+        _results.write_json(path, doc)
     else:
         import yaml
 
         head = "# jaxsync gains: every gain under its jaxsync name, with the paper's symbol and unit\n"
-        _io.atomic_write_text(path, head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120))
+        _results.atomic_write_text(
+            path, head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
+        )
     return [path]
 
 

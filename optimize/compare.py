@@ -9,12 +9,15 @@ import time
 import jax
 import numpy as np
 
-from jaxsync import _io, _metrics, _scenario, _schedule
-from jaxsync._cache import compile_watch
-from jaxsync._controller import CONTROLLERS
 from jaxsync._errors import ConfigError
-from jaxsync._rollout import rollout
-from jaxsync._scenario import min_duration
+from jaxsync.control import schedule as _schedule
+from jaxsync.control.controller import CONTROLLERS
+from jaxsync.io import results as _results
+from jaxsync.runtime.cache import compile_watch
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.rollout import rollout
+from jaxsync.sim.scenario import min_duration
 
 SUMMARY_KEYS = (
     "settled_peak_resultant_N",
@@ -161,13 +164,13 @@ def plot_forces(
         ax1.text(drop_time_s, ax1.get_ylim()[0], f" {label}", va="bottom", fontsize=9, color="r")
         ax1.set_title(f"{title}: the object was dropped", color="r")
         ax2.legend(loc="upper right")
-    _io.save_figure(fig, path)
+    _results.save_figure(fig, path)
     plt.close(fig)
 
 
 def write_results(out: str, results: dict, scenario, gains, options: dict, wall_time_s: float) -> dict:
     """summary.json, series.csv and the two force plots; returns the summary."""
-    _io.ensure_writable_dir(out)
+    _results.ensure_writable_dir(out)
     summary: dict = {}
     columns: dict = {}
     all_series = {
@@ -196,8 +199,8 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
     summary["gains"] = _schedule.to_file_dict(gains)  # constant gains by name, or {"schedule": ...}
     summary["options"] = options
     summary["wall_time_s"] = wall_time_s
-    _io.write_csv(os.path.join(out, "series.csv"), columns)
-    _io.write_json(os.path.join(out, "summary.json"), summary)
+    _results.write_csv(os.path.join(out, "series.csv"), columns)
+    _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary
 
 
