@@ -12,6 +12,7 @@ from jaxsync.control import impedance as _impedance
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import default_gains
+from jaxsync.io import gains_file
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.rollout import make_rollout, rollout, steps_for
 
@@ -264,8 +265,8 @@ def test_gains_validation_and_json(tmp_path):
         _gains.from_dict({"imp_mass": 0.0})
     p = tmp_path / "g.json"
     p.write_text('{"k_rk": 0.2, "imp_stiffness": [1, 2, 3, 4, 5, 6]}')
-    g2 = _gains.load(p)
+    g2 = gains_file.load(p)
     assert float(g2.k_rk) == 0.2 and np.asarray(g2.imp_stiffness).shape == (2, 6)
     p.write_text("{not json")
     with pytest.raises(ConfigError, match="cannot read JSON"):
-        _gains.load(p)
+        gains_file.load(p)

@@ -11,6 +11,7 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import export as _export
+from jaxsync.io import gains_file
 
 
 def _tuned_like():
@@ -48,7 +49,7 @@ def _same(a, b, rtol):
 def test_every_format_round_trips(tmp_path, fmt, kind):
     gains = _tuned_like() if kind == "constant" else _schedule_like()
     paths = _export.export(gains, fmt, str(tmp_path))
-    back = _gains.load(paths[0] if fmt != "ros2-admittance" else tmp_path)  # what compare --gains reads
+    back = gains_file.load(paths[0] if fmt != "ros2-admittance" else tmp_path)  # what compare --gains reads
     # yaml/json carry the values as written; ros2 carries the damping as a ratio (one rounding)
     _same(back, gains, rtol=0 if fmt != "ros2-admittance" else 1e-14)
 
@@ -101,7 +102,7 @@ def test_export_cli_and_its_errors(tmp_path, capsys):
     (tmp_path / "half").mkdir()
     (tmp_path / "half" / "synchronisation.yaml").write_text("dual_arm_synchronisation: {}\n")
     with pytest.raises(ConfigError, match="admittance_right.yaml"):
-        _gains.load(tmp_path / "half")
+        gains_file.load(tmp_path / "half")
     with pytest.raises(SystemExit):
         main(["export", str(src), "--format", "urdf"])
 

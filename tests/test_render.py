@@ -11,8 +11,8 @@ import os
 import numpy as np
 import pytest
 
-from jaxsync import _render as render
 from jaxsync._errors import ConfigError, JaxsyncError
+from jaxsync.io import render
 from jaxsync.io import video as _video
 from jaxsync.runtime import gl as _gl
 

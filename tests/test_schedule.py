@@ -14,6 +14,7 @@ from jaxsync.optimize.params import TuneSpec
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
+from jaxsync.io import gains_file
 from jaxsync.sim import scenario as _scenario
 
 
@@ -69,7 +70,7 @@ def test_schedule_file_round_trip_and_errors(tmp_path):
     sched = sched._replace(phases=sched.phases._replace(k_rk=jnp.array([0.5, 0.3, 0.2, 0.1])))
     path = tmp_path / "gains.json"
     path.write_text(json.dumps({"gains": _schedule.to_file_dict(sched)}))
-    back = _gains.load(path)
+    back = gains_file.load(path)
     assert isinstance(back, _schedule.Schedule)
     for a, b in zip(sched.phases, back.phases, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -83,7 +84,7 @@ def test_schedule_file_round_trip_and_errors(tmp_path):
         _schedule.from_dict({"lift": {}})
     with pytest.raises(ConfigError, match="holds only 'schedule'"):
         path.write_text(json.dumps({"schedule": {}, "k_rk": 0.1}))
-        _gains.load(path)
+        gains_file.load(path)
 
 
 def test_tune_spec_with_a_schedule_has_160_parameters_and_starts_at_the_base():
@@ -156,7 +157,7 @@ def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
     sched = _schedule.from_dict({"all": {"k_rl": 0.4}, "hold": {"k_rk": -0.2}})
     results = {n: (rollouts[n], _metrics.summarize(rollouts[n], s)) for n in ("classical", "synchronous")}
     _compare.write_results(str(tmp_path), results, s, sched, {}, 1.0)
-    back = _gains.load(tmp_path / "summary.json")
+    back = gains_file.load(tmp_path / "summary.json")
     assert isinstance(back, _schedule.Schedule)
     for a, b in zip(sched.phases, back.phases, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -41,12 +41,13 @@ def run(args: argparse.Namespace) -> int:
     import time
 
     from jaxsync.control import gains as _gains
+    from jaxsync.io import gains_file
     from jaxsync.io import results as _results
     from jaxsync.io.results import ensure_writable_dir
     from jaxsync.optimize import compare as _compare
     from jaxsync.physics.model import load_model
 
-    gains = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    gains = gains_file.load(args.gains) if args.gains else _gains.default_gains()
     scenario = scenario_from_args(args)
     _compare.check_duration(scenario, args.duration)
     model = load_model(args.model, solver="accurate")

@@ -6,11 +6,12 @@ from __future__ import annotations
 def run(args) -> int:
     from jaxsync.control import gains as _gains
     from jaxsync.io import export as _export
+    from jaxsync.io import gains_file
 
     # the input is checked before anything is written
-    gains = _gains.load(args.gains)
+    gains = gains_file.load(args.gains)
     paths = _export.export(gains, args.format, args.out)
-    back = _gains.load(paths[0] if args.format != "ros2-admittance" else args.out)
+    back = gains_file.load(paths[0] if args.format != "ros2-admittance" else args.out)
     same = all(
         bool((abs(a - b) <= 1e-12 * abs(b) + 1e-300).all()) for a, b in zip(_leaves(back), _leaves(gains), strict=True)
     )

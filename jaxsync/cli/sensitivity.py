@@ -12,6 +12,7 @@ def run(args) -> int:
     import jax
 
     from jaxsync.control import gains as _gains
+    from jaxsync.io import gains_file
     from jaxsync.io import results as _results
     from jaxsync.optimize import sensitivity as sens
     from jaxsync.optimize.tasks import sample_scenarios
@@ -19,7 +20,7 @@ def run(args) -> int:
     from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
     # every input is checked before anything is written
-    gains = _gains.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
+    gains = gains_file.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
     base = short_task() if args.task == "short" else default_scenario()
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
     if duration < min_duration(base):

@@ -76,10 +76,10 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from jaxsync.control import gains as _gains
+    from jaxsync.io import gains_file
     from jaxsync.optimize import sweep
 
-    gains = _gains.load_constant(args.gains, "jaxsync sweep") if args.gains else None
+    gains = gains_file.load_constant(args.gains, "jaxsync sweep") if args.gains else None
     plan = sweep.make_plan(
         args.param,
         samples=args.samples,

@@ -36,6 +36,7 @@ def _names(text: str | None) -> list[str]:
 def run(args) -> int:
     from jaxsync.control import gains as _gains
     from jaxsync.control import schedule as _schedule
+    from jaxsync.io import gains_file
     from jaxsync.io import results as _results
     from jaxsync.optimize import tasks
     from jaxsync.optimize import tune as tuning
@@ -75,7 +76,7 @@ def run(args) -> int:
         popsize=args.popsize,
     ).validate()
     weights = _weights(args.weight)
-    base = _gains.load(args.gains) if args.gains else _gains.default_gains()
+    base = gains_file.load(args.gains) if args.gains else _gains.default_gains()
     spec.init(base)  # a schedule file needs --per-phase: say so before any folder is touched
     # a multi-process run (--coordinator ...): every process tunes (data-parallel,
     # optimize.parallel); process 0 alone checks and writes --out and prints

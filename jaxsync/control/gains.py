@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import math
-import os
 from typing import NamedTuple
 
 import jax
@@ -169,48 +167,3 @@ def from_dict(d: dict, base: Gains | None = None) -> Gains:
             arr = np.stack([arr, arr])  # the same per-axis values for both arms
         fields[k] = arr
     return validate(strongly_typed(Gains(**fields)))
-
-
-def load_constant(path: str | os.PathLike, command: str) -> Gains:
-    """:func:`load`, for a command that takes constant gains only (a schedule is a ConfigError naming it)."""
-    g = load(path)
-    if not isinstance(g, Gains):
-        raise ConfigError(
-            f"gains file {path} holds a gain schedule; {command} takes constant gains "
-            "(compare and tune --per-phase take schedules)"
-        )
-    return g
-
-
-def load(path: str | os.PathLike):
-    """Read a gains JSON (written by :func:`save` or ``jaxsync tune``): :class:`Gains`,
-    or a :class:`jaxsync.control.schedule.Schedule` when the file holds ``{"schedule": ...}``; also what
-    ``jaxsync export`` writes (``gains.yaml``, ``gains.json``, a ros2-admittance folder)."""
-    if os.path.isdir(path) or str(path).endswith((".yaml", ".yml")):
-        from jaxsync.io import export as _export
-
-        return _export.load(str(path))
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        raise ConfigError(f"gains file {path}: no such file") from None
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"gains file {path}: cannot read JSON: {err}") from None
-    if not isinstance(data, dict):
-        raise ConfigError(f"gains file {path}: expected a JSON object of gains")
-    if isinstance(data, dict) and "jaxsync_gains" in data:  # written by jaxsync export --format json
-        from jaxsync.io import export as _export
-
-        return _export.from_document(data, str(path))
-    data = data.get("gains", data)
-    try:
-        if isinstance(data, dict) and "schedule" in data:  # per-phase gains (jaxsync.control.schedule)
-            from jaxsync.control import schedule as _schedule
-
-            if set(data) != {"schedule"}:
-                raise ConfigError(f"a schedule file holds only 'schedule', got also {sorted(set(data) - {'schedule'})}")
-            return _schedule.from_dict(data["schedule"])
-        return from_dict(data)
-    except ConfigError as err:
-        raise ConfigError(f"gains file {path}: {err}") from None

@@ -320,8 +320,9 @@ def export(gains, fmt: str, out: str) -> list[str]:
 
 
 def load(path: str):
-    """Gains from any exported form: ``gains.yaml`` / ``gains.json`` (or a jaxsync
-    gains file), or a ros2-admittance folder (a schedule: its folder of phase folders)."""
+    """Gains from an exported form: a ``gains.yaml`` export, or a ros2-admittance
+    folder (a schedule: its folder of phase folders). JSON files are read by
+    :func:`jaxsync.io.gains_file.load`, which calls this for the other forms."""
     if os.path.isdir(path):
         if all(os.path.isdir(os.path.join(path, p)) for p in _schedule.PHASES):
             per = [_ros2_load(os.path.join(path, p)) for p in _schedule.PHASES]
@@ -329,9 +330,7 @@ def load(path: str):
         if os.path.exists(os.path.join(path, "synchronisation.yaml")):
             return _ros2_load(path)
         raise ConfigError(f"{path}: a folder of gains must hold a ros2-admittance export (synchronisation.yaml)")
-    if path.endswith((".yaml", ".yml")):
-        doc = _read_yaml(path)
-        if not isinstance(doc, dict) or HEADER not in doc:
-            raise ConfigError(f"{path}: expected a jaxsync gains export ('{HEADER}: ...')")
-        return from_document(doc, path)
-    return _gains.load(path)
+    doc = _read_yaml(path)
+    if not isinstance(doc, dict) or HEADER not in doc:
+        raise ConfigError(f"{path}: expected a jaxsync gains export ('{HEADER}: ...')")
+    return from_document(doc, path)

@@ -1,0 +1,58 @@
+"""Reading a gains file, whatever wrote it.
+
+:func:`jaxsync.control.gains.to_dict` and ``jaxsync tune`` write JSON (plain
+gains, ``{"gains": ...}`` or ``{"schedule": ...}``); ``jaxsync export`` writes
+``gains.yaml``, ``gains.json`` and ros2-admittance folders. :func:`load` reads
+all of them, so every command's ``--gains`` takes any of them.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.control.gains import Gains
+from jaxsync.io import export as _export
+
+
+def load(path: str | os.PathLike):
+    """Read a gains file: :class:`~jaxsync.control.gains.Gains`, or a
+    :class:`~jaxsync.control.schedule.Schedule` when the file holds
+    ``{"schedule": ...}``; also what ``jaxsync export`` writes (``gains.yaml``,
+    ``gains.json``, a ros2-admittance folder)."""
+    if os.path.isdir(path) or str(path).endswith((".yaml", ".yml")):
+        return _export.load(str(path))
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"gains file {path}: no such file") from None
+    except (OSError, json.JSONDecodeError) as err:
+        raise ConfigError(f"gains file {path}: cannot read JSON: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"gains file {path}: expected a JSON object of gains")
+    if _export.HEADER in data:  # written by jaxsync export --format json
+        return _export.from_document(data, str(path))
+    data = data.get("gains", data)
+    try:
+        if isinstance(data, dict) and "schedule" in data:  # per-phase gains
+            if set(data) != {"schedule"}:
+                raise ConfigError(f"a schedule file holds only 'schedule', got also {sorted(set(data) - {'schedule'})}")
+            return _schedule.from_dict(data["schedule"])
+        return _gains.from_dict(data)
+    except ConfigError as err:
+        raise ConfigError(f"gains file {path}: {err}") from None
+
+
+def load_constant(path: str | os.PathLike, command: str) -> Gains:
+    """:func:`load`, for a command that takes constant gains only (a schedule is a ConfigError naming it)."""
+    g = load(path)
+    if not isinstance(g, Gains):
+        raise ConfigError(
+            f"gains file {path} holds a gain schedule; {command} takes constant gains "
+            "(compare and tune --per-phase take schedules)"
+        )
+    return g
