@@ -43,7 +43,7 @@ def main() -> None:
     }
     fns = {}
     for name, (model, trunc) in paths.items():
-        roll = jaxsync.make_rollout(model, "synchronous", args.duration, remat=True, truncate_every=trunc)
+        roll = jaxsync.make_rollout(model, "synchronous", args.duration, remat=True, passes="tree", truncate_every=trunc)
 
         def loss(gains, s, roll=roll):
             return cost(roll(gains, s), s, CostWeights())

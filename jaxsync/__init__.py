@@ -78,10 +78,10 @@ _OPTIMIZE = {
     "tune": "jaxsync.optimize.tune",
     "TuneConfig": "jaxsync.optimize.tune",
     "TuneResult": "jaxsync.optimize.tune",
-    "make_loss": "jaxsync.optimize.tune",
+    "make_loss": "jaxsync.optimize.loss",
     "TuneSpec": "jaxsync.optimize.params",
     "CostWeights": "jaxsync.optimize.cost",
-    "sample_scenarios": "jaxsync.optimize.tasks",
+    "sample_scenarios": "jaxsync.optimize.scenarios",
     "make_plan": "jaxsync.optimize.sweep",
 }
 _RENAMED = {"run_sweep": ("jaxsync.optimize.sweep", "run")}

@@ -227,7 +227,7 @@ def sim_to_sim(
     """``gains`` against ``baseline`` (e.g. tuned against default gains) on MJX and on
     MuJoCo C, with the same jitted synchronous control law (``rollout(backend=...)``),
     on the first ``n`` of ``scenarios`` (a batched :class:`~jaxsync.Scenario`, e.g.
-    ``optimize.tasks.heldout_scenarios``), one rollout at a time.
+    ``optimize.scenarios.heldout_scenarios``), one rollout at a time.
 
     The improvement factor on each engine is mean settled peak resultant of
     ``baseline`` / that of ``gains`` over the scenarios where no rollout dropped the
@@ -244,8 +244,8 @@ def sim_to_sim(
     those rollouts are not run again.
 
     Example:
-      >>> from jaxsync.optimize import tasks, tune
-      >>> held = tasks.heldout_scenarios(tune.TuneConfig())
+      >>> from jaxsync.optimize import scenarios, tune
+      >>> held = scenarios.heldout_scenarios(tune.TuneConfig())
       >>> c = sim_to_sim(model, tuned, jaxsync.default_gains(), held, 4.0)  # doctest: +SKIP
       >>> c["factor_mjx"], c["factor_mujoco"], c["agree"]  # doctest: +SKIP
       (9.88, 9.18, True)

@@ -19,7 +19,6 @@ Example:
 
 from __future__ import annotations
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -28,6 +27,7 @@ import numpy as np
 from jaxsync.optimize.cost import smooth_metrics
 
 from jaxsync.control import gains as _gains
+from jaxsync.runtime import programs
 from jaxsync.sim.rollout import make_rollout
 
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
@@ -55,7 +55,7 @@ def entry_names() -> list[str]:
 def metrics_function(model, duration: float, start: str | None = None):
     """``f(gains, scenarios) -> (3,)``: each smooth metric's mean over the batch."""
     kw = {} if start is None else {"start": start}
-    fn = make_rollout(model, "synchronous", duration, remat=True, **kw)
+    fn = make_rollout(model, "synchronous", duration, remat=True, passes="tree", **kw)
 
     def one(g, s):
         m = smooth_metrics(fn(g, s), s)
@@ -79,7 +79,7 @@ def derivatives_function(f):
     return jax.jit(run)
 
 
-@functools.lru_cache(maxsize=8)
+@programs.memoize(maxsize=8)
 def program(model, duration: float, start: str | None = None):
     """The jitted derivatives of one configuration, built once per process
     (the command line and the library share it)."""

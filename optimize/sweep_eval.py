@@ -20,6 +20,7 @@ from jaxsync.optimize.sweep_spec import build_batch
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
+from jaxsync.runtime import programs
 from jaxsync.sim.scenario import Scenario
 
 DEFAULT_BUDGET_GIB = 2.0
@@ -27,7 +28,7 @@ DEFAULT_CHUNK_PER_DEVICE = {"cpu": 32}  # other platforms (GPU, TPU): 1024 per d
 GIB = 1024.0**3
 
 
-@functools.lru_cache(maxsize=4)
+@functools.lru_cache(maxsize=4)  # a loaded model, not a program: clear() keeps it
 def _model(solver: str):
     from jaxsync.physics.model import load_model
 
@@ -41,7 +42,7 @@ def _mesh():
     return Mesh(np.array(jax.local_devices()), ("batch",))
 
 
-@functools.lru_cache(maxsize=8)
+@programs.memoize(maxsize=8)
 def evaluator(solver: str, controller: str, duration: float, n_devices: int):
     """jit(shard_map(vmap(metrics of one rollout))) over the 'batch' mesh axis.
 
@@ -65,7 +66,7 @@ def evaluator(solver: str, controller: str, duration: float, n_devices: int):
     return jax.jit(sharded), fn.n_steps
 
 
-@functools.lru_cache(maxsize=8)
+@programs.memoize(maxsize=8)
 def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes):
     import jax
 

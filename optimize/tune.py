@@ -1,6 +1,6 @@
 """Gradient-based gain tuning through MJX rollouts: the loss and the loop.
 
-Each iteration: sample a batch of randomised scenarios (``tasks``, seeded by
+Each iteration: sample a batch of randomised scenarios (``scenarios``, seeded by
 the iteration, so a resumed run sees the same batches), take
 ``jax.value_and_grad`` of the mean cost (``cost``) through the batched
 closed-loop rollouts (jaxsync's one physics: MJX's converged solve,
@@ -19,30 +19,35 @@ import math
 import os
 import time
 from collections.abc import Callable
-from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
-from jaxsync.optimize import checkpoint
-from jaxsync.optimize.cost import CostWeights, cost, cost_terms
+from jaxsync.optimize import methods as _methods
+from jaxsync.optimize import parallel
+from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.loop import apply_update, make_optimizer
+from jaxsync.optimize.loss import make_loss, traced_value_and_grad
 from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.tasks import training_base, training_batch
+from jaxsync.optimize.scenarios import training_base, training_batch
+from jaxsync.optimize.tune_state import (
+    TuneResult,
+    TuneState,
+    fresh_state,
+    prepare_out,
+    resumed_state,
+    save_state,
+    select_iterate,
+    validated,
+)
+from tqdm import tqdm
 
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import results as _results
-from jaxsync.physics import step as _physics
-from jaxsync.runtime.cache import traced_on_disk
-from jaxsync.sim import metrics as _metrics
-from jaxsync.sim.rollout import make_rollout
-
-# TuneConfig fields the training loss's program depends on (the rest steer the loop)
-_PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")
 
 
 class TuneError(JaxsyncError):
@@ -104,10 +109,8 @@ class TuneConfig:
             )
         if self.task not in ("short", "full"):
             raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")
-        from jaxsync.optimize.methods import METHODS
-
-        if self.method not in METHODS:
-            raise ConfigError(f"method must be one of {list(METHODS)}, got {self.method!r}")
+        if self.method not in _methods.METHODS:
+            raise ConfigError(f"method must be one of {list(_methods.METHODS)}, got {self.method!r}")
         if self.popsize < 2:
             raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
         if self.schedule not in ("cosine", "constant"):
@@ -125,247 +128,14 @@ class TuneConfig:
         )
 
 
-# ------------------------------------------------------------------- the loss
-
-
-def make_loss(
-    model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights, *, differentiated: bool = True
-):
-    """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready.
-
-    ``differentiated=True`` (a loss to take the gradient of) rematerialises the
-    rollout's steps and runs jaxsync's tree passes (a smaller program to
-    differentiate); ``False`` (a loss only evaluated, e.g. over a CMA-ES
-    population) runs MJX's own passes, faster over large vmapped batches. The
-    same values to rounding.
-
-    Example:
-      >>> loss = make_loss(jaxsync.load_model(), TuneSpec(),
-      ...                  jaxsync.default_gains(), TuneConfig(task="short"), CostWeights())
-      >>> value, terms = loss(TuneSpec().init(jaxsync.default_gains()), batch)  # doctest: +SKIP
-    """
-    fn = make_rollout(
-        model,
-        "synchronous",
-        training_base(cfg)[1],
-        remat=differentiated,
-        truncate_every=cfg.truncate_every,
-        start=cfg.train_start,
-    )
-
-    def one(gains, s):
-        traj = fn(gains, s)
-        return cost(traj, s, weights), cost_terms(traj, s, weights)
-
-    def loss(theta, scenarios):
-        gains = spec.to_gains(theta, base)
-        c, terms = jax.vmap(one, in_axes=(None, 0))(gains, scenarios)
-        return c.mean(), jax.tree_util.tree_map(jnp.mean, terms)
-
-    return loss
-
-
-def make_evaluator(model, duration: float):
-    """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver)."""
-    fn = make_rollout(model, "synchronous", duration)
-    return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
-
-
-def eval_summary(m) -> dict:
-    """A batch of metrics as the loop records it: means over the rollouts kept (not dropped, finite)."""
-    import numpy as np
-    from jaxsync.optimize.compare import metric_rows
-
-    rows = metric_rows(m)
-    m = _metrics.to_arrays(m)
-    kept = ~(m["dropped"] | m["nonfinite"])
-    mean = lambda x: float(np.mean(x[kept])) if kept.any() else None  # noqa: E731
-    return {
-        "settled_peak_resultant_N": mean(m["settled_peak_resultant_N"]),
-        "grip_force_error_rel": mean(m["grip_force_error_rel"]),
-        "dropped": int(m["dropped"].sum()),
-        "nonfinite": int(m["nonfinite"].sum()),
-        "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
-        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
-    }
-
-
-def select_iterate(validation: list[dict]) -> dict | None:
-    """The validated iterate with the lowest settled peak resultant whose grip
-    error is not worse than the start's (the first entry, which therefore always
-    qualifies). Entries: {"iteration", "settled_peak_resultant_N",
-    "grip_force_error_rel", "dropped", "nonfinite", ...}."""
-    if not validation:
-        return None
-    grip0 = validation[0]["grip_force_error_rel"]
-    ok = [
-        v
-        for v in validation
-        if v["settled_peak_resultant_N"] is not None
-        and not v["dropped"]
-        and not v["nonfinite"]
-        and (v is validation[0] or v["grip_force_error_rel"] <= grip0)
-    ]
-    return min(ok, key=lambda v: v["settled_peak_resultant_N"]) if ok else validation[0]
-
-
 # ------------------------------------------------------------------- the loop
-
-
-class TuneState(NamedTuple):
-    """Everything the loop carries from one iteration to the next (and checkpoints)."""
-
-    theta: dict  # the unconstrained parameters (TuneSpec)
-    opt_state: Any
-    iteration: int  # steps taken
-    bad: int  # non-finite steps in a row
-    history: tuple  # one row (dict) per step
-    validation: tuple  # one evaluation (dict) per validated iterate
-    kept: dict  # iteration -> theta, of the iterate that may still be selected
-
-
-class TuneResult(NamedTuple):
-    gains: _gains.Gains  # the selected iterate's (the last iterate's without validation)
-    history: list  # one row per step: iteration, cost, grad_norm, skipped, seconds, term_*
-    validation: list  # the evaluations of the validated iterates
-    selected: dict | None  # the selected evaluation (None without validation)
-    last_gains: _gains.Gains
-    state: TuneState
-
-
-def _fresh(spec: TuneSpec, base, opt, method=None, seed: int = 0) -> TuneState:
-    theta = spec.init(base)
-    if opt is None:  # an optimize.methods method on the flat parameters
-        x0 = np.asarray(ravel_pytree(theta)[0])
-        return TuneState(theta, method.init(x0, seed), 0, 0, (), (), {})
-    return TuneState(theta, opt.init(theta), 0, 0, (), (), {})
-
-
-def _resumed(path: str, fingerprint, spec: TuneSpec, base, opt) -> TuneState:
-    saved = checkpoint.load(path)
-    if fingerprint is not None and saved.get("fingerprint") != fingerprint:
-        raise ConfigError(
-            f"--resume: {path} was written by a run with other options; its options: {saved.get('fingerprint')}"
-        )
-    theta = jax.tree_util.tree_map(jnp.asarray, saved["theta"])
-    if opt is None:  # an optimize.methods state: plain Python and numpy, kept as saved
-        opt_state = saved["opt_state"]
-    else:
-        template = jax.tree_util.tree_structure(opt.init(theta))
-        opt_state = jax.tree_util.tree_unflatten(template, jax.tree_util.tree_leaves(saved["opt_state"]))
-        opt_state = jax.tree_util.tree_map(jnp.asarray, opt_state)
-    return TuneState(
-        theta=theta,
-        opt_state=opt_state,
-        iteration=int(saved["iteration"]),
-        bad=int(saved["bad"]),
-        history=tuple(saved["history"]),
-        validation=tuple(saved.get("validation", [])),
-        kept={int(k): jax.tree_util.tree_map(jnp.asarray, v) for k, v in saved.get("kept", {}).items()},
-    )
-
-
-def _save(path: str | None, state: TuneState, fingerprint) -> None:
-    if path:
-        d = state._asdict()
-        d.update(history=list(state.history), validation=list(state.validation), fingerprint=fingerprint)
-        checkpoint.save(path, d)
-
-
-def _validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log) -> TuneState:
-    """Evaluate the current iterate; keep its parameters while it may be selected."""
-    i = state.iteration
-    r = {"iteration": i, **validate(spec.to_gains(state.theta, base))}
-    validation = (*state.validation, r)
-    best = select_iterate(list(validation))["iteration"]
-    kept = {k: v for k, v in {**state.kept, i: state.theta}.items() if k == best}
-    peak, grip = r["settled_peak_resultant_N"], r["grip_force_error_rel"]
-    log(
-        f"validation after {i} iterations: settled peak "
-        + (f"{peak:.5f} N, grip error {100 * grip:.2f} %" if peak is not None else "n/a (all dropped)")
-        + (f", {r['dropped']} dropped" if r.get("dropped") else "")
-        + f"; selected so far: iteration {best}"
-    )
-    return state._replace(validation=validation, kept=kept)
-
-
-# What a tuning run writes to its folder (checkpoint.pkl by tune(), the rest by
-# jaxsync tune): removed together when a run starts over (--restart).
-RUN_FILES = (
-    "checkpoint.pkl",
-    "heldout_before.json",
-    "gains.json",
-    "gains_last.json",
-    "history.csv",
-    "loss.png",
-    "summary.json",
-)
-
-
-def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> None:
-    """Check what ``out`` holds before a run writes there; reads, never creates.
-
-    A folder holding a tuning run is continued (``resume``) or discarded
-    (``restart``: its RUN_FILES are removed), never silently overwritten: with
-    neither, a checkpoint or a former run's results are a ConfigError naming
-    both flags.
-    """
-    if resume and restart:
-        raise ConfigError("--resume continues the run in --out and --restart discards it: give one of them")
-    ckpt = os.path.join(out, "checkpoint.pkl")
-    if resume:
-        if not os.path.exists(ckpt):
-            raise ConfigError(f"--resume: no checkpoint at {ckpt}")
-        return
-    found = [f for f in RUN_FILES if os.path.exists(os.path.join(out, f))]
-    if restart:
-        for f in found:
-            os.unlink(os.path.join(out, f))
-        return
-    if "checkpoint.pkl" in found:
-        raise ConfigError(
-            f"output folder {out!r} holds a tuning run ({', '.join(found)}): pass --resume to continue it, "
-            "--restart to discard it and start over, or choose another --out"
-        )
-    if found:
-        raise ConfigError(
-            f"output folder {out!r} holds a tuning run's results ({', '.join(found)}) and no checkpoint to "
-            "--resume from: pass --restart to discard them and start over, or choose another --out"
-        )
-
-
-def _traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
-    """jit(value_and_grad(loss)), its traced form kept on disk between runs
-    (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
-    import hashlib
-
-    with open(model.path, "rb") as f:
-        model_hash = hashlib.sha256(f.read()).hexdigest()
-    program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
-    key = repr(
-        (
-            "tune.value_and_grad",
-            spec.describe(),
-            _schedule.to_file_dict(base),
-            program,
-            tuple(weights),
-            model.path,
-            model_hash,
-            model.solver,
-        )
-    )
-    value_and_grad = traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
-    _physics.forget_stage_traces()
-    return value_and_grad
 
 
 def _method_options(cfg: TuneConfig) -> dict:
     if cfg.method == "cmaes":
         return {"popsize": cfg.popsize}
     if cfg.method == "cmaes-lbfgs":
-        from jaxsync.optimize.methods import CMAES
-
-        return {"cmaes": CMAES(popsize=cfg.popsize)}
+        return {"cmaes": _methods.CMAES(popsize=cfg.popsize)}
     return {}
 
 
@@ -405,8 +175,6 @@ class _MethodOracle:
     devices when it has several: ``optimize.parallel``)."""
 
     def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig, n_total: int | None = None):
-        from jaxsync.optimize.methods import Oracle
-
         _, self.unravel = ravel_pytree(theta)
         self.scen = scen
 
@@ -415,14 +183,12 @@ class _MethodOracle:
             return float(value), np.asarray(ravel_pytree(grad)[0])
 
         if n_total is not None:
-            from jaxsync.optimize import parallel
-
             pop_dp = parallel.population_values(loss, self.unravel, n_total)
             values = lambda X: pop_dp(X, scen)  # noqa: E731
         else:
             pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
             values = lambda X: pop(jnp.asarray(X), scen)  # noqa: E731
-        self.oracle = Oracle(value_and_grad=vg, values=values)
+        self.oracle = _methods.Oracle(value_and_grad=vg, values=values)
 
 
 def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
@@ -503,10 +269,7 @@ def tune(
       >>> result = tune(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(), cfg)
       >>> result.gains.k_rk, result.history[-1]["cost"]  # doctest: +SKIP
     """
-    from tqdm import tqdm
-
     cfg.validate()
-    from jaxsync.optimize import parallel
 
     weights = weights if weights is not None else CostWeights()
     loss = make_loss(model, spec, base, cfg, weights)
@@ -514,8 +277,6 @@ def tune(
     batch_cfg = dataclasses.replace(cfg, batch=n_total) if n_total else cfg  # every process draws the whole batch
     main = jax.process_index() == 0
     say = tqdm.write if main else (lambda m: None)
-    from jaxsync.optimize import methods as _methods
-
     method = None if cfg.method == "adam" else _methods.get(cfg.method, **_method_options(cfg))
     opt = cfg.optimizer_transform() if method is None else None
     train_base = training_base(cfg)[0]
@@ -525,7 +286,9 @@ def tune(
     if out and main:
         _results.ensure_writable_dir(out)
     write_ckpt = ckpt if main else None  # every process reads a checkpoint to resume; process 0 writes them
-    state = _resumed(ckpt, fingerprint, spec, base, opt) if resume else _fresh(spec, base, opt, method, cfg.seed)
+    state = (
+        resumed_state(ckpt, fingerprint, spec, base, opt) if resume else fresh_state(spec, base, opt, method, cfg.seed)
+    )
     every = cfg.validate_every if validate is not None else 0
 
     def progress_bar(first: bool):
@@ -548,9 +311,9 @@ def tune(
     try:
         start = state.iteration
         if every and not state.validation:
-            state = _validated(state._replace(iteration=0), validate, spec, base, say)._replace(iteration=start)
+            state = validated(state._replace(iteration=0), validate, spec, base, say)._replace(iteration=start)
         elif every and (start % every == 0 or start == cfg.iterations) and state.validation[-1]["iteration"] != start:
-            state = _validated(state, validate, spec, base, say)  # interrupted between a step and its validation
+            state = validated(state, validate, spec, base, say)  # interrupted between a step and its validation
         oracle = None
         for i in range(start, cfg.iterations):
             # Adam: a fresh batch every iteration; the other methods: one fixed batch (a deterministic objective)
@@ -561,7 +324,7 @@ def tune(
                 if value_and_grad is None and n_total:
                     value_and_grad = parallel.value_and_grad(loss, n_total)
                 elif value_and_grad is None:
-                    value_and_grad = _traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), say)
+                    value_and_grad = traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), say)
                 return value_and_grad
 
             converged = False
@@ -581,15 +344,15 @@ def tune(
                 on_iteration(i, state.theta, row)
             last = converged or i + 1 == cfg.iterations
             if every and ((i + 1) % every == 0 or last):
-                state = _validated(state, validate, spec, base, say)
+                state = validated(state, validate, spec, base, say)
             if (i + 1) % cfg.checkpoint_every == 0 or last:
-                _save(write_ckpt, state, fingerprint)
+                save_state(write_ckpt, state, fingerprint)
             if converged:
                 say(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
                 break
     except KeyboardInterrupt:
         if write_ckpt:
-            _save(write_ckpt, state, fingerprint)
+            save_state(write_ckpt, state, fingerprint)
             say(
                 f"interrupted: checkpoint saved to {ckpt} after {state.iteration} iterations; "
                 "run again with --resume to continue"

@@ -37,7 +37,7 @@ from jax.flatten_util import ravel_pytree
 from jaxsync.optimize import methods as _methods
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.tasks import sample_scenarios
+from jaxsync.optimize.scenarios import sample_scenarios
 
 from jaxsync.sim import scenario as _scenario
 
@@ -63,7 +63,8 @@ class Programs:
     """The compiled programs both problems share, and the two problems' oracles."""
 
     def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
-        from jaxsync.optimize.tune import TuneConfig, make_loss
+        from jaxsync.optimize.loss import make_loss
+        from jaxsync.optimize.tune import TuneConfig
 
         from jaxsync.control import gains as _gains
 

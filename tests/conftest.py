@@ -5,9 +5,12 @@ Every jitted function is compiled once per session through the fixtures here.
 
 from __future__ import annotations
 
+import gc
+
 import jax
 import pytest
 
+from jaxsync.runtime import programs
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
 
@@ -62,37 +65,10 @@ def _free_compiled_programs():
     needs again come back from the persistent compilation cache; below the
     limit they stay, and a later module does not trace and look them up again."""
     yield
-    import gc
-
     if _resident_gib() < KEEP_PROGRAMS_BELOW_GIB:
         return
-    from jaxsync.optimize import sensitivity, sweep_eval
-
-    from jaxsync.sim import rollout as _rollout
-
-    _rollout._jitted.cache_clear()
-    sensitivity.program.cache_clear()
-    sweep_eval._compiled.cache_clear()
-    sweep_eval.evaluator.cache_clear()
-    _clear_compiled()
+    programs.clear()
     gc.collect()
-
-
-def _clear_compiled():
-    """``jax.clear_caches()`` less the traces: the compiled executables and
-    lowered modules go, the traced jaxprs stay, so that the MJX physics traced
-    once (``jaxsync.physics.step``'s jitted stages) is not traced again by every
-    test module (4-5 s each time)."""
-    from jax._src import pjit
-    from jax._src.interpreters import pxla
-    from jax._src.lib import _jax
-
-    pxla._cached_compilation.cache_clear()
-    pxla._cached_lowering_to_hlo.cache_clear()
-    pjit._pjit_lower.cache_clear()
-    pjit._cpp_pjit_cache_fun_only.clear()
-    pjit._cpp_pjit_cache_explicit_attributes.clear()
-    _jax.PjitFunctionCache.clear_all()
 
 
 @pytest.fixture(scope="session")
@@ -202,24 +178,25 @@ def shared_rollout():
 def tuning_program(model):
     """``jaxsync tune``'s own gradient program, compiled once for the session:
     its defaults (the full 4 s task, 2000 steps, the exact full-horizon
-    gradient), batch 2, through ``_traced_value_and_grad`` as ``tune()`` builds
+    gradient), batch 2, through ``traced_value_and_grad`` as ``tune()`` builds
     it, so that a ``tune()`` call in a test with the same configuration gets the
     same program back (traced form from disk, executable from the persistent
     cache). Used by the full-task gradient check (test_gradient) and the
     resumed-run test (test_tune)."""
+    from jaxsync.optimize import loss as loss_mod
     from jaxsync.optimize import tune as tune_mod
     from jaxsync.optimize.cost import CostWeights
     from jaxsync.optimize.params import TuneSpec
-    from jaxsync.optimize.tasks import sample_scenarios, training_base
+    from jaxsync.optimize.scenarios import sample_scenarios, training_base
 
     from jaxsync.control.gains import default_gains
 
     cfg = tune_mod.TuneConfig(batch=2)
     spec, base, weights = TuneSpec(), default_gains(), CostWeights()
-    loss = tune_mod.make_loss(model, spec, base, cfg, weights)
+    loss = loss_mod.make_loss(model, spec, base, cfg, weights)
     scen = sample_scenarios(jax.random.key(7), cfg.batch, training_base(cfg)[0])
     theta0 = spec.init(base)
-    value_and_grad = tune_mod._traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta0, scen), None)
+    value_and_grad = loss_mod.traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta0, scen), None)
     return {
         "cfg": cfg,
         "spec": spec,

@@ -10,6 +10,7 @@ import numpy as np
 
 from jaxsync.control.gains import default_gains
 from jaxsync.runtime import cache as _cache
+from jaxsync.runtime import patches
 
 
 def test_traced_function_kept_on_disk(tmp_path):
@@ -83,7 +84,7 @@ def test_dead_code_elimination_is_memoised_for_the_whole_process():
     big trace is the module it would be in a fresh process (its cache key)."""
     from jax._src import core, pjit
 
-    assert _cache.stable_lowering()
+    assert patches.stable_lowering()
     closed = jax.make_jaxpr(lambda x: (jnp.sin(x), jnp.cos(x)))(1.0)
     first = pjit._dce_jaxpr_pjit(closed, (True, False))[0]
     assert len(first.jaxpr.outvars) == 1

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from conftest import TEST_DURATION, fast_scenario
 
+from jaxsync import ConfigError
+from jaxsync.control import gains as _gains
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
@@ -252,8 +254,6 @@ def test_metrics_flag_nonfinite_and_drop():
 
 
 def test_gains_validation_and_json(tmp_path):
-    from jaxsync import ConfigError, _gains
-
     g = default_gains()
     for k, v in _gains.to_dict(_gains.from_dict(_gains.to_dict(g))).items():
         np.testing.assert_allclose(v, np.asarray(getattr(g, k)))

@@ -145,7 +145,7 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     from jaxsync.sim import rollout as _rollout
 
     plain = rollouts["synchronous"]
-    fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, truncate_every=100)
+    fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, passes="tree", truncate_every=100)
     prod = jax.jit(fn)(rollouts["gains"], rollouts["scenario"])
     assert np.abs(np.asarray(plain.pad_forces)).max() > 1.0  # in contact: the solve matters
     for name, a, b in zip(plain._fields, plain, prod, strict=True):

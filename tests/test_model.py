@@ -116,7 +116,7 @@ def test_only_explicit_pairs_collide(model):
 
 def test_solver_settings(model, unrolled_model):
     assert unrolled_model.mj_model.opt.iterations == 1
-    # the same cone: elliptic (its unrolled MJX gradient made finite by _physics.patch_mjx_elliptic_gradient)
+    # the same cone: elliptic (its unrolled MJX gradient made finite by jaxsync.runtime.patches.mjx_elliptic_gradient)
     assert unrolled_model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.cone == mujoco.mjtCone.mjCONE_ELLIPTIC
     assert model.mj_model.opt.iterations > 1
@@ -207,10 +207,10 @@ def test_cli_info_prints_versions_and_model(tmp_path):
 
 
 def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
-    """The elliptic-cone fix (jaxsync.physics.step.patch_mjx_elliptic_gradient) is installed by load_model."""
+    """The elliptic-cone fix (jaxsync.runtime.patches.mjx_elliptic_gradient) is installed by load_model."""
     from mujoco.mjx._src import solver
 
-    from jaxsync.physics.step import sqrt_zero_safe
+    from jaxsync.runtime.patches import sqrt_zero_safe
 
     jaxsync.load_model(solver="unrolled")
 

@@ -19,8 +19,8 @@ BATCH = 2
 
 @pytest.fixture(scope="module")
 def computed(model):
+    from jaxsync.optimize.scenarios import sample_scenarios
     from jaxsync.optimize.sensitivity import sensitivity
-    from jaxsync.optimize.tasks import sample_scenarios
 
     scen = sample_scenarios(jax.random.key(0), BATCH, jaxsync.short_task())  # the command's --seed 0
     return scen, sensitivity(model, _gains.default_gains(), scen, DURATION)

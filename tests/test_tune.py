@@ -11,7 +11,7 @@ import jax
 import numpy as np
 import pytest
 from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
-from jaxsync.optimize.tasks import sample_scenarios
+from jaxsync.optimize.scenarios import sample_scenarios
 from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 
 import jaxsync
@@ -128,8 +128,8 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     stage, whose ``passes`` is recorded (the trace stops there: no step is
     traced, nothing compiled)."""
     from jaxsync.optimize.cost import CostWeights
-    from jaxsync.optimize.tasks import training_base
-    from jaxsync.optimize.tune import make_loss
+    from jaxsync.optimize.loss import make_loss
+    from jaxsync.optimize.scenarios import training_base
 
     from jaxsync.physics import step as _physics
 
@@ -157,7 +157,7 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
 
 
 def test_select_iterate_keeps_the_grip_error():
-    from jaxsync.optimize.tune import select_iterate
+    from jaxsync.optimize.tune_state import select_iterate
 
     def v(i, peak, grip, dropped=0):
         return {
@@ -476,7 +476,6 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     """jaxsync tune --method lbfgs on tune's own (full-task, exact) gradient program:
     two iterations lower the training cost on its fixed batch, every accepted step
     satisfies Armijo's condition, and the checkpoint holds the method's state exactly."""
-    from jaxsync.optimize import tune as tune_mod
 
     cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, checkpoint_every=1, validate_every=0)
     cfg = dataclasses.replace(cfg, method="lbfgs")
@@ -486,12 +485,14 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     assert [row["iteration"] for row in h] == [0, 1] and all(row["skipped"] == 0 for row in h)
     assert all(row["gradient_calls"] >= 1 for row in h)
     # the fixed batch's cost at the start, from the same program
-    from jaxsync.optimize.tasks import training_base, training_batch
+    from jaxsync.optimize.scenarios import training_base, training_batch
 
     scen = training_batch(cfg, 0, training_base(cfg)[0])
     (c0, _), _ = tuning_program["value_and_grad"](spec.init(base), scen)
     assert h[0]["cost"] < float(c0) and h[1]["cost"] < h[0]["cost"]
-    saved = tune_mod._resumed(str(tmp_path / "l" / "checkpoint.pkl"), None, spec, base, None)
+    from jaxsync.optimize import tune_state
+
+    saved = tune_state.resumed_state(str(tmp_path / "l" / "checkpoint.pkl"), None, spec, base, None)
     mine = r.state.opt_state
     assert saved.iteration == 2
     np.testing.assert_array_equal(saved.opt_state["x"], mine["x"])

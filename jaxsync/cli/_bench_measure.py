@@ -172,7 +172,7 @@ def tuning_loss(path: str, task: str, batch: int, duration: float | None = None)
     from jaxsync.control.gains import default_gains
     from jaxsync.optimize.cost import CostWeights
     from jaxsync.optimize.params import TuneSpec
-    from jaxsync.optimize.tasks import sample_scenarios, training_base
+    from jaxsync.optimize.scenarios import sample_scenarios, training_base
     from jaxsync.optimize.tune import TuneConfig, make_loss
     from jaxsync.physics.model import load_model
     from jaxsync.sim.rollout import steps_for

@@ -15,7 +15,7 @@ def run(args) -> int:
     from jaxsync.io import gains_file
     from jaxsync.io import results as _results
     from jaxsync.optimize import sensitivity as sens
-    from jaxsync.optimize.tasks import sample_scenarios
+    from jaxsync.optimize.scenarios import sample_scenarios
     from jaxsync.physics.model import load_model
     from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 

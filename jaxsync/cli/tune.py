@@ -38,7 +38,7 @@ def run(args) -> int:
     from jaxsync.control import schedule as _schedule
     from jaxsync.io import gains_file
     from jaxsync.io import results as _results
-    from jaxsync.optimize import tasks
+    from jaxsync.optimize import scenarios
     from jaxsync.optimize import tune as tuning
     from jaxsync.optimize.params import TUNABLE, TuneSpec
     from jaxsync.optimize.tune_report import plot_loss
@@ -95,7 +95,7 @@ def run(args) -> int:
     t_start = time.perf_counter()
     model = load_model(args.model)  # one physics: training, validation and held-out scoring alike
     evaluate = tuning.make_evaluator(model, cfg.eval_duration)
-    held = tasks.heldout_scenarios(cfg)
+    held = scenarios.heldout_scenarios(cfg)
     summary_path = os.path.join(args.out, "summary.json")
     before = None
     if not main:
@@ -120,7 +120,7 @@ def run(args) -> int:
         "compilation cache holds it; the ETA leaves it out)",
         flush=True,
     )
-    valid = tasks.validation_scenarios(cfg)
+    valid = scenarios.validation_scenarios(cfg)
 
     def validate(g):
         return tuning.eval_summary(evaluate(g, valid))

@@ -17,6 +17,7 @@ from mujoco import mjx
 
 from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
 from jaxsync.physics import step as _physics
+from jaxsync.runtime import patches
 
 ARMS = ("r", "l")
 JOINTS_PER_ARM = 7
@@ -33,7 +34,7 @@ SolverName = Literal["accurate", "unrolled"]
 # outer iteration per ``mjx.solve`` call, the call unrolled ``SOLVER_UNROLL``
 # times per step and differentiated through (a single iteration launched the
 # clamped ball off the pads; three matched the converged solve on the default
-# gains). It needs ``_physics.patch_mjx_elliptic_gradient`` for finite
+# gains). It needs ``jaxsync.runtime.patches.mjx_elliptic_gradient`` for finite
 # gradients; it is a different physics on short in-contact horizons
 # (docs/tuning.md).
 SOLVERS: dict[str, dict[str, int]] = {
@@ -269,7 +270,7 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") 
         contact pairs that jaxsync needs are missing (all are named).
     """
     m = load_mj_model(path, solver)
-    _physics.patch_mjx_elliptic_gradient()
+    patches.mjx_elliptic_gradient()
     path = str(path) if path is not None else default_model_path()
     mx = mjx.put_model(m, device=_physics.local_device(), impl="jax")
     return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=_build_index(m, mx, path))

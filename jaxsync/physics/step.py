@@ -20,7 +20,6 @@ module only.
 from __future__ import annotations
 
 import functools
-import types
 
 import jax
 import jax.numpy as jnp
@@ -38,52 +37,6 @@ from mujoco.mjx._src import support as _support
 from mujoco.mjx._src.types import ConeType, DisableBit, IntegratorType, SensorType
 
 from jaxsync.physics import body_tree as _body_tree
-
-# ---------------------------------------------------------------- MJX gradient fix
-
-
-@jax.custom_jvp
-def sqrt_zero_safe(x: jax.Array) -> jax.Array:
-    """sqrt with derivative 0 at x <= 0 instead of inf (same values)."""
-    return jnp.sqrt(x)
-
-
-@sqrt_zero_safe.defjvp
-def _sqrt_zero_safe_jvp(primals, tangents):
-    (x,), (dx,) = primals, tangents
-    y = jnp.sqrt(x)
-    pos = x > 0
-    return y, jnp.where(pos, dx / (2.0 * jnp.where(pos, y, 1.0)), 0.0)
-
-
-class _JnpSafeSqrt(types.ModuleType):
-    """jax.numpy with :func:`sqrt_zero_safe` as ``sqrt``."""
-
-    sqrt = staticmethod(sqrt_zero_safe)
-
-    def __getattr__(self, name):
-        return getattr(jnp, name)
-
-
-def patch_mjx_elliptic_gradient() -> None:
-    """Make reverse-mode gradients through MJX's elliptic-cone solver finite.
-
-    MJX 3.17's Newton line search takes ``t = jp.sqrt(tsqr)`` of each
-    contact's tangential force and only then guards ``t == 0``; a contact
-    with no tangential force (every contact that is not touching: MJX keeps
-    their rows, zeroed) has ``tsqr = 0``, the derivative of sqrt there is
-    inf, and inf * 0 made every gradient NaN (measured: the tuning loss's
-    gradient on the elliptic cone, NaN without this, finite with it and equal
-    to central differences, tests/test_tune.py). Values are unchanged; only
-    the derivative at 0 becomes 0. Applied to
-    ``mujoco.mjx._src.solver`` (whose ``sqrt`` calls are all in the solver's
-    cost and line search). Called by :func:`jaxsync.load_model`, not at
-    import. Only the unrolled solver needs it: the implicit adjoint
-    (:func:`solve_implicit`) never differentiates the line search.
-    """
-    if not isinstance(_solver.jp, _JnpSafeSqrt):
-        _solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
-
 
 PASSES = ("mjx", "tree")
 """How the body tree's passes are computed: ``"mjx"`` MJX's own stages (what

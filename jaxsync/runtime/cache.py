@@ -9,6 +9,8 @@ import os
 
 import jax
 
+from jaxsync.runtime import patches, programs
+
 ENV_VAR = "JAXSYNC_CACHE_DIR"
 
 
@@ -67,59 +69,8 @@ def enable_compilation_cache(path: str | None = None, min_compile_time_s: float 
         _chosen_min_compile_time_s = float(min_compile_time_s)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    stable_lowering()
+    patches.stable_lowering()
     return path
-
-
-_DCE_CACHES = (
-    ("jax._src.pjit", "_dce_jaxpr_pjit"),
-    ("jax._src.interpreters.partial_eval", "_dce_jaxpr"),
-    ("jax._src.interpreters.partial_eval", "_cached_closed_call_dce"),
-)
-_stable = False
-
-
-def stable_lowering() -> bool:
-    """Make a program's lowered form, and so its persistent-cache key, not
-    depend on what the process traced before it.
-
-    JAX memoises dead-code elimination of inner jaxprs in caches of 2048
-    entries. Tracing a gradient of this model fills them (one trace of the
-    tuner's gradient: 2048 of 2048), so a program lowered afterwards gets
-    fresh copies of inner functions that it would otherwise share, e.g. a
-    second ``remainder`` inside ``jnp.take``: the same program, a different
-    module, a cache miss. A cold test suite (it traces the tuner's gradient)
-    and the warm one after it (it reads that traced gradient from disk) keyed
-    six programs differently, which the warm run compiled again; a cold and a
-    warm ``jaxsync tune`` differ the same way. Here each of those
-    caches gets an unbounded memo in front of it (entries still go when their
-    jaxpr does: weak keys), so equal inputs give the same object for the whole
-    process. Called by :func:`enable_compilation_cache`; without the JAX
-    internals it expects (another JAX version) it changes nothing and returns
-    False."""
-    global _stable
-    if _stable:
-        return True
-    import importlib
-
-    from jax._src import util
-
-    try:
-        targets = [(importlib.import_module(m), name) for m, name in _DCE_CACHES]
-        inners = [getattr(mod, name) for mod, name in targets]
-    except (ImportError, AttributeError):
-        return False
-    for (mod, name), inner in zip(targets, inners, strict=True):
-        setattr(mod, name, util.weakref_lru_cache(_forwarding(inner), maxsize=None))
-    _stable = True
-    return True
-
-
-def _forwarding(inner):
-    def call(*args, **kwargs):
-        return inner(*args, **kwargs)
-
-    return call
 
 
 # ------------------------------------------------------------- compiling, measured
@@ -312,6 +263,7 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
     return loaded
 
 
+@programs.on_clear
 def forget_loaded() -> None:
     """Drop the traced functions held by :func:`traced_on_disk` (their compiled
     programs go with them once nothing else holds them)."""

@@ -9,7 +9,6 @@ that can be jitted, vmapped over gains and scenarios, and differentiated.
 
 from __future__ import annotations
 
-import functools
 import os
 
 import jax
@@ -24,6 +23,7 @@ from jaxsync.control.gains import Gains
 from jaxsync.physics import step as _physics
 from jaxsync.physics.model import DualArmModel
 from jaxsync.physics.sensing import sense
+from jaxsync.runtime import programs
 from jaxsync.sim import closed_loop as _closed_loop
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim import trajectory as _trajectory
@@ -41,6 +41,7 @@ def make_rollout(
     remat: bool = False,
     truncate_every: int | None = None,
     start: str = START_KEY,
+    passes: str = "mjx",
 ):
     """Build ``fn(gains, scenario) -> Trajectory`` for one static configuration.
 
@@ -51,16 +52,20 @@ def make_rollout(
       control_substeps: physics steps per control period (1: control at the
         simulation rate, 500 Hz for the paper model).
       cross_term: reading of eq. 16's cross term (see jaxsync.control.sync).
-      remat: ``jax.checkpoint`` the scan body (for long reverse-mode
-        gradients); such a program is one to differentiate, so it also runs
-        jaxsync's vectorised tree passes (``_physics.PASSES``: the same values
-        to rounding, a smaller program to differentiate) where a forward
-        program runs MJX's.
+      remat: ``jax.checkpoint`` the scan body, keeping the solve's outputs
+        (for long reverse-mode gradients: the backward pass does not solve
+        again).
       truncate_every: if set, stop gradients through the simulator and
         controller state every this many control steps (truncated
         backpropagation in windows; the forward values are unchanged).
       start: keyframe the arms start from: "approach" (pads 30 mm off, the
         paper's task) or "grasp" (pads touching: short horizons in contact).
+      passes: how the body tree's kinematics, inertias and Jacobians are
+        computed (``jaxsync.physics.step.PASSES``): "mjx", MJX's own stages
+        (faster vmapped over large batches: forward programs), or "tree",
+        jaxsync's vectorised passes (the same values to rounding, a far
+        smaller program to differentiate and compile: gradient programs pass
+        ``remat=True, passes="tree"``).
 
     Example:
       >>> fn = make_rollout(jaxsync.load_model(), "synchronous", duration=2.0)
@@ -70,7 +75,7 @@ def make_rollout(
       (B, 1000, 2, 3)
     """
     options = ControllerOptions(kind=controller, cross_term=cross_term)
-    core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start)
+    core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes)
 
     def fn(gains: Gains, s: Scenario) -> Trajectory:
         return core(gains, s, options)
@@ -81,11 +86,13 @@ def make_rollout(
     return fn
 
 
-def _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start):
+def _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes="mjx"):
     """``fn(gains, scenario, options) -> Trajectory``: ``options`` a static
     :class:`ControllerOptions` (closed over by :func:`make_rollout`) or a
     traced :class:`~jaxsync.control.controller.ControllerSwitch` (one program for
     every controller choice: :func:`rollout`'s)."""
+    if passes not in _physics.PASSES:
+        raise ConfigError(f"passes must be one of {list(_physics.PASSES)}, got {passes!r}")
     if start not in (START_KEY, REST_KEY):
         raise ConfigError(f"start must be {START_KEY!r} or {REST_KEY!r}, got {start!r}")
     if truncate_every is not None and truncate_every < 1:
@@ -101,10 +108,6 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
     index = model.index
     unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
-    # gradient programs run jaxsync's vectorised tree passes (a far smaller
-    # program to differentiate and compile), forward ones MJX's (faster once
-    # vmapped over large batches): the same values to rounding
-    passes = "tree" if remat else "mjx"
 
     def fn(gains: Gains, s: Scenario, options) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
@@ -153,7 +156,7 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
     return fn
 
 
-@functools.lru_cache(maxsize=32)
+@programs.memoize(maxsize=32)
 def _jitted(model, duration, control_substeps):
     """``rollout()``'s program: one for both controllers and every cross term."""
     return jax.jit(_controlled_rollout(model, duration, control_substeps, False, None, START_KEY))

@@ -1,0 +1,118 @@
+"""The tuner's loss and evaluator: what ``jax.value_and_grad`` differentiates.
+
+:func:`make_loss` is the mean cost (``optimize.cost``) of a batch of
+closed-loop rollouts; differentiated, it runs jaxsync's body-tree passes
+under ``jax.checkpoint``. :func:`traced_value_and_grad` keeps its gradient's
+traced form on disk between runs. :func:`make_evaluator` and
+:func:`eval_summary` score gains on validation and held-out scenarios.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxsync.optimize.compare import metric_rows
+from jaxsync.optimize.cost import CostWeights, cost, cost_terms
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.scenarios import training_base
+
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.physics import step as _physics
+from jaxsync.runtime.cache import traced_on_disk
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.rollout import make_rollout
+
+if TYPE_CHECKING:  # annotations only: the loop's configuration imports this module
+    from jaxsync.optimize.tune import TuneConfig
+
+# TuneConfig fields the training loss's program depends on (the rest steer the loop)
+_PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")
+
+
+def make_loss(
+    model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights, *, differentiated: bool = True
+):
+    """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready.
+
+    ``differentiated=True`` (a loss to take the gradient of) rematerialises the
+    rollout's steps and runs jaxsync's tree passes (a smaller program to
+    differentiate); ``False`` (a loss only evaluated, e.g. over a CMA-ES
+    population) runs MJX's own passes, faster over large vmapped batches. The
+    same values to rounding.
+
+    Example:
+      >>> loss = make_loss(jaxsync.load_model(), TuneSpec(),
+      ...                  jaxsync.default_gains(), TuneConfig(task="short"), CostWeights())
+      >>> value, terms = loss(TuneSpec().init(jaxsync.default_gains()), batch)  # doctest: +SKIP
+    """
+    fn = make_rollout(
+        model,
+        "synchronous",
+        training_base(cfg)[1],
+        remat=differentiated,
+        passes="tree" if differentiated else "mjx",
+        truncate_every=cfg.truncate_every,
+        start=cfg.train_start,
+    )
+
+    def one(gains, s):
+        traj = fn(gains, s)
+        return cost(traj, s, weights), cost_terms(traj, s, weights)
+
+    def loss(theta, scenarios):
+        gains = spec.to_gains(theta, base)
+        c, terms = jax.vmap(one, in_axes=(None, 0))(gains, scenarios)
+        return c.mean(), jax.tree_util.tree_map(jnp.mean, terms)
+
+    return loss
+
+
+def make_evaluator(model, duration: float):
+    """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver)."""
+    fn = make_rollout(model, "synchronous", duration)
+    return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
+
+
+def eval_summary(m) -> dict:
+    """A batch of metrics as the loop records it: means over the rollouts kept (not dropped, finite)."""
+    rows = metric_rows(m)
+    m = _metrics.to_arrays(m)
+    kept = ~(m["dropped"] | m["nonfinite"])
+    mean = lambda x: float(np.mean(x[kept])) if kept.any() else None  # noqa: E731
+    return {
+        "settled_peak_resultant_N": mean(m["settled_peak_resultant_N"]),
+        "grip_force_error_rel": mean(m["grip_force_error_rel"]),
+        "dropped": int(m["dropped"].sum()),
+        "nonfinite": int(m["nonfinite"].sum()),
+        "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
+        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
+    }
+
+
+def traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
+    """jit(value_and_grad(loss)), its traced form kept on disk between runs
+    (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
+    with open(model.path, "rb") as f:
+        model_hash = hashlib.sha256(f.read()).hexdigest()
+    program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
+    key = repr(
+        (
+            "tune.value_and_grad",
+            spec.describe(),
+            _schedule.to_file_dict(base),
+            program,
+            tuple(weights),
+            model.path,
+            model_hash,
+            model.solver,
+        )
+    )
+    value_and_grad = traced_on_disk(jax.value_and_grad(loss, has_aux=True), args, key, log=log)
+    _physics.forget_stage_traces()
+    return value_and_grad
