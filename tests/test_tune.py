@@ -211,6 +211,7 @@ def fake_tuning(monkeypatch):
     Returns the dict the fake loop records its arguments in."""
     import collections
 
+    from jaxsync.optimize import loss as loss_mod
     from jaxsync.optimize import tune as tune_mod
 
     fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite")
@@ -220,7 +221,7 @@ def fake_tuning(monkeypatch):
         dropped=np.array([False, False]),
         nonfinite=np.array([False, False]),
     )
-    monkeypatch.setattr(tune_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
+    monkeypatch.setattr(loss_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
     calls = {}
 
     def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, **kw):

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-import time
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_distributed_arguments, add_model_argument
@@ -34,16 +32,13 @@ def _names(text: str | None) -> list[str]:
 
 
 def run(args) -> int:
+    # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
-    from jaxsync.control import schedule as _schedule
     from jaxsync.io import gains_file
-    from jaxsync.io import results as _results
-    from jaxsync.optimize import scenarios
+    from jaxsync.optimize import pipeline
     from jaxsync.optimize import tune as tuning
     from jaxsync.optimize.params import TUNABLE, TuneSpec
-    from jaxsync.optimize.tune_report import plot_loss
     from jaxsync.physics.model import load_model
-    from jaxsync.runtime import distributed as _distributed
 
     tuned = _names(args.tune) or list(TuneSpec().tuned)
     frozen = _names(args.freeze)
@@ -78,141 +73,32 @@ def run(args) -> int:
     weights = _weights(args.weight)
     base = gains_file.load(args.gains) if args.gains else _gains.default_gains()
     spec.init(base)  # a schedule file needs --per-phase: say so before any folder is touched
-    # a multi-process run (--coordinator ...): every process tunes (data-parallel,
-    # optimize.parallel); process 0 alone checks and writes --out and prints
-    main = _distributed.is_main()
-    say = print if main else (lambda *a, **k: None)
-    if main:
-        # the input is checked; now the folder: continue (--resume) or discard
-        # (--restart) a run there, never overwrite one silently; created only now
-        tuning.prepare_out(args.out, resume=args.resume, restart=args.restart)
-        _results.ensure_writable_dir(args.out)
-    _distributed.barrier("tune: output folder ready")
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
-    fingerprint = {k: v for k, v in options.items() if k not in skip}
-
-    t_start = time.perf_counter()
-    model = load_model(args.model)  # one physics: training, validation and held-out scoring alike
-    evaluate = tuning.make_evaluator(model, cfg.eval_duration)
-    held = scenarios.heldout_scenarios(cfg)
-    summary_path = os.path.join(args.out, "summary.json")
-    before = None
-    if not main:
-        before = {}  # held-out scoring and the results are process 0's
-    elif args.resume and os.path.exists(os.path.join(args.out, "heldout_before.json")):
-        import json
-
-        with open(os.path.join(args.out, "heldout_before.json")) as f:
-            before = json.load(f)
-    if before is None:
-        say(
-            f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...", flush=True
-        )
-        before = tuning.eval_summary(evaluate(base, held))
-        _results.write_json(os.path.join(args.out, "heldout_before.json"), before)
-
-    say(
-        f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
-        + (", per task phase" if spec.schedule else "")
-        + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
-        "(the first iteration traces and compiles the gradient: a minute or two on a 2-core CPU, seconds when the "
-        "compilation cache holds it; the ETA leaves it out)",
-        flush=True,
-    )
-    valid = scenarios.validation_scenarios(cfg)
-
-    def validate(g):
-        return tuning.eval_summary(evaluate(g, valid))
-
-    if cfg.validate_every:
-        say(
-            f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
-            f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
-            "worse than the start's)",
-            flush=True,
-        )
-    result = tuning.tune(
-        model,
+    summary = pipeline.tune_and_evaluate(
+        load_model(args.model),
         spec,
         base,
         cfg,
+        weights,
         out=args.out,
         resume=args.resume,
-        fingerprint=fingerprint,
-        validate=validate if cfg.validate_every else None,
-        weights=weights,
+        restart=args.restart,
+        mujoco_check=args.mujoco_check,
+        options=options,
+        fingerprint={k: v for k, v in options.items() if k not in skip},
+        log=lambda m: print(m, flush=True),
     )
-    gains, history, selected = result.gains, result.history, result.selected
-    if not main:  # process 0 scores, writes and prints; wait until it has
-        _distributed.barrier("tune: results written")
+    if summary is None:  # another process than the first of a multi-process run: it wrote nothing
         return 0
-    if selected is not None:
-        say(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)", flush=True)
-
-    say("held-out evaluation after tuning...", flush=True)
-    after = tuning.eval_summary(evaluate(gains, held))
-    _results.write_json(
-        os.path.join(args.out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": spec.describe()}
-    )
-    _results.write_json(
-        os.path.join(args.out, "gains_last.json"),
-        {"gains": _schedule.to_file_dict(result.last_gains), "tune": spec.describe()},
-    )
-    check = None
-    if args.mujoco_check:
-        say(f"the same gains on MuJoCo C ({min(4, cfg.heldout_batch)} held-out scenarios, the same control law)...")
-        from jaxsync.optimize import compare as _compare
-
-        # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
-        mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
-        check = _compare.sim_to_sim(
-            model, gains, base, held, cfg.eval_duration, n=4, mjx_rows=mjx_rows, log=lambda m: None
-        )
-    cols = {k: [r[k] for r in history] for k in history_columns(history)}
-    if cols:
-        _results.write_csv(os.path.join(args.out, "history.csv"), cols)
-        plot_loss(history, os.path.join(args.out, "loss.png"), result.validation, selected)
-    summary = {
-        "initial_cost": history[0]["cost"] if history else None,
-        "final_cost": history[-1]["cost"] if history else None,
-        "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],
-        "heldout_settled_peak_resultant_N_after": after["settled_peak_resultant_N"],
-        "heldout_grip_force_error_rel_before": before["grip_force_error_rel"],
-        "heldout_grip_force_error_rel_after": after["grip_force_error_rel"],
-        "heldout_before": before,
-        "heldout_after": after,
-        "wall_time_s": time.perf_counter() - t_start,
-        "iterations": len(history),
-        "skipped_steps": int(sum(r["skipped"] for r in history)),
-        "selected_iteration": selected["iteration"] if selected is not None else len(history),
-        "validation": [{k: v for k, v in r.items()} for r in result.validation],
-        "options": options,
-        "weights": weights._asdict(),
-        "tune": spec.describe(),
-        "mujoco_check": check,
-    }
-    _results.write_json(summary_path, summary)
-    b, a = before["settled_peak_resultant_N"], after["settled_peak_resultant_N"]
-    say(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
-    say(f"held-out grip-force error: {before['grip_force_error_rel']:.4f} -> {after['grip_force_error_rel']:.4f}")
-    if check is not None:
-        say(mujoco_text(check))
-    say(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
-    _distributed.barrier("tune: results written")
+    b, a = summary["heldout_settled_peak_resultant_N_before"], summary["heldout_settled_peak_resultant_N_after"]
+    gb, ga = summary["heldout_grip_force_error_rel_before"], summary["heldout_grip_force_error_rel_after"]
+    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
+    print(f"held-out grip-force error: {gb:.4f} -> {ga:.4f}")
+    if summary["mujoco_check"] is not None:
+        print(mujoco_text(summary["mujoco_check"]))
+    print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
-
-
-# history.csv's leading columns, then the cost terms (term_*) by name: a fixed
-# order, whatever order a row's keys came in (a resumed run's rows came back
-# from the checkpoint in another order once; issue 11)
-HISTORY_COLUMNS = ("iteration", "cost", "grad_norm", "skipped", "seconds")
-
-
-def history_columns(history: list[dict]) -> list[str]:
-    """history.csv's header: HISTORY_COLUMNS, then any other keys sorted."""
-    keys = {k for r in history for k in r}
-    return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
 
 
 def mujoco_text(c: dict) -> str:

@@ -1,0 +1,183 @@
+"""The whole tuning job, as ``jaxsync tune`` runs it, for a Python caller.
+
+:func:`tune_and_evaluate` scores the starting gains on the held-out
+scenarios, tunes (:func:`jaxsync.optimize.tune.tune`, validation picking the
+iterate), scores the selected gains on the same held-out scenarios, checks
+them on MuJoCo C, and writes the run's folder: ``gains.json`` (selected),
+``gains_last.json``, ``history.csv``, ``loss.png``, ``heldout_before.json``,
+``summary.json`` (and the loop's checkpoint). It returns the summary.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+
+from jaxsync.optimize import compare as _compare
+from jaxsync.optimize import loss as _loss
+from jaxsync.optimize import scenarios as _scenarios
+from jaxsync.optimize import tune as _tune
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.tune_report import plot_loss
+from jaxsync.optimize.tune_state import prepare_out
+
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.io import results as _results
+from jaxsync.physics.model import DualArmModel
+from jaxsync.runtime import distributed as _distributed
+
+MUJOCO_CHECK_SCENARIOS = 4
+"""Held-out scenarios the MuJoCo C check rolls out (before and after)."""
+
+# history.csv's leading columns, then the cost terms (term_*) by name: a fixed
+# order, whatever order a row's keys came in (a resumed run's rows come back
+# from the checkpoint in another order)
+HISTORY_COLUMNS = ("iteration", "cost", "grad_norm", "skipped", "seconds")
+
+
+def history_columns(history: list[dict]) -> list[str]:
+    """history.csv's header: HISTORY_COLUMNS, then any other keys sorted."""
+    keys = {k for r in history for k in r}
+    return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
+
+
+def tune_and_evaluate(
+    model: DualArmModel,
+    spec: TuneSpec,
+    base: _gains.Gains,
+    cfg: _tune.TuneConfig,
+    weights: CostWeights | None = None,
+    *,
+    out: str,
+    resume: bool = False,
+    restart: bool = False,
+    mujoco_check: bool = True,
+    options: dict | None = None,
+    fingerprint: dict | None = None,
+    log: Callable[[str], None] = print,
+) -> dict | None:
+    """Tune ``base`` and score it before and after; returns ``summary.json``'s dict.
+
+    ``out`` is checked before anything is computed: a folder holding a run is
+    continued (``resume``) or discarded (``restart``), never overwritten.
+    ``options`` (recorded in the summary) and ``fingerprint`` (the options a
+    resumed run must share) describe the caller's settings. In a multi-process
+    run every process tunes (data-parallel); process 0 alone scores, writes
+    and gets the summary, the others get None.
+
+    Example:
+      >>> summary = tune_and_evaluate(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(),
+      ...                             TuneConfig(iterations=2, task="short"), out="results/tune")  # doctest: +SKIP
+      >>> summary["heldout_settled_peak_resultant_N_after"]  # doctest: +SKIP
+    """
+    weights = weights if weights is not None else CostWeights()
+    cfg.validate()
+    spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
+    main = _distributed.is_main()
+    say = log if main else (lambda *a, **k: None)
+    if main:
+        prepare_out(out, resume=resume, restart=restart)
+        _results.ensure_writable_dir(out)
+    _distributed.barrier("tune: output folder ready")
+
+    t_start = time.perf_counter()
+    evaluate = _loss.make_evaluator(model, cfg.eval_duration)  # one physics: training, validation and held out
+    held = _scenarios.heldout_scenarios(cfg)
+    before_path = os.path.join(out, "heldout_before.json")
+    before = None
+    if not main:
+        before = {}
+    elif resume and os.path.exists(before_path):
+        with open(before_path) as f:
+            before = json.load(f)
+    if before is None:
+        say(f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...")
+        before = _loss.eval_summary(evaluate(base, held))
+        _results.write_json(before_path, before)
+
+    say(
+        f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
+        + (", per task phase" if spec.schedule else "")
+        + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
+        + (
+            "(the first iteration traces and compiles the gradient: a minute or two on a 2-core CPU, seconds when "
+            "the compilation cache holds it; the ETA leaves it out)"
+            if cfg.method != "cmaes"
+            else "(the first iteration compiles the population's rollouts; the ETA leaves it out)"
+        )
+    )
+    valid = _scenarios.validation_scenarios(cfg)
+
+    def validate(g):
+        return _loss.eval_summary(evaluate(g, valid))
+
+    if cfg.validate_every:
+        say(
+            f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
+            f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
+            "worse than the start's)"
+        )
+    result = _tune.tune(
+        model,
+        spec,
+        base,
+        cfg,
+        out=out,
+        resume=resume,
+        fingerprint=fingerprint,
+        validate=validate if cfg.validate_every else None,
+        weights=weights,
+    )
+    gains, history, selected = result.gains, result.history, result.selected
+    if not main:  # process 0 scores and writes; wait until it has
+        _distributed.barrier("tune: results written")
+        return None
+    if selected is not None:
+        say(f"selected iterate: {selected['iteration']} of {len(history)} (by validation)")
+
+    say("held-out evaluation after tuning...")
+    after = _loss.eval_summary(evaluate(gains, held))
+    described = spec.describe()
+    _results.write_json(os.path.join(out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": described})
+    _results.write_json(
+        os.path.join(out, "gains_last.json"), {"gains": _schedule.to_file_dict(result.last_gains), "tune": described}
+    )
+    check = None
+    if mujoco_check:
+        n = MUJOCO_CHECK_SCENARIOS
+        say(f"the same gains on MuJoCo C ({min(n, cfg.heldout_batch)} held-out scenarios, the same control law)...")
+        # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
+        mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
+        check = _compare.sim_to_sim(
+            model, gains, base, held, cfg.eval_duration, n=n, mjx_rows=mjx_rows, log=lambda m: None
+        )
+    cols = {k: [r[k] for r in history] for k in history_columns(history)}
+    if cols:
+        _results.write_csv(os.path.join(out, "history.csv"), cols)
+        plot_loss(history, os.path.join(out, "loss.png"), result.validation, selected)
+    summary = {
+        "initial_cost": history[0]["cost"] if history else None,
+        "final_cost": history[-1]["cost"] if history else None,
+        "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],
+        "heldout_settled_peak_resultant_N_after": after["settled_peak_resultant_N"],
+        "heldout_grip_force_error_rel_before": before["grip_force_error_rel"],
+        "heldout_grip_force_error_rel_after": after["grip_force_error_rel"],
+        "heldout_before": before,
+        "heldout_after": after,
+        "wall_time_s": time.perf_counter() - t_start,
+        "iterations": len(history),
+        "skipped_steps": int(sum(r["skipped"] for r in history)),
+        "selected_iteration": selected["iteration"] if selected is not None else len(history),
+        "validation": [dict(r) for r in result.validation],
+        "options": options if options is not None else {},
+        "weights": weights._asdict(),
+        "tune": described,
+        "mujoco_check": check,
+    }
+    _results.write_json(os.path.join(out, "summary.json"), summary)
+    _distributed.barrier("tune: results written")
+    return summary
