@@ -124,10 +124,7 @@ def plot_forces(
 ) -> None:
     """Each arm's normal contact force and the resultant force against time (paper Figs. 4, 5);
     a drop (``drop_time_s``) is marked on both panels, and then no settled peak is drawn."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _results.pyplot()
 
     t = series["time_s"]
     _, t_carry, t_hold = (float(x) for x in _scenario.phase_times(scenario))

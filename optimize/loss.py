@@ -11,25 +11,22 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxsync.optimize.compare import metric_rows
-from jaxsync.optimize.cost import CostWeights, cost, cost_terms
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import training_base
 
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
+from jaxsync.optimize.compare import metric_rows
+from jaxsync.optimize.config import TuneConfig
+from jaxsync.optimize.cost import CostWeights, cost, cost_terms
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.scenarios import training_base
 from jaxsync.physics import step as _physics
 from jaxsync.runtime.cache import traced_on_disk
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.rollout import make_rollout
-
-if TYPE_CHECKING:  # annotations only: the loop's configuration imports this module
-    from jaxsync.optimize.tune import TuneConfig
 
 # TuneConfig fields the training loss's program depends on (the rest steer the loop)
 _PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")

@@ -37,7 +37,9 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable
 
+import cma
 import numpy as np
+import optax
 
 from jaxsync._errors import ConfigError
 
@@ -73,7 +75,6 @@ class Adam:
     needs = ("value_and_grad",)
 
     def _opt(self):
-        import optax
 
         return optax.chain(optax.clip_by_global_norm(self.clip_norm), optax.adam(self.learning_rate))
 
@@ -82,7 +83,6 @@ class Adam:
         return {"x": x, "opt": self._opt().init(x)}
 
     def step(self, state, oracle: Oracle):
-        import optax
 
         f, g = oracle.vg(state["x"])
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 1}
@@ -170,10 +170,6 @@ class CMAES:
     needs = ("values",)
 
     def init(self, x0, seed: int = 0) -> dict:
-        try:
-            import cma
-        except ImportError:  # pragma: no cover - cma is a dependency
-            raise ConfigError("method 'cmaes' needs the 'cma' package (pip install cma)") from None
         es = cma.CMAEvolutionStrategy(
             np.asarray(x0, dtype=float), self.sigma, {"popsize": self.popsize, "seed": seed + 1, "verbose": -9}
         )

@@ -25,6 +25,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from jaxsync._errors import ConfigError
+from jaxsync.runtime import distributed as _distributed
 
 _BARRIERS = itertools.count()
 
@@ -104,7 +105,6 @@ def _compiled_together(fn, name: str):
     compile at their own pace (minutes here, not the same in each), but the
     first collective, whose CPU (gloo) set-up waits 30 s at most for the other
     processes, starts only once every process has its program."""
-    from jaxsync.runtime import distributed as _distributed
 
     compiled = None
     name = f"{name} #{next(_BARRIERS)}"  # a barrier's name is used once per run

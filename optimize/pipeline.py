@@ -15,6 +15,9 @@ import os
 import time
 from collections.abc import Callable
 
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.io import results as _results
 from jaxsync.optimize import compare as _compare
 from jaxsync.optimize import loss as _loss
 from jaxsync.optimize import scenarios as _scenarios
@@ -23,10 +26,6 @@ from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tune_report import plot_loss
 from jaxsync.optimize.tune_state import prepare_out
-
-from jaxsync.control import gains as _gains
-from jaxsync.control import schedule as _schedule
-from jaxsync.io import results as _results
 from jaxsync.physics.model import DualArmModel
 from jaxsync.runtime import distributed as _distributed
 

@@ -24,9 +24,11 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxsync.optimize.cost import smooth_metrics
+from jax.flatten_util import ravel_pytree
 
 from jaxsync.control import gains as _gains
+from jaxsync.io import results as _results
+from jaxsync.optimize.cost import smooth_metrics
 from jaxsync.runtime import programs
 from jaxsync.sim.rollout import make_rollout
 
@@ -116,7 +118,6 @@ def elasticities(names, gains_flat, values, derivative) -> np.ndarray:
 
 def sensitivity(model, gains, scenarios, duration: float, start: str | None = None) -> Sensitivity:
     """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading axis)."""
-    from jax.flatten_util import ravel_pytree
 
     values, grads = jax.block_until_ready(program(model, float(duration), start)(gains, scenarios))
     flat, _ = ravel_pytree(gains)
@@ -151,12 +152,7 @@ def table(s: Sensitivity) -> str:
 
 def plot(s: Sensitivity, path: str, title: str = "") -> None:
     """One panel per metric: a horizontal bar per gain entry (its elasticity)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from jaxsync.io import results as _results
+    plt = _results.pyplot()
 
     n = len(s.names)
     fig, axes = plt.subplots(1, len(METRICS), figsize=(4.2 * len(METRICS), 0.22 * n + 1.6), sharey=True)

@@ -10,10 +10,16 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
 import time
 
+import jax
 import numpy as np
+from tqdm import tqdm
+
+from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
 from jaxsync.optimize.sweep_eval import (
     DEFAULT_BUDGET_GIB,
     DEFAULT_CHUNK_PER_DEVICE,
@@ -27,9 +33,6 @@ from jaxsync.optimize.sweep_plan import Plan, make_plan
 from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS, plot, summarize_sweep, write_csv
 from jaxsync.optimize.sweep_spec import Param, Target, build_batch, known_names, make_points, parse_param, resolve_name
 from jaxsync.optimize.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
-
-from jaxsync._errors import ConfigError
-from jaxsync.io import results as _results
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.sim import metrics as _metrics
 
@@ -80,8 +83,6 @@ def _read_back(out: str, stored: dict | None, n: int, n_dev: int, chunk, main_pr
             if got is not None:
                 results[i] = got
     elif stored and main_proc:  # another device count: the stored chunks do not apply
-        import shutil
-
         shutil.rmtree(os.path.join(out, "chunks"), ignore_errors=True)
         os.makedirs(os.path.join(out, "chunks"), exist_ok=True)
     return c_stored, results
@@ -128,7 +129,6 @@ def _evaluate(plan: Plan, out: str, todo, c: int, compiled, n_dev: int, results:
 def _progress_bar(progress: bool, total: int, initial: int, nproc: int):
     if not progress:
         return None
-    from tqdm import tqdm
 
     desc = "sweep" if nproc == 1 else f"sweep, process 0 of {nproc}"
     return tqdm(total=total, initial=initial, unit="pt", desc=desc, file=sys.stderr, dynamic_ncols=True)
@@ -165,7 +165,6 @@ def run(
       >>> summary = run(plan, "results/sweep", progress=False)  # doctest: +SKIP
       >>> summary["best_ok_point"]["settled_peak_resultant_N"]  # doctest: +SKIP
     """
-    import jax
 
     devices = jax.local_devices()
     n_dev = len(devices)

@@ -14,13 +14,19 @@ from __future__ import annotations
 import functools
 import time
 
+import jax
 import numpy as np
-from jaxsync.optimize.sweep_plan import Plan
-from jaxsync.optimize.sweep_spec import build_batch
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
+from jaxsync.optimize.sweep_plan import Plan
+from jaxsync.optimize.sweep_spec import build_batch
+from jaxsync.physics.model import load_model
 from jaxsync.runtime import programs
+from jaxsync.sim.metrics import summarize
+from jaxsync.sim.rollout import cpu_vmap_limit, make_rollout
 from jaxsync.sim.scenario import Scenario
 
 DEFAULT_BUDGET_GIB = 2.0
@@ -30,14 +36,11 @@ GIB = 1024.0**3
 
 @functools.lru_cache(maxsize=4)  # a loaded model, not a program: clear() keeps it
 def _model(solver: str):
-    from jaxsync.physics.model import load_model
 
     return load_model(solver=solver)
 
 
 def _mesh():
-    import jax
-    from jax.sharding import Mesh
 
     return Mesh(np.array(jax.local_devices()), ("batch",))
 
@@ -49,11 +52,6 @@ def evaluator(solver: str, controller: str, duration: float, n_devices: int):
     Each device evaluates its slice of the chunk with a plain vmap: no
     communication, and the same per-environment arithmetic as one device.
     """
-    import jax
-    from jax.sharding import PartitionSpec as P
-
-    from jaxsync.sim.metrics import summarize
-    from jaxsync.sim.rollout import make_rollout
 
     fn = make_rollout(_model(solver), controller, duration)
     local = jax.vmap(lambda g, s: summarize(fn(g, s), s))
@@ -68,7 +66,6 @@ def evaluator(solver: str, controller: str, duration: float, n_devices: int):
 
 @programs.memoize(maxsize=8)
 def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes):
-    import jax
 
     fn, _ = evaluator(solver, controller, duration, n_devices)
     sharding = _sharding() if n_devices > 1 else None
@@ -78,8 +75,6 @@ def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes):
 
 
 def _sharding():
-    from jax.sharding import NamedSharding
-    from jax.sharding import PartitionSpec as P
 
     return NamedSharding(_mesh(), P("batch"))
 
@@ -106,7 +101,6 @@ def _signature(tree):
 
 
 def to_device(tree, n_devices: int):
-    import jax
 
     if n_devices == 1:
         return jax.tree_util.tree_map(jax.numpy.asarray, tree)
@@ -115,7 +109,6 @@ def to_device(tree, n_devices: int):
 
 
 def gather(tree):
-    import jax
 
     return jax.tree_util.tree_map(np.asarray, tree)
 
@@ -132,7 +125,6 @@ def choose_chunk(
     search never undershoots a chunk that fits). Raises ConfigError when not
     even one environment per device fits.
     """
-    from jaxsync.sim.rollout import cpu_vmap_limit
 
     budget = budget_gib * GIB
     per_dev_cap = DEFAULT_CHUNK_PER_DEVICE.get(platform, 1024)

@@ -11,7 +11,13 @@ import hashlib
 import json
 import math
 
+import jax
 import numpy as np
+
+from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
+from jaxsync.control.controller import CONTROLLERS
+from jaxsync.control.gains import Gains
 from jaxsync.optimize.sweep_spec import (
     PHASE_FIELDS,
     Param,
@@ -20,11 +26,6 @@ from jaxsync.optimize.sweep_spec import (
     parse_param,
     validate_values,
 )
-
-from jaxsync._errors import ConfigError
-from jaxsync.control import gains as _gains
-from jaxsync.control.controller import CONTROLLERS
-from jaxsync.control.gains import Gains
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.scenario import Scenario, min_duration
 
@@ -84,7 +85,6 @@ def make_plan(
       >>> plan.points.shape
       (10, 2)
     """
-    import jax
 
     if not param_texts:
         raise ConfigError("give at least one --param NAME=VALUES")

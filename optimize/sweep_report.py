@@ -5,9 +5,9 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from jaxsync.optimize.sweep_plan import Plan
 
 from jaxsync.io import results as _results
+from jaxsync.optimize.sweep_plan import Plan
 from jaxsync.sim.metrics import BOOL_METRICS
 
 DEFAULT_PLOT_METRICS = ("settled_peak_resultant_N", "grip_force_error_rel")
@@ -69,10 +69,7 @@ def _nothing_to_plot(ax) -> None:
 
 def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
     """heatmap.png (2 swept grid parameters), line.png (1), scatter.png (random samples)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _results.pyplot()
 
     swept = [j for j, p in enumerate(plan.params) if p.swept]
     if not swept or len(swept) > 2 and plan.samples is not None:

@@ -13,6 +13,7 @@ import dataclasses
 import math
 import re
 
+import jax
 import numpy as np
 
 from jaxsync._errors import ConfigError
@@ -171,7 +172,6 @@ def _assign(leaf: np.ndarray, index: tuple, col: np.ndarray) -> None:
 
 
 def _noise_keys(seeds: np.ndarray) -> np.ndarray:
-    import jax
 
     out = np.empty((len(seeds), 2), dtype=np.uint32)
     cache: dict[int, np.ndarray] = {}

@@ -13,10 +13,10 @@ import os
 import shutil
 
 import numpy as np
-from jaxsync.optimize.sweep_plan import Plan
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
+from jaxsync.optimize.sweep_plan import Plan
 
 
 def _chunk_path(out: str, i: int) -> str:

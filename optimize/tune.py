@@ -23,12 +23,18 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from jax.flatten_util import ravel_pytree
+from tqdm import tqdm
+
+from jaxsync._errors import JaxsyncError
+from jaxsync.control import gains as _gains
+from jaxsync.control import schedule as _schedule
+from jaxsync.io import results as _results
 from jaxsync.optimize import methods as _methods
 from jaxsync.optimize import parallel
+from jaxsync.optimize.config import TuneConfig
 from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.loop import apply_update, make_optimizer
+from jaxsync.optimize.loop import apply_update
 from jaxsync.optimize.loss import make_loss, traced_value_and_grad
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.scenarios import training_base, training_batch
@@ -42,90 +48,10 @@ from jaxsync.optimize.tune_state import (
     select_iterate,
     validated,
 )
-from tqdm import tqdm
-
-from jaxsync._errors import ConfigError, JaxsyncError
-from jaxsync.control import gains as _gains
-from jaxsync.control import schedule as _schedule
-from jaxsync.io import results as _results
 
 
 class TuneError(JaxsyncError):
     """Tuning cannot go on (e.g. gradients kept being non-finite)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class TuneConfig:
-    """How to tune (defaults: ``jaxsync tune``'s).
-
-    Example:
-      >>> cfg = TuneConfig(iterations=10, batch=2, task="short").validate()
-    """
-
-    iterations: int = 60
-    batch: int = 4
-    learning_rate: float = 0.05
-    optimizer: str = "adam"
-    schedule: str = "cosine"  # or "constant"
-    clip_norm: float = 1.0
-    seed: int = 0
-    heldout_seed: int = 1000
-    heldout_batch: int = 16
-    train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
-    eval_duration: float = 4.0
-    truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
-    checkpoint_every: int = 5
-    max_bad_steps: int = 3
-    train_start: str = "approach"  # keyframe the training rollouts start from
-    train_task: tuple = ()  # (field, value) overrides of the training task
-    task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
-    validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
-    validation_seed: int = 500
-    validation_batch: int = 16
-    method: str = "lbfgs"  # optimize.methods.METHODS (docs/tuning.md: measured best); "adam" is the optax loop
-    popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
-
-    def validate(self) -> TuneConfig:
-        if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
-            raise ConfigError(f"learning rate must be positive, got {self.learning_rate}")
-        if not self.clip_norm > 0 or not math.isfinite(self.clip_norm):
-            raise ConfigError(
-                f"clip (the gradient's global-norm bound) must be a positive number, got {self.clip_norm}: "
-                "0 would zero every update and a negative bound reverse the gradient"
-            )
-        for name in ("iterations", "batch", "heldout_batch", "checkpoint_every", "max_bad_steps", "validation_batch"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name.replace('_', ' ')} must be a positive integer, got {getattr(self, name)}")
-        if self.validate_every < 0:
-            raise ConfigError(f"validate every must be 0 (off) or a positive integer, got {self.validate_every}")
-        if len({self.seed, self.heldout_seed, self.validation_seed}) < 3:
-            raise ConfigError(
-                f"the training, validation and held-out seeds must differ (got {self.seed}, "
-                f"{self.validation_seed}, {self.heldout_seed}): held-out scenarios are never trained on or selected on"
-            )
-        if not hasattr(optax, self.optimizer) or self.optimizer.startswith("_"):
-            raise ConfigError(
-                f"optimizer must name an optax optimiser (adam, adamw, sgd, lion, ...), got {self.optimizer!r}"
-            )
-        if self.task not in ("short", "full"):
-            raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")
-        if self.method not in _methods.METHODS:
-            raise ConfigError(f"method must be one of {list(_methods.METHODS)}, got {self.method!r}")
-        if self.popsize < 2:
-            raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
-        if self.schedule not in ("cosine", "constant"):
-            raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
-        return self
-
-    def optimizer_transform(self) -> optax.GradientTransformation:
-        """This configuration's optax optimiser (cosine or constant rate, clipped)."""
-        return make_optimizer(
-            self.learning_rate,
-            optimizer=self.optimizer,
-            schedule=self.schedule,
-            iterations=self.iterations,
-            clip_norm=self.clip_norm,
-        )
 
 
 # ------------------------------------------------------------------- the loop

@@ -8,10 +8,7 @@ from jaxsync.io import results as _results
 def plot_loss(history: list[dict], path: str, validation: list[dict] | None = None, selected=None) -> None:
     """The training cost and its terms; with validation, a second panel of the
     validation settled peak and grip error, the selected iterate marked."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = _results.pyplot()
 
     it = [r["iteration"] for r in history]
     panels = 2 if validation else 1

@@ -11,11 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from jaxsync.optimize import checkpoint
-from jaxsync.optimize.params import TuneSpec
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
+from jaxsync.optimize import checkpoint
+from jaxsync.optimize.params import TuneSpec
 
 
 def select_iterate(validation: list[dict]) -> dict | None:

@@ -34,11 +34,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
+
 from jaxsync.optimize import methods as _methods
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.scenarios import sample_scenarios
-
 from jaxsync.sim import scenario as _scenario
 
 PROBLEMS = {
@@ -63,10 +63,9 @@ class Programs:
     """The compiled programs both problems share, and the two problems' oracles."""
 
     def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
+        from jaxsync.control import gains as _gains
         from jaxsync.optimize.loss import make_loss
         from jaxsync.optimize.tune import TuneConfig
-
-        from jaxsync.control import gains as _gains
 
         self.cfg = cfg
         base = base if base is not None else _gains.default_gains()

@@ -183,13 +183,12 @@ def tuning_program(model):
     same program back (traced form from disk, executable from the persistent
     cache). Used by the full-task gradient check (test_gradient) and the
     resumed-run test (test_tune)."""
+    from jaxsync.control.gains import default_gains
     from jaxsync.optimize import loss as loss_mod
     from jaxsync.optimize import tune as tune_mod
     from jaxsync.optimize.cost import CostWeights
     from jaxsync.optimize.params import TuneSpec
     from jaxsync.optimize.scenarios import sample_scenarios, training_base
-
-    from jaxsync.control.gains import default_gains
 
     cfg = tune_mod.TuneConfig(batch=2)
     spec, base, weights = TuneSpec(), default_gains(), CostWeights()

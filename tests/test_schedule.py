@@ -9,20 +9,25 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import TEST_DURATION
-from jaxsync.optimize.params import TuneSpec
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import gains_file
+from jaxsync.optimize.params import TuneSpec
 from jaxsync.sim import scenario as _scenario
+
+
+def _bounds(s):
+    """The phases' boundaries, as the closed loop passes them to the schedule."""
+    return jnp.stack(_scenario.phase_times(s))
 
 
 def test_weights_are_a_partition_exact_inside_phases_and_smooth_across_boundaries():
     s = _scenario.short_task()
     bounds = [float(b) for b in _scenario.phase_times(s)]
     ts = np.linspace(0.0, 1.7, 1701)
-    w = np.stack([np.asarray(_schedule.weights(s, t)) for t in ts])
+    w = np.stack([np.asarray(_schedule.weights(_bounds(s), t)) for t in ts])
     assert np.all(w >= 0) and np.allclose(w.sum(1), 1.0, atol=1e-15)
     half = _schedule.BLEND_S / 2
     edges = [0.0, *bounds, 10.0]
@@ -32,8 +37,8 @@ def test_weights_are_a_partition_exact_inside_phases_and_smooth_across_boundarie
         assert np.all(w[inside, p] == 1.0) and np.all(w[inside][:, [q for q in range(4) if q != p]] == 0.0)
     # at a boundary, half and half; the derivative in time is continuous (C2 smoothstep: no jump at the edges)
     for p, b in enumerate(bounds):
-        np.testing.assert_allclose(np.asarray(_schedule.weights(s, b))[p : p + 2], [0.5, 0.5], atol=1e-15)
-        dw = jax.grad(lambda t, p=p: _schedule.weights(s, t)[p + 1])
+        np.testing.assert_allclose(np.asarray(_schedule.weights(_bounds(s), b))[p : p + 2], [0.5, 0.5], atol=1e-15)
+        dw = jax.grad(lambda t, p=p: _schedule.weights(_bounds(s), t)[p + 1])
         assert float(dw(b - half)) == pytest.approx(0.0, abs=1e-12)
         assert float(dw(b)) == pytest.approx(15 / 8 / _schedule.BLEND_S)  # the quintic's peak slope
 
@@ -45,15 +50,17 @@ def test_blended_gains_and_their_derivative_against_finite_differences():
     k = jnp.array([0.5, 0.3, 0.2, 0.1])
     sched = sched._replace(phases=sched.phases._replace(k_rk=k))
     t_sq = float(_scenario.phase_times(s)[0])
-    assert float(_schedule.at(sched, s, 0.1).k_rk) == 0.5
-    assert float(_schedule.at(sched, s, t_sq).k_rk) == pytest.approx(0.4)
+    assert float(_schedule.at(sched, _bounds(s), 0.1).k_rk) == 0.5
+    assert float(_schedule.at(sched, _bounds(s), t_sq).k_rk) == pytest.approx(0.4)
     t = t_sq + 0.01
-    d = jax.grad(lambda k: _schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k)), s, t).k_rk)(k)
+    d = jax.grad(lambda k: _schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k)), _bounds(s), t).k_rk)(k)
     h = 1e-6
     fd = [
         (
-            float(_schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k.at[i].add(h))), s, t).k_rk)
-            - float(_schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k.at[i].add(-h))), s, t).k_rk)
+            float(_schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k.at[i].add(h))), _bounds(s), t).k_rk)
+            - float(
+                _schedule.at(sched._replace(phases=sched.phases._replace(k_rk=k.at[i].add(-h))), _bounds(s), t).k_rk
+            )
         )
         / (2 * h)
         for i in range(4)
@@ -61,7 +68,7 @@ def test_blended_gains_and_their_derivative_against_finite_differences():
     np.testing.assert_allclose(np.asarray(d), fd, atol=1e-9)
     assert np.asarray(d)[0] > 0 and np.asarray(d)[1] > 0 and np.asarray(d)[1] > np.asarray(d)[0]
     # constant gains pass through untouched
-    assert _schedule.at(g, s, 0.3) is g
+    assert _schedule.at(g, _bounds(s), 0.3) is g
 
 
 def test_schedule_file_round_trip_and_errors(tmp_path):
@@ -150,7 +157,6 @@ def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
 def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
     """compare --gains takes a schedule: its summary.json records it in the gains-file form."""
     from jaxsync.optimize import compare as _compare
-
     from jaxsync.sim import metrics as _metrics
 
     s = rollouts["scenario"]

@@ -10,12 +10,12 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
-from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
-from jaxsync.optimize.scenarios import sample_scenarios
-from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 
 import jaxsync
 from jaxsync.control import gains as _gains
+from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
+from jaxsync.optimize.scenarios import sample_scenarios
+from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 
 # The resumed-run test tunes with jaxsync tune's defaults (the full task, the
 # exact gradient) at batch 2: the program of the session fixture
@@ -130,7 +130,6 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     from jaxsync.optimize.cost import CostWeights
     from jaxsync.optimize.loss import make_loss
     from jaxsync.optimize.scenarios import training_base
-
     from jaxsync.physics import step as _physics
 
     class Reached(Exception):
@@ -391,6 +390,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
     import time
 
     import tqdm as tqdm_module
+
     from jaxsync.optimize import tune as tune_mod
 
     etas = []
@@ -537,9 +537,9 @@ def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, mo
     has them from its held-out scoring; the factors agree here (the same control
     law, the same scenario), and a disagreement is flagged in the printed line."""
     from conftest import TEST_DURATION
-    from jaxsync.optimize import compare as _compare
 
     from jaxsync.cli.tune import mujoco_text
+    from jaxsync.optimize import compare as _compare
     from jaxsync.sim import metrics as _metrics
 
     s, g = rollouts["scenario"], rollouts["gains"]

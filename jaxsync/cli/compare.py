@@ -74,7 +74,12 @@ def run(args: argparse.Namespace) -> int:
 
         cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
         check = _compare.sim_to_sim(
-            model, gains, _gains.default_gains(), scenarios.heldout_scenarios(cfg), cfg.eval_duration, n=args.mujoco_check
+            model,
+            gains,
+            _gains.default_gains(),
+            scenarios.heldout_scenarios(cfg),
+            cfg.eval_duration,
+            n=args.mujoco_check,
         )
         summary["sim_to_sim"] = check
         _results.write_json(os.path.join(args.out, "summary.json"), summary)

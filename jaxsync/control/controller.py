@@ -14,6 +14,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxsync._errors import ConfigError
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import so3 as _so3
@@ -37,7 +38,6 @@ class ControllerOptions:
     cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync.control.sync.CROSS_TERMS
 
     def __post_init__(self):
-        from jaxsync._errors import ConfigError
 
         if self.kind not in CONTROLLERS:
             raise ConfigError(f"controller must be one of {CONTROLLERS}, got {self.kind!r}")

@@ -6,6 +6,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 class ImpedanceState(NamedTuple):
@@ -55,7 +56,6 @@ def step(
 
 def step_response(mass: float, damping: float, stiffness: float, force: float, t):
     """Analytic response e(t) of M e'' + B e' + K e = F, e(0) = e'(0) = 0 (for tests)."""
-    import numpy as np
 
     t = np.asarray(t, dtype=float)
     wn = np.sqrt(stiffness / mass)

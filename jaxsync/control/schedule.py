@@ -17,7 +17,7 @@ place (``jaxsync.sim.closed_loop.control``), so MJX and MuJoCo C run the same la
 Example:
   >>> sched = constant(jaxsync.default_gains())            # 4 equal phases
   >>> sched = sched._replace(phases=sched.phases._replace(k_rk=jnp.array([0.5, 0.3, 0.2, 0.1])))
-  >>> at(sched, jaxsync.default_scenario(), 3.0).k_rk      # the hold phase's
+  >>> at(sched, jnp.array([0.6, 1.0, 2.2]), 3.0).k_rk  # after the hold starts (2.2 s): its gains
   Array(0.1, dtype=float64)
 """
 
@@ -32,7 +32,6 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control.gains import Gains
-from jaxsync.sim import scenario as _scenario
 
 PHASES = ("close", "squeeze", "carry", "hold")
 BLEND_S = 0.05  # width of the blend across each phase boundary, s
@@ -59,9 +58,11 @@ def _smoothstep(x):
     return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
 
 
-def weights(s: _scenario.Scenario, t) -> jax.Array:
-    """(4,) phase weights at time ``t``: non-negative, summing to 1."""
-    bounds = jnp.stack(_scenario.phase_times(s))  # starts of squeeze, carry, hold
+def weights(bounds: jax.Array, t) -> jax.Array:
+    """(4,) phase weights at time ``t``: non-negative, summing to 1.
+
+    ``bounds``: (3,) the starts of squeeze, carry and hold (s), e.g.
+    ``jnp.stack(jaxsync.sim.scenario.phase_times(scenario))``."""
     up = _smoothstep((t - bounds) / BLEND_S + 0.5)  # 0 before a boundary, 1 after
     ones = jnp.ones((1,), dtype=up.dtype)
     after = jnp.concatenate([ones, up])  # phase p has begun
@@ -69,15 +70,15 @@ def weights(s: _scenario.Scenario, t) -> jax.Array:
     return after - ended
 
 
-def at(gains, s: _scenario.Scenario, t) -> Gains:
+def at(gains, bounds: jax.Array, t) -> Gains:
     """The gains in force at time ``t``: ``gains`` itself when constant.
+    ``bounds``: (3,) the phases' boundaries, as :func:`weights` takes them.
 
     Written as the first phase's gains plus each later phase's change, faded
     in across its boundary: equal phases add exact zeros, so a constant
     schedule gives the constant gains bit for bit, also inside the blends."""
     if not isinstance(gains, Schedule):
         return gains
-    bounds = jnp.stack(_scenario.phase_times(s))
     up = _smoothstep((t - bounds) / BLEND_S + 0.5)  # (3,) 0 before each boundary, 1 after
 
     def blend(v):

@@ -30,6 +30,7 @@ import os
 
 import jax.numpy as jnp
 import numpy as np
+import yaml
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
@@ -253,7 +254,6 @@ def _ros2(g: Gains, out: str, phase: str | None) -> list[str]:
 
 
 def _read_yaml(path: str):
-    import yaml
 
     try:
         with open(path) as f:
@@ -310,8 +310,6 @@ def export(gains, fmt: str, out: str) -> list[str]:
     if fmt == "json":
         _results.write_json(path, doc)
     else:
-        import yaml
-
         head = "# jaxsync gains: every gain under its jaxsync name, with the paper's symbol and unit\n"
         _results.atomic_write_text(
             path, head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)

@@ -10,6 +10,7 @@ import copy
 import dataclasses
 import os
 
+import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
@@ -57,7 +58,6 @@ MAX_SHADOW_SIZE = 2048
 
 def default_camera():
     """The default free camera (see ``DEFAULT_CAMERA``) as a ``mujoco.MjvCamera``."""
-    import mujoco
 
     cam = mujoco.MjvCamera()
     cam.type = mujoco.mjtCamera.mjCAMERA_FREE
@@ -69,7 +69,6 @@ def default_camera():
 
 
 def _scene_option():
-    import mujoco
 
     opt = mujoco.MjvOption()
     for g in range(len(opt.geomgroup)):
@@ -92,7 +91,6 @@ class _Session:
     """One renderer, camera and scene options shared by many frames."""
 
     def __init__(self, mj_model, width: int, height: int, camera=None):
-        import mujoco
 
         select_gl_backend()
         _check_size(mj_model, width, height)
@@ -124,7 +122,6 @@ class _Session:
         self.close()
 
     def frame(self, qpos, forces=None, points=None, force_scale=FORCE_SCALE) -> np.ndarray:
-        import mujoco
 
         self.data.qpos[:] = qpos
         self.data.qvel[:] = 0
@@ -135,7 +132,6 @@ class _Session:
         return self.renderer.render().copy()
 
     def _add_force_arrows(self, forces: np.ndarray, points: np.ndarray, scale: float) -> None:
-        import mujoco
 
         scene = self.renderer.scene
         if self.object_body >= 0:

@@ -12,6 +12,8 @@ import json
 import os
 import tempfile
 
+import numpy as np
+
 from jaxsync._errors import ConfigError
 
 # The outermost folder each ensure_writable_dir call created, so that a run
@@ -98,7 +100,6 @@ def write_json(path: str, obj) -> None:
 
 
 def _json_default(x):
-    import numpy as np
 
     if isinstance(x, np.generic):
         return x.item()
@@ -116,6 +117,18 @@ def write_csv(path: str, columns: dict[str, list]) -> None:
     for row in zip(*(columns[n] for n in names), strict=True):
         w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
     atomic_write_text(path, buf.getvalue())
+
+
+def pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (no display needed)."""
+    # imported on first use: the backend must be chosen before pyplot loads,
+    # and only the commands that plot pay for matplotlib's import
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def save_figure(fig, path: str, dpi: int = 120) -> None:

@@ -6,14 +6,15 @@ import os
 import warnings
 from collections.abc import Sequence
 
+import matplotlib
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
 
 
 def _font(size: int):
-    from PIL import ImageFont
 
     for name in ("DejaVuSansMono.ttf", "DejaVuSans.ttf"):
         try:
@@ -21,8 +22,6 @@ def _font(size: int):
         except OSError:
             pass
     try:  # matplotlib ships DejaVu fonts
-        import matplotlib
-
         path = os.path.join(matplotlib.get_data_path(), "fonts", "ttf", "DejaVuSansMono.ttf")
         return ImageFont.truetype(path, size)
     except (ImportError, OSError):
@@ -31,7 +30,6 @@ def _font(size: int):
 
 def _draw_text(image: np.ndarray, text: str, xy=(8, 6), size: int | None = None) -> np.ndarray:
     """Draw white text on a dark box onto a copy of ``image``."""
-    from PIL import Image, ImageDraw
 
     h = image.shape[0]
     size = size or max(10, h // 36)
@@ -82,7 +80,6 @@ def side_by_side(
 
 def save_png(image: np.ndarray, path: str | os.PathLike) -> str:
     """Write an RGB(A) uint8 image to ``path`` as PNG, atomically; returns the path."""
-    from PIL import Image
 
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -94,7 +91,7 @@ def save_png(image: np.ndarray, path: str | os.PathLike) -> str:
 def mp4_available() -> bool:
     """True when ``imageio_ffmpeg`` (which ships an ffmpeg binary) can be imported."""
     try:
-        import imageio_ffmpeg  # noqa: F401
+        import imageio_ffmpeg  # noqa: F401  (optional: MP4 videos; GIF without it)
     except ImportError:
         return False
     return True
@@ -133,7 +130,6 @@ def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: floa
 
 
 def _write_gif(frames: list[np.ndarray], path: str, fps: float) -> None:
-    from PIL import Image
 
     ends = np.rint(np.arange(len(frames) + 1) * 100.0 / fps).astype(int) * 10  # ms, on 10 ms steps
     durations = [int(max(10, d)) for d in np.diff(ends)]
@@ -142,7 +138,7 @@ def _write_gif(frames: list[np.ndarray], path: str, fps: float) -> None:
 
 
 def _write_mp4(frames: list[np.ndarray], path: str, fps: float) -> None:
-    import imageio_ffmpeg
+    import imageio_ffmpeg  # optional (MP4 videos): callers check mp4_available() first
 
     h, w = frames[0].shape[:2]
     H, W = h + h % 2, w + w % 2  # H.264 with yuv420p needs even sizes

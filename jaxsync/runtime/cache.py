@@ -5,10 +5,15 @@ Not called at import (no side effects on import); entry points call it.
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.metadata as md
 import os
 
 import jax
+from jax import export
 
+from jaxsync._errors import ConfigError
 from jaxsync.runtime import patches, programs
 
 ENV_VAR = "JAXSYNC_CACHE_DIR"
@@ -50,20 +55,14 @@ def enable_compilation_cache(path: str | None = None, min_compile_time_s: float 
     try:
         os.makedirs(path, exist_ok=True)
     except OSError as err:
-        from jaxsync._errors import ConfigError
-
         raise ConfigError(f"compilation cache folder {path}: cannot create it: {err.strerror or err}") from None
     if not os.access(path, os.W_OK):
-        from jaxsync._errors import ConfigError
-
         raise ConfigError(f"compilation cache folder {path}: not writable (--cache-dir, $JAXSYNC_CACHE_DIR or 'off')")
     jax.config.update("jax_compilation_cache_dir", path)
     global _chosen_min_compile_time_s
     if min_compile_time_s is None:
         min_compile_time_s = _MIN_COMPILE_TIME_S if _chosen_min_compile_time_s is None else _chosen_min_compile_time_s
     elif not min_compile_time_s >= 0:
-        from jaxsync._errors import ConfigError
-
         raise ConfigError(f"min_compile_time_s must be a number of seconds >= 0, got {min_compile_time_s!r}")
     else:
         _chosen_min_compile_time_s = float(min_compile_time_s)
@@ -141,8 +140,6 @@ SOURCE_PACKAGES = ("jaxsync", "jaxsync.optimize", "jaxsync.mjcf")
 
 def source_files() -> list[str]:
     """Every source file (``.py``, ``.xml``) of :data:`SOURCE_PACKAGES`, sorted."""
-    import importlib
-
     files = set()
     for name in SOURCE_PACKAGES:
         for root in importlib.import_module(name).__path__:
@@ -156,9 +153,6 @@ def _source_fingerprint(files: list[str] | None = None) -> str:
     packaged models, :func:`source_files`) and of the versions it traces
     against: a traced function kept on disk is valid only for exactly this
     code. A model file outside the package is hashed by its caller's key."""
-    import hashlib
-    import importlib.metadata as md
-
     h = hashlib.sha256()
     for path in source_files() if files is None else files:
         with open(path, "rb") as f:
@@ -171,17 +165,33 @@ def _source_fingerprint(files: list[str] | None = None) -> str:
     return h.hexdigest()
 
 
-def _register_export_types() -> None:
-    from jax import export
+def _named_tuple_types(tree, found: set) -> set:
+    """The NamedTuple classes (``Gains``, ``Scenario``, ...) inside ``tree``."""
+    if isinstance(tree, tuple) and hasattr(tree, "_fields"):
+        found.add(type(tree))
+    if isinstance(tree, (tuple, list)):
+        for x in tree:
+            _named_tuple_types(x, found)
+    elif isinstance(tree, dict):
+        for x in tree.values():
+            _named_tuple_types(x, found)
+    return found
 
-    from jaxsync.control.gains import Gains
-    from jaxsync.sim.scenario import Scenario
 
-    for cls, name in ((Gains, "jaxsync.Gains"), (Scenario, "jaxsync.Scenario")):
+def _register_export_types(args) -> None:
+    """Let ``jax.export`` serialise the NamedTuples among ``args``."""
+    for cls in sorted(_named_tuple_types(args, set()), key=lambda c: c.__name__):
         try:
-            export.register_namedtuple_serialization(cls, serialized_name=name)
+            export.register_namedtuple_serialization(cls, serialized_name=f"jaxsync.{cls.__name__}")
         except ValueError:
             pass  # already registered
+
+
+def _atomic_write(path: str, data: bytes) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "wb") as f:
+        f.write(data)
+    os.replace(tmp, path)
 
 
 def _one_placement(jitted):
@@ -224,16 +234,13 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
     cache, without the ``flatbuffers`` package, or if exporting fails, this is
     plain ``jax.jit(fn)``. ``cache_dir`` overrides the folder.
     """
-    import hashlib
-
     raw = jax.jit(fn)
     jitted = _one_placement(raw)
     cache = cache_dir or jax.config.jax_compilation_cache_dir
     if not cache:
         return jitted
-    try:
+    try:  # jax.export serialises with flatbuffers: without it, plain jit
         import flatbuffers  # noqa: F401
-        from jax import export
     except ImportError:
         return jitted
     avals = jax.tree_util.tree_map(lambda x: (jax.numpy.shape(x), str(jax.numpy.result_type(x))), args)
@@ -243,15 +250,13 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
         _LOADED[path] = _LOADED.pop(path)
         return _LOADED[path]
     try:
-        _register_export_types()
+        _register_export_types(args)
         if os.path.exists(path):
             with open(path, "rb") as f:
                 exp = export.deserialize(bytearray(f.read()))
         else:
             exp = export.export(raw)(*args)
-            from jaxsync.io.results import atomic_write_bytes
-
-            atomic_write_bytes(path, exp.serialize())
+            _atomic_write(path, exp.serialize())
         loaded = _one_placement(jax.jit(exp.call))
     except Exception as err:  # noqa: BLE001  (an optimisation only: fall back to tracing)
         if log is not None:

@@ -21,6 +21,10 @@ from __future__ import annotations
 
 import json
 import os
+import sys
+
+import jax
+from jax._src import distributed as _jax_distributed  # JAX's client: read, never changed
 
 from jaxsync._errors import ConfigError
 
@@ -97,8 +101,6 @@ def initialize(coordinator=None, num_processes=None, process_id=None, auto: bool
     kw = settings(coordinator, num_processes, process_id, auto)
     if kw is None:
         return False
-    import jax
-
     try:
         jax.distributed.initialize(**kw)
     except (RuntimeError, ValueError) as err:
@@ -108,13 +110,9 @@ def initialize(coordinator=None, num_processes=None, process_id=None, auto: bool
 
 def active() -> bool:
     """True once this process has joined a multi-process run."""
-    import sys
-
     if "jax" not in sys.modules:
         return False
-    from jax._src import distributed
-
-    return distributed.global_state.client is not None
+    return _jax_distributed.global_state.client is not None
 
 
 def abandon(rc: int) -> None:
@@ -124,22 +122,16 @@ def abandon(rc: int) -> None:
     to 5 minutes) while they may wait for this one; leaving without it lets
     the coordination service see the process gone and stop the others within
     its heartbeat timeout (JAXSYNC_HEARTBEAT_TIMEOUT_S, JAX's default 100 s)."""
-    import sys
-
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(rc)
 
 
 def process_index() -> int:
-    import jax
-
     return jax.process_index()
 
 
 def process_count() -> int:
-    import jax
-
     return jax.process_count()
 
 
@@ -149,9 +141,7 @@ def is_main() -> bool:
 
 
 def _client():
-    from jax._src import distributed
-
-    client = distributed.global_state.client
+    client = _jax_distributed.global_state.client
     if client is None:
         raise RuntimeError("jax.distributed is not initialised")
     return client
@@ -187,8 +177,6 @@ def gather(name: str, value) -> list:
 
 def describe() -> dict:
     """This process's place in the run, for summaries."""
-    import jax
-
     return {
         "process_index": jax.process_index(),
         "process_count": jax.process_count(),

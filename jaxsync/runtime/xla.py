@@ -19,6 +19,8 @@ from __future__ import annotations
 import os
 import warnings
 
+from jax._src import xla_bridge
+
 FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
 # name -> value; XLA aborts on a flag it does not know, so each is checked
 # against the pinned jaxlib (tests/test_xla.py)
@@ -26,7 +28,6 @@ FLAGS = {FUSION_EMITTERS: "false"}
 
 
 def _backend_started() -> bool:
-    from jax._src import xla_bridge
 
     return bool(xla_bridge.backends_are_initialized())
 

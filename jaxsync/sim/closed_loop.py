@@ -96,7 +96,9 @@ def control(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt):
     normals = jnp.asarray(c.pad_rot[:, :, 2])
     pl = _scenario.plan(s, t, pad_start, normals)
     ref = reference(s, c, pl)
-    gains = _schedule.at(gains, s, t)  # constant gains pass through; a schedule blends its phases
+    gains = _schedule.at(
+        gains, jnp.stack(_scenario.phase_times(s)), t
+    )  # constant gains pass through; a schedule blends its phases
     tau, cstate, info = _controller.step(options, gains, cstate, arms, ref, dt)
     tau = jnp.clip(tau, -c.torque_limit, c.torque_limit)
     return tau, cstate, info, pl

@@ -28,6 +28,7 @@ from jaxsync.sim import closed_loop as _closed_loop
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim import trajectory as _trajectory
 from jaxsync.sim.closed_loop import REST_KEY, START_KEY
+from jaxsync.sim.rollout_mujoco import rollout_mujoco
 from jaxsync.sim.scenario import Scenario
 from jaxsync.sim.trajectory import Trajectory
 
@@ -198,8 +199,6 @@ def rollout(
         args = jax.device_put((_gains.strongly_typed(gains), scenario, switch), _physics.local_device())
         return fn(*args)
     if backend == "mujoco":
-        from jaxsync.sim.rollout_mujoco import rollout_mujoco
-
         return rollout_mujoco(
             model,
             gains,

@@ -1,0 +1,113 @@
+"""The package's shape: imports run one way, at the top, and modules stay small.
+
+Pure source checks (no JAX): they read every module of ``jaxsync`` (and of
+``jaxsync.optimize``, installed from ``optimize/``) with ``ast``.
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+# the packages from the bottom of the data's way to the top: a module imports
+# from its own layer or the ones below it, never from one above
+LAYERS = ("_errors", "runtime", "physics", "control", "sim", "io", "optimize", "cli")
+MAX_LINES = 500
+
+
+def _modules() -> dict[str, pathlib.Path]:
+    mods = {}
+    for base, prefix in ((ROOT / "jaxsync", "jaxsync"), (ROOT / "optimize", "jaxsync.optimize")):
+        for path in base.rglob("*.py"):
+            parts = list(path.relative_to(base).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join([prefix, *parts])] = path
+    return mods
+
+
+MODULES = _modules()
+
+
+def _imports(path: pathlib.Path):
+    """(imported module, line, at the top?) for every import of a jaxsync module in ``path``."""
+    tree = ast.parse(path.read_text())
+    top = {id(n) for n in tree.body}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        else:
+            continue
+        for name in names:
+            if name in MODULES:
+                yield name, node.lineno, id(node) in top
+
+
+def _layer(module: str) -> int:
+    part = module.split(".")[1] if "." in module else ""
+    return LAYERS.index(part) if part in LAYERS else -1  # jaxsync/__init__.py: the public face, above all
+
+
+def test_modules_are_found():
+    assert {"jaxsync.physics.step", "jaxsync.control.controller", "jaxsync.optimize.tune"} <= set(MODULES)
+
+
+def test_no_import_loop_counting_imports_inside_functions():
+    graph = {m: {n for n, _, _ in _imports(p) if n != m} for m, p in MODULES.items()}
+    # a package's __init__ is not a dependency of its own modules' imports of siblings
+    state: dict[str, int] = {}
+    loops = []
+
+    def visit(m, stack):
+        state[m] = 1
+        for n in sorted(graph[m]):
+            if n in MODULES and not m.startswith(n + ".") and not n.startswith(m + "."):
+                if state.get(n) == 1:
+                    loops.append(stack[stack.index(n) :] + [n] if n in stack else [m, n])
+                elif n not in state:
+                    visit(n, [*stack, n])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not loops, f"import loops: {loops}"
+
+
+@pytest.mark.parametrize("module", sorted(m for m in MODULES if m != "jaxsync"))
+def test_imports_run_down_the_layers(module):
+    here = _layer(module)
+    upward = [(n, line) for n, line, _ in _imports(MODULES[module]) if _layer(n) > here and n != "jaxsync"]
+    assert not upward, f"{module} imports from a layer above it ({LAYERS[here]}): {upward}"
+
+
+def test_imports_inside_functions_say_why():
+    """An import inside a function is there only for an optional dependency, a
+    private module another version may lack, or the command line's start-up
+    time, and a comment on its line or the line before says which."""
+    silent = []
+    for path in sorted({*MODULES.values()}):
+        lines = path.read_text().split("\n")
+        tree = ast.parse("\n".join(lines))
+        top = {id(n) for n in tree.body}
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in top:
+                near = lines[node.lineno - 1] + (lines[node.lineno - 2] if node.lineno > 1 else "")
+                block_start = node.lineno - 2
+                while block_start > 0 and lines[block_start].strip().startswith(("from ", "import ")):
+                    near += lines[block_start - 1]  # the comment above a block of imports
+                    block_start -= 1
+                if "#" not in near:
+                    silent.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not silent, f"imports inside functions without a reason: {silent}"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_no_module_over_500_lines(module):
+    n = len(MODULES[module].read_text().split("\n"))
+    assert n <= MAX_LINES, f"{module}: {n} lines"
