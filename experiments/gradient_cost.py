@@ -1,9 +1,9 @@
-"""The tuning gradient's cost, old path against new, in one run (issue 12).
+"""The tuning gradient's cost, the implicit path against the unrolled one, in one run.
 
-old: the former training physics ("unrolled": three one-iteration Newton
-     solves per step, differentiated through) with 100-step truncation;
-new: jaxsync's one physics (MJX's converged solve) with the implicit
-     adjoint, the exact full-horizon gradient.
+implicit: jaxsync's physics (MJX's converged solve) with the implicit
+          adjoint, the exact full-horizon gradient (what ``jaxsync tune`` runs);
+unrolled: three one-iteration Newton solves per step, differentiated
+          through, with the gradient truncated every 100 steps (a reference).
 Both: the tuning cost of one rollout of the short task (2 s, 1000 steps),
 rematerialised scan, batch 1, float64. Forward and value_and_grad of each
 path are timed alternately (best of N) so that a change in load hits all
@@ -22,9 +22,9 @@ import time
 
 import jax
 import jax.numpy as jnp
-from jaxsync.optimize.cost import CostWeights, cost
 
 import jaxsync
+from jaxsync.optimize.cost import CostWeights, cost
 
 
 def main() -> None:
@@ -38,12 +38,14 @@ def main() -> None:
     jaxsync.enable_compilation_cache()
     s, g = jaxsync.short_task(), jaxsync.default_gains()
     paths = {
-        "old (unrolled, truncated 100)": (jaxsync.load_model(solver="unrolled"), 100),
-        "new (converged, implicit, exact)": (jaxsync.load_model(), None),
+        "unrolled (1-iteration solves, truncated every 100 steps)": (jaxsync.load_model(solver="unrolled"), 100),
+        "implicit (converged solve, implicit adjoint, exact)": (jaxsync.load_model(), None),
     }
     fns = {}
     for name, (model, trunc) in paths.items():
-        roll = jaxsync.make_rollout(model, "synchronous", args.duration, remat=True, passes="tree", truncate_every=trunc)
+        roll = jaxsync.make_rollout(
+            model, "synchronous", args.duration, remat=True, passes="tree", truncate_every=trunc
+        )
 
         def loss(gains, s, roll=roll):
             return cost(roll(gains, s), s, CostWeights())

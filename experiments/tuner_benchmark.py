@@ -41,11 +41,10 @@ def main(argv=None) -> int:
 
     jaxsync.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
-    from jaxsync.optimize import methods as M
-    from jaxsync.optimize import tuner_benchmark as B
-
     from jaxsync._errors import ConfigError
     from jaxsync.io import results as _results
+    from jaxsync.optimize import methods as M
+    from jaxsync.optimize import tuner_benchmark as B
 
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]

@@ -1,13 +1,17 @@
-"""The measurements of ``jaxsync bench`` (``jaxsync.cli.bench`` runs them and reports).
+"""The measurements of ``jaxsync bench`` (``jaxsync.optimize.benchmark`` runs them and assembles the results).
 
 Closed-loop MJX environment-steps per second; the same controller stepping
 MuJoCo C; bare ``mj_step``; and, for the two gradient paths of ``PATHS`` side
-by side (the tuner's, and the former one kept to compare against), one forward
-rollout against its gradient, cold and warm compile times of the gradient and
-the peak memory of one tuning step, these two in child processes (a fresh
-process, and for the cold compile an empty cache). The gradient is the tuning
-cost's over the short task (``jaxsync.short_task``, batch 1); the tuning step is
-``jaxsync tune``'s (the full task, its batch).
+by side (the tuner's implicit path, and the unrolled one kept as a reference),
+one forward rollout against its gradient, cold and warm compile times of the
+gradient and the peak memory of one tuning step, these two in child processes
+(a fresh process, and for the cold compile an empty cache). The gradient is
+the tuning cost's over the short task (``jaxsync.short_task``, batch 1); the
+tuning step is ``jaxsync tune``'s (the full task, its batch).
+
+The child processes import this module and set their XLA flags afterwards
+(:func:`child`): XLA reads ``$XLA_FLAGS`` when JAX's backend starts, and the
+imports below start no JAX computation.
 """
 
 from __future__ import annotations
@@ -20,16 +24,56 @@ import subprocess
 import sys
 import tempfile
 import time
+from importlib.metadata import PackageNotFoundError, version
 
+import jax
+import jax.numpy as jnp
+import jaxlib
+import mujoco
 import numpy as np
 
+from jaxsync.control.gains import default_gains
+from jaxsync.optimize.config import TuneConfig
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.loop import apply_update
+from jaxsync.optimize.loss import make_loss
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.scenarios import sample_scenarios, training_base
+from jaxsync.physics.model import load_model
+from jaxsync.physics.sensing import sense
+from jaxsync.physics.step import before_control, put_data
 from jaxsync.runtime import xla as _xla
+from jaxsync.runtime.cache import enable_compilation_cache, traced_on_disk
+from jaxsync.sim.metrics import summarize
+from jaxsync.sim.rollout import cpu_vmap_limit, make_rollout, rollout, steps_for
+from jaxsync.sim.scenario import default_scenario
+
+# The two gradient paths the benchmark sets side by side: "implicit" is what
+# ``jaxsync tune`` runs (MJX's converged solve, the implicit adjoint, the
+# exact full-horizon gradient); "unrolled" (three one-iteration Newton solves
+# per step, differentiated through, the gradient truncated every 100 steps)
+# is a reference to compare against.
+PATHS = {
+    "implicit": {
+        "solver": "accurate",
+        "truncate_every": None,
+        "label": "converged solve, implicit adjoint, exact gradient",
+    },
+    "unrolled": {
+        "solver": "unrolled",
+        "truncate_every": 100,
+        "label": "unrolled 1-iteration solves, truncated every 100 steps",
+    },
+}
+
+# XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync.runtime.xla):
+# the benchmark measures the gradient's compile and the tuning step's memory
+# with it too, beside jaxsync's setting
+XLA_DEFAULT_EMITTERS = f"--{_xla.FUSION_EMITTERS}=true"
 
 
 def _scenarios(base, n: int):
     """n copies of ``base`` with noise keys 0..n-1 (a batch with a leading axis)."""
-    import jax
-
     keys = np.stack([np.asarray(jax.random.key_data(jax.random.key(i)), dtype=np.uint32) for i in range(n)])
     tree = jax.tree_util.tree_map(lambda x: np.repeat(np.asarray(x)[None], n, axis=0), base)
     return tree._replace(noise_key=keys)
@@ -54,26 +98,17 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
     vmapped slices of the limit (the whole batch in one compiled call, at most
     the limit in one vmap).
     """
-    import jax
-
-    from jaxsync.control.gains import default_gains
-    from jaxsync.sim.metrics import summarize
-    from jaxsync.sim.rollout import make_rollout
-    from jaxsync.sim.scenario import default_scenario
-
     fn = make_rollout(model, "synchronous", duration)
 
     def one(g, s):
         return summarize(fn(g, s), s)
 
     ev = jax.jit(jax.vmap(one, in_axes=(None, 0)))
-    from jaxsync.sim.rollout import cpu_vmap_limit
-
     limit = cpu_vmap_limit()
     g = default_gains()
     out, compile_s, how = {}, {}, {}
     for b in batch_sizes:
-        s = jax.tree_util.tree_map(jax.numpy.asarray, _scenarios(default_scenario(), b))
+        s = jax.tree_util.tree_map(jnp.asarray, _scenarios(default_scenario(), b))
         f, how[str(b)] = ev, f"vmap {b}"
         if limit and b > limit:
             f = jax.jit(lambda g, s: jax.lax.map(lambda s1: one(g, s1), s, batch_size=limit))
@@ -97,12 +132,6 @@ def mujoco_c_throughput(model, duration: float, log) -> dict:
     first), so the steady rate is taken from the difference of a short and a
     long rollout; the raw rate of the long call is reported too.
     """
-    import jax
-
-    from jaxsync.control.gains import default_gains
-    from jaxsync.sim.rollout import rollout, steps_for
-    from jaxsync.sim.scenario import default_scenario
-
     g, s = default_gains(), default_scenario()
     short = min(0.02, duration / 2)
     jax.block_until_ready(rollout(model, g, s, backend="mujoco", duration=short))  # compile, warm the cache
@@ -123,8 +152,6 @@ def mujoco_c_throughput(model, duration: float, log) -> dict:
 
 
 def bare_mj_step(model, n: int, log) -> float:
-    import mujoco
-
     m = model.mj_model
     d = mujoco.MjData(m)
     d.qpos[:] = model.keyframe_qpos("grasp")
@@ -139,44 +166,15 @@ def bare_mj_step(model, n: int, log) -> float:
     return rate
 
 
-# The two gradient paths the benchmark sets side by side (issue 12): "new" is
-# what ``jaxsync tune`` runs (MJX's converged solve, the implicit adjoint, the
-# exact full-horizon gradient); "old" is the former training physics (three
-# one-iteration Newton solves per step, differentiated through, the gradient
-# truncated every 100 steps), kept only to compare against.
-PATHS = {
-    "new": {
-        "solver": "accurate",
-        "truncate_every": None,
-        "label": "converged solve, implicit adjoint, exact gradient",
-    },
-    "old": {
-        "solver": "unrolled",
-        "truncate_every": 100,
-        "label": "unrolled 1-iteration solves, truncated every 100 steps",
-    },
-}
-
-
 def tuning_loss(path: str, task: str, batch: int, duration: float | None = None):
     """The tuner's own loss on ``path``'s physics: ``(loss, args, n_steps)``.
 
-    ``loss(theta, scenarios) -> (cost, terms)`` is ``optimize.tune.make_loss``
+    ``loss(theta, scenarios) -> (cost, terms)`` is ``optimize.loss.make_loss``
     with ``jaxsync tune``'s defaults except the task (``"short"``: the 2 s
     short task, or ``"full"``: the 4 s task), the batch and the path's solver
     and truncation; ``args`` are the default gains' parameters and a seeded
     batch of randomised scenarios.
     """
-    import jax
-
-    from jaxsync.control.gains import default_gains
-    from jaxsync.optimize.cost import CostWeights
-    from jaxsync.optimize.params import TuneSpec
-    from jaxsync.optimize.scenarios import sample_scenarios, training_base
-    from jaxsync.optimize.tune import TuneConfig, make_loss
-    from jaxsync.physics.model import load_model
-    from jaxsync.sim.rollout import steps_for
-
     p = PATHS[path]
     over = {"train_duration": duration} if (duration is not None and task == "short") else {}
     cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
@@ -188,19 +186,12 @@ def tuning_loss(path: str, task: str, batch: int, duration: float | None = None)
     return loss, (spec.init(base), scen), steps_for(dur, model)
 
 
-def small_gradient(path: str = "new"):
+def small_gradient(path: str = "implicit"):
     """A small stand-in for ``--quick``: the pad position through one
     kinematics stage and the sensing (compiles in seconds, not minutes), on
     ``path``'s model. It does not reach the constraint solve, so the two paths
     do the same work here: ``--quick`` checks the benchmark runs, it measures
     nothing about the paths."""
-    import jax.numpy as jnp
-    import mujoco
-
-    from jaxsync.physics.model import load_model
-    from jaxsync.physics.sensing import sense
-    from jaxsync.physics.step import before_control, put_data
-
     model = load_model(solver=PATHS[path]["solver"])
     mx, index = model.mjx_model, model.index
     d = put_data(model.mj_model, mujoco.MjData(model.mj_model))
@@ -216,16 +207,12 @@ def small_gradient(path: str = "new"):
 def gradient_functions(path: str, duration: float, small: bool = False):
     """``(jit(forward), jit(value_and_grad), args, n_steps)`` of the tuning
     cost of one rollout of the short task (batch 1) on ``path``'s physics."""
-    import jax
-
     loss, args, n = small_gradient(path) if small else tuning_loss(path, "short", 1, duration)
     return jax.jit(lambda *a: loss(*a)[0]), jax.jit(jax.value_and_grad(loss, has_aux=True)), args, n
 
 
 def forward_and_gradient(path: str, duration: float, repeats: int, log, small: bool = False) -> dict:
     """Forward against value_and_grad of the same physics, alternated, best of ``repeats``."""
-    import jax
-
     fwd, grad, args, n_steps = gradient_functions(path, duration, small)
     t0 = time.perf_counter()
     jax.block_until_ready(fwd(*args))
@@ -263,25 +250,16 @@ def forward_and_gradient(path: str, duration: float, repeats: int, log, small: b
     }
 
 
-def _have_flatbuffers() -> bool:
+def have_flatbuffers() -> bool:
+    """Whether ``jax.export`` can serialise (the warm start with the traced function on disk)."""
     try:
-        import flatbuffers  # noqa: F401
+        import flatbuffers  # noqa: F401  (inside: an optional dependency of jax.export)
     except ImportError:
         return False
     return True
 
 
 # ----------------------------------------------------------------- child processes
-
-
-def _child_setup():
-    import jax
-
-    from jaxsync.runtime.cache import enable_compilation_cache
-
-    _xla.set_xla_flags()
-    jax.config.update("jax_enable_x64", True)
-    return enable_compilation_cache()
 
 
 def _maxrss_gib() -> float:
@@ -305,8 +283,6 @@ def _child_compile(cfg: dict) -> dict:
     t0 = time.perf_counter()
     _, grad, args, _ = gradient_functions(cfg["path"], cfg["duration"], cfg.get("small", False))
     if cfg.get("exported"):  # what the CLI does: the traced function from disk (jax.export)
-        from jaxsync.runtime.cache import traced_on_disk
-
         grad = traced_on_disk(grad, args, f"bench.gradient.{cfg['path']}.{cfg['duration']}.{cfg.get('small')}")
     t1 = time.perf_counter()
     lowered = grad.lower(*args)
@@ -320,11 +296,6 @@ def _child_tune_step(cfg: dict) -> dict:
     """One tuning step as ``jaxsync tune`` takes it on ``cfg["path"]``: the
     gradient of the tuning loss over a batch of randomised scenarios of the
     task, then one optax update; the process's peak memory."""
-    import jax
-
-    from jaxsync.optimize.loop import apply_update
-    from jaxsync.optimize.tune import TuneConfig
-
     rss0 = _maxrss_gib()
     if cfg.get("small"):
         loss, args, _ = small_gradient(cfg["path"])
@@ -357,18 +328,15 @@ def _child_tune_step(cfg: dict) -> dict:
 
 def child(mode: str, cfg: dict) -> dict:
     """Run in a fresh process: ``compile`` (trace + XLA-compile the gradient) or ``tune_step``."""
-    _child_setup()
+    # before the first JAX computation, which starts the backend and reads $XLA_FLAGS
+    _xla.set_xla_flags()
+    jax.config.update("jax_enable_x64", True)
+    enable_compilation_cache()
     if mode == "compile":
         return _child_compile(cfg)
     if mode == "tune_step":
         return _child_tune_step(cfg)
     raise ValueError(mode)
-
-
-# XLA's own default for the CPU emitters, which jaxsync turns off (jaxsync.runtime.xla):
-# the benchmark measures the gradient's compile and the tuning step's memory
-# with it too, beside jaxsync's setting
-XLA_DEFAULT_EMITTERS = f"--{_xla.FUSION_EMITTERS}=true"
 
 
 def _run_child(mode: str, cfg: dict, cache_dir: str | None, xla_flags: str | None = None) -> dict:
@@ -377,7 +345,7 @@ def _run_child(mode: str, cfg: dict, cache_dir: str | None, xla_flags: str | Non
     if xla_flags is not None:
         env["XLA_FLAGS"] = xla_flags
     code = (
-        "import json, sys; from jaxsync.cli._bench_measure import child; "
+        "import json, sys; from jaxsync.optimize.benchmark_measure import child; "
         "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))"
     )
     # cwd away from any source checkout: ``python -c`` puts the cwd first on sys.path
@@ -407,7 +375,7 @@ def compile_times(path: str, duration: float, small: bool, log, exported: bool =
     with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
         out["cold"] = cold = _run_child("compile", cfg, cache)
         out["warm"] = warm = _run_child("compile", cfg, cache)
-        if exported and _have_flatbuffers():
+        if exported and have_flatbuffers():
             exp = {**cfg, "exported": True}
             _run_child("compile", exp, cache)  # trace, export, compile the wrapper
             out["warm_exported"] = _run_child("compile", exp, cache)
@@ -466,10 +434,6 @@ def tune_step_memory(
 
 
 def machine() -> dict:
-    import jax
-    import jaxlib
-    import mujoco
-
     cpu = platform.processor() or ""
     try:
         with open("/proc/cpuinfo") as f:
@@ -480,10 +444,8 @@ def machine() -> dict:
     except OSError:
         pass
     try:
-        from importlib.metadata import version
-
         mjx_version = version("mujoco-mjx")
-    except Exception:  # noqa: BLE001
+    except PackageNotFoundError:
         mjx_version = None
     mem = None
     try:

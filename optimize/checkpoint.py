@@ -14,7 +14,7 @@ from jaxsync.io import results as _results
 # counters, the options fingerprint) are plain Python and are pickled as they
 # are, so that a resumed run's records equal an uninterrupted run's (turning
 # them into numpy scalars made a resumed run crash at its end: a 0-d array
-# iteration is not a dict key; issue 11)
+# iteration is not a dict key)
 ARRAY_FIELDS = ("theta", "opt_state", "kept")
 
 

@@ -12,10 +12,16 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.controller import CONTROLLERS
+from jaxsync.control.gains import default_gains
 from jaxsync.io import results as _results
+from jaxsync.optimize import scenarios as _scenarios
+from jaxsync.optimize.compare_video import compare_video
+from jaxsync.optimize.config import TuneConfig
 from jaxsync.runtime.cache import compile_watch
+from jaxsync.runtime.gl import select_gl_backend
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.metrics import drop_time
 from jaxsync.sim.rollout import rollout
 from jaxsync.sim.scenario import min_duration
 
@@ -62,15 +68,6 @@ def run(
         log(f"[{i + 1}/2] {name}: done in {time.perf_counter() - t0:.1f} s{watch.describe()}, {outcome(m)}")
         results[name] = (traj, m)
     return results
-
-
-def drop_time(m) -> float | None:
-    """When the object was lost (s), None if it was held; ``m`` Metrics or their to_dict()."""
-    get = m.get if isinstance(m, dict) else lambda k: getattr(m, k)
-    if not bool(np.asarray(get("dropped"))):
-        return None
-    t = get("drop_time_s")
-    return float(np.asarray(t)) if t is not None else float("nan")
 
 
 def outcome(m) -> str:
@@ -362,3 +359,45 @@ def sim_to_sim_table(check: dict, gains_name: str = "these gains", baseline_name
     else:
         lines.append(f"WARNING: sim-to-sim check failed: {'; '.join(check['problems'])} (docs/export.md)")
     return lines
+
+
+def paper_comparison(
+    model,
+    gains,
+    scenario,
+    out: str,
+    *,
+    duration: float = 4.0,
+    backend: str = "mjx",
+    options: dict | None = None,
+    video_speed: float | None = None,
+    mujoco_check: int = 0,
+    log=lambda msg: print(msg, file=sys.stderr, flush=True),
+) -> tuple[dict, list[str]]:
+    """``jaxsync compare``'s job: both controllers on ``scenario``, written to ``out``.
+
+    Writes ``summary.json``, ``series.csv`` and each controller's force plot
+    (:func:`write_results`); with ``video_speed``, ``compare.mp4`` (or a GIF)
+    at that speed; with ``mujoco_check`` = N, ``gains`` and the default gains
+    on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C
+    (:func:`sim_to_sim`, recorded as ``summary["sim_to_sim"]``). Every input
+    is checked before ``out`` is created. Returns the summary and the files.
+    """
+    check_duration(scenario, duration)
+    if video_speed is not None:  # say now, not after the rollouts, when no OpenGL backend can render it
+        select_gl_backend()
+    _results.ensure_writable_dir(out)
+    t0 = time.perf_counter()
+    results = run(model, gains, scenario, duration=duration, backend=backend, log=log)
+    summary = write_results(out, results, scenario, gains, options or {}, time.perf_counter() - t0)
+    files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"]
+    if video_speed is not None:
+        files.append(os.path.basename(compare_video(model, results, scenario, out, speed=video_speed, log=log)))
+    if mujoco_check:
+        cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
+        held = _scenarios.heldout_scenarios(cfg)
+        summary["sim_to_sim"] = sim_to_sim(
+            model, gains, default_gains(), held, cfg.eval_duration, n=mujoco_check, log=log
+        )
+        _results.write_json(os.path.join(out, "summary.json"), summary)
+    return summary, files

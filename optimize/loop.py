@@ -16,7 +16,7 @@ import optax
 
 
 class Update(NamedTuple):
-    params: object  # the new parameters (the old ones when the step was skipped)
+    params: object  # the updated parameters (unchanged when the step was skipped)
     opt_state: object
     grad_norm: jax.Array  # global norm of the gradient, before clipping
     finite: jax.Array  # bool: the value and the gradient were finite and the step was taken

@@ -19,6 +19,8 @@ Example:
 
 from __future__ import annotations
 
+import os
+import time
 from typing import NamedTuple
 
 import jax
@@ -26,11 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.cost import smooth_metrics
+from jaxsync.optimize.scenarios import sample_scenarios
 from jaxsync.runtime import programs
 from jaxsync.sim.rollout import make_rollout
+from jaxsync.sim.scenario import min_duration
 
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
 SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll")  # elasticity per unit k, not per log k
@@ -177,3 +182,50 @@ def plot(s: Sensitivity, path: str, title: str = "") -> None:
     fig.tight_layout()
     _results.save_figure(fig, path)
     plt.close(fig)
+
+
+def write_results(out: str, s: Sensitivity, gains, *, batch: int, seed: int, duration: float, seconds: float) -> list:
+    """``sensitivity.csv`` (a row per gain entry), ``sensitivity.json`` (the
+    same with the metrics and the run's settings) and ``sensitivity.png``;
+    returns the file names."""
+    rows = s.rows()
+    _results.write_csv(os.path.join(out, "sensitivity.csv"), {k: [r[k] for r in rows] for k in rows[0]})
+    _results.write_json(
+        os.path.join(out, "sensitivity.json"),
+        {
+            "metrics": dict(zip(METRICS, s.values.tolist(), strict=True)),
+            "rows": rows,
+            "elasticity": "d log metric / d log gain; for k_rk, k_lk, k_rl, k_ll: d log metric / d k",
+            "metric_forms": "smooth forms of the tuning cost (optimize/cost.py smooth_metrics), mean over scenarios",
+            "gains": _gains.to_dict(gains),
+            "batch": batch,
+            "seed": seed,
+            "duration_s": duration,
+            "seconds": seconds,
+        },
+    )
+    plot(s, os.path.join(out, "sensitivity.png"), title=f"{batch} scenarios, {duration:g} s")
+    return ["sensitivity.csv", "sensitivity.json", "sensitivity.png"]
+
+
+def study(
+    model, gains, base, *, batch: int, seed: int, duration: float, out: str, at: str = "the given gains", log=print
+) -> Sensitivity:
+    """``jaxsync sensitivity``'s job: the sensitivities of the smooth metrics
+    to every gain entry over ``batch`` randomised scenarios around ``base``
+    (a :class:`~jaxsync.Scenario`), written to ``out`` (:func:`write_results`)."""
+    if duration < min_duration(base):
+        raise ConfigError(
+            f"duration must be at least {min_duration(base):g} s for this task (its settled "
+            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
+        )
+    _results.ensure_writable_dir(out)
+    scen = sample_scenarios(jax.random.key(seed), batch, base)
+    log(
+        f"sensitivities at {at}: {batch} randomised scenarios (seed {seed}), {duration:g} s; one forward pass and one "
+        "reverse pass per metric (the first run compiles the gradient: minutes on a small CPU)"
+    )
+    t0 = time.perf_counter()
+    s = sensitivity(model, gains, scen, duration)
+    write_results(out, s, gains, batch=batch, seed=seed, duration=duration, seconds=time.perf_counter() - t0)
+    return s

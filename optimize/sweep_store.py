@@ -79,7 +79,7 @@ def prepare_out(out: str, plan: Plan, restart: bool, resume: bool = False) -> di
     if resume and stored is None:
         raise ConfigError(f"--resume: no sweep to continue in {out!r} (no readable plan.json)")
     _results.ensure_writable_dir(out)
-    if restart or stored is None:  # --restart, or a new sweep: any old state goes
+    if restart or stored is None:  # --restart, or a fresh sweep: any stored state goes
         stored = None
         shutil.rmtree(os.path.join(out, "chunks"), ignore_errors=True)
         for f in ("results.csv", "summary.json", "heatmap.png", "line.png", "scatter.png", "plan.json"):

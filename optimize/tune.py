@@ -221,7 +221,7 @@ def tune(
         # the run's first iteration traces and compiles the gradient (minutes
         # cold, seconds warm): it gets a bar of its own, replaced after it by
         # one whose clock starts then, so that the rate and the ETA come from
-        # the iterations after it (issue 11: an ETA of 08:45 for seconds per step)
+        # the iterations after it (not an ETA of minutes for seconds per step)
         return tqdm(
             total=cfg.iterations,
             initial=state.iteration,

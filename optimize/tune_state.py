@@ -135,7 +135,7 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
 
     A folder holding a tuning run is continued (``resume``) or discarded
     (``restart``: its RUN_FILES are removed), never silently overwritten: with
-    neither, a checkpoint or a former run's results are a ConfigError naming
+    neither, a checkpoint or an earlier run's results are a ConfigError naming
     both flags.
     """
     if resume and restart:

@@ -35,8 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from jaxsync.control import gains as _gains
+from jaxsync.io import results as _results
 from jaxsync.optimize import methods as _methods
+from jaxsync.optimize.config import TuneConfig
 from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.loss import make_loss
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.scenarios import sample_scenarios
 from jaxsync.sim import scenario as _scenario
@@ -63,10 +67,6 @@ class Programs:
     """The compiled programs both problems share, and the two problems' oracles."""
 
     def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
-        from jaxsync.control import gains as _gains
-        from jaxsync.optimize.loss import make_loss
-        from jaxsync.optimize.tune import TuneConfig
-
         self.cfg = cfg
         base = base if base is not None else _gains.default_gains()
         tcfg = TuneConfig(batch=cfg.batch, task=cfg.task, truncate_every=None)
@@ -230,13 +230,7 @@ def table(summary: list[dict]) -> str:
 
 def plot(runs: list[dict], path: str, target_fraction: float | None = None) -> None:
     """Held-out cost (best so far) against optimisation wall time, one panel per problem."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from jaxsync.io import results as _results
-
+    plt = _results.pyplot()
     problems = [p for p in PROBLEMS if any(r["problem"] == p for r in runs)]
     fig, axes = plt.subplots(1, len(problems), figsize=(6.5 * len(problems), 4.2), squeeze=False)
     colors = dict(zip(_methods.METHODS, ("C0", "C1", "C2", "C3"), strict=True))

@@ -12,25 +12,24 @@ import argparse
 import importlib
 import os
 import sys
+import traceback
+
+import jax
 
 from jaxsync._errors import JaxsyncError
 from jaxsync.io import results as _results
+from jaxsync.runtime import distributed as _distributed
+from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
 
 COMMANDS = ("info", "compare", "tune", "sensitivity", "export", "sweep", "bench", "render")
 
 
 def _setup_jax(args: argparse.Namespace) -> None:
-    import jax
-
-    from jaxsync.runtime.cache import enable_compilation_cache
-    from jaxsync.runtime.xla import set_xla_flags
-
     set_xla_flags()  # before anything starts JAX's backend (a command run in-process may find it started)
     jax.config.update("jax_enable_x64", not getattr(args, "float32", False))
     enable_compilation_cache(getattr(args, "cache_dir", None))
     if hasattr(args, "coordinator"):  # a command that can run over many processes (sweep, tune)
-        from jaxsync.runtime import distributed as _distributed
-
         _distributed.initialize(args.coordinator, args.num_processes, args.process_id, args.distributed_auto)
 
 
@@ -64,12 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if rc != 0:  # a rejected or failed run leaves no empty output folder behind
             _results.remove_created_dirs()
-            from jaxsync.runtime import distributed as _distributed
-
             if _distributed.active():  # the other processes stop too, without waiting minutes for this one
                 if sys.exc_info()[0] is not None:  # JAXSYNC_DEBUG's traceback, before leaving
-                    import traceback
-
                     traceback.print_exc()
                 _distributed.abandon(rc)
 

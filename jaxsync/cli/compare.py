@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 from jaxsync.cli._common import add_model_argument, positive
 
 
 def scenario_from_args(args: argparse.Namespace):
+    # imported here, not at the top: `jaxsync --help` stays fast
     import jax
     import numpy as np
 
@@ -36,57 +38,34 @@ EXIT_SIM_TO_SIM = 5
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-    import sys
-    import time
-
+    # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
-    from jaxsync.io import results as _results
-    from jaxsync.io.results import ensure_writable_dir
     from jaxsync.optimize import compare as _compare
     from jaxsync.physics.model import load_model
 
     gains = gains_file.load(args.gains) if args.gains else _gains.default_gains()
     scenario = scenario_from_args(args)
     _compare.check_duration(scenario, args.duration)
-    model = load_model(args.model, solver="accurate")
-    if args.video:  # say now, not after the rollouts, when no OpenGL backend can render it
-        from jaxsync.runtime.gl import select_gl_backend
-
-        select_gl_backend()
-    ensure_writable_dir(args.out)  # the input is checked: only now the folder
-    t0 = time.perf_counter()
-    results = _compare.run(model, gains, scenario, duration=args.duration, backend=args.backend)
-    options = {k: v for k, v in vars(args).items() if k not in ("func",)}
-    summary = _compare.write_results(args.out, results, scenario, gains, options, time.perf_counter() - t0)
-    files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"]
-    if args.video:
-        from jaxsync.cli.render import compare_video
-
-        files.append(os.path.basename(compare_video(model, results, scenario, args.out, speed=args.video_speed)))
+    summary, files = _compare.paper_comparison(
+        load_model(args.model, solver="accurate"),
+        gains,
+        scenario,
+        args.out,
+        duration=args.duration,
+        backend=args.backend,
+        options={k: v for k, v in vars(args).items() if k not in ("func",)},
+        video_speed=args.video_speed if args.video else None,
+        mujoco_check=args.mujoco_check,
+    )
     for line in _compare.table(summary):
         print(line)
-    check = None
-    if args.mujoco_check:
-        from jaxsync.optimize import scenarios
-        from jaxsync.optimize.tune import TuneConfig
-
-        cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
-        check = _compare.sim_to_sim(
-            model,
-            gains,
-            _gains.default_gains(),
-            scenarios.heldout_scenarios(cfg),
-            cfg.eval_duration,
-            n=args.mujoco_check,
-        )
-        summary["sim_to_sim"] = check
-        _results.write_json(os.path.join(args.out, "summary.json"), summary)
+    check = summary.get("sim_to_sim")
+    if check is not None:
         for line in _compare.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
             print(line)
     print(f"results in {args.out}: {', '.join(files)}")
-    dropped = {n: _compare.drop_time(summary[n]) for n in results if _compare.drop_time(summary[n]) is not None}
+    dropped = {n: t for n in _compare.CONTROLLERS if (t := _compare.drop_time(summary[n])) is not None}
     if dropped:
         print(
             "jaxsync compare: "

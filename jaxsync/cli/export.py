@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
+from jaxsync.control import gains as _gains
+from jaxsync.io import export as _export
+from jaxsync.io import gains_file
+from jaxsync.io.export import FORMATS
+
 
 def run(args) -> int:
-    from jaxsync.control import gains as _gains
-    from jaxsync.io import export as _export
-    from jaxsync.io import gains_file
-
     # the input is checked before anything is written
     gains = gains_file.load(args.gains)
     paths = _export.export(gains, args.format, args.out)
     back = gains_file.load(paths[0] if args.format != "ros2-admittance" else args.out)
-    same = all(
-        bool((abs(a - b) <= 1e-12 * abs(b) + 1e-300).all()) for a, b in zip(_leaves(back), _leaves(gains), strict=True)
-    )
+    same = gains_file.same_gains(back, gains)
     kind = "a gain schedule" if not isinstance(gains, _gains.Gains) else "constant gains"
     print(f"exported {kind} from {args.gains} as {args.format}: " + ", ".join(paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if same else "DIFFERENT gains"))
@@ -24,16 +23,7 @@ def run(args) -> int:
     return 0 if same else 1
 
 
-def _leaves(g):
-    import jax
-    import numpy as np
-
-    return [np.asarray(v, dtype=float) for v in jax.tree_util.tree_leaves(g)]
-
-
 def add_parser(subparsers):
-    from jaxsync.io.export import FORMATS
-
     p = subparsers.add_parser(
         "export",
         help="write gains for other tools: yaml, json (with units), ros2-admittance (ros2_control)",

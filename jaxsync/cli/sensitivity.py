@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import os
 import time
 
+from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_model_argument, positive
 
 
 def run(args) -> int:
-    import jax
-
+    # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
-    from jaxsync.io import results as _results
     from jaxsync.optimize import sensitivity as sens
-    from jaxsync.optimize.scenarios import sample_scenarios
     from jaxsync.physics.model import load_model
     from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
@@ -24,42 +21,26 @@ def run(args) -> int:
     base = short_task() if args.task == "short" else default_scenario()
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
     if duration < min_duration(base):
-        from jaxsync._errors import ConfigError
-
         raise ConfigError(
             f"--duration must be at least {min_duration(base):g} s for the {args.task} task (its settled "
             f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
         )
     model = load_model(args.model)
-    _results.ensure_writable_dir(args.out)
-    scen = sample_scenarios(jax.random.key(args.seed), args.batch, base)
-    print(
-        f"sensitivities at {'the gains of ' + args.gains if args.gains else 'the default gains'}: "
-        f"{args.batch} randomised scenarios (seed {args.seed}), {duration:g} s; one forward pass and one "
-        "reverse pass per metric (the first run compiles the gradient: minutes on a small CPU)",
-        flush=True,
-    )
+    where = "the gains of " + args.gains if args.gains else "the default gains"
     t0 = time.perf_counter()
-    s = sens.sensitivity(model, gains, scen, duration)
-    dt = time.perf_counter() - t0
-    print(sens.table(s))
-    rows = s.rows()
-    _results.write_csv(os.path.join(args.out, "sensitivity.csv"), {k: [r[k] for r in rows] for k in rows[0]})
-    _results.write_json(
-        os.path.join(args.out, "sensitivity.json"),
-        {
-            "metrics": dict(zip(sens.METRICS, s.values.tolist(), strict=True)),
-            "rows": rows,
-            "elasticity": "d log metric / d log gain; for k_rk, k_lk, k_rl, k_ll: d log metric / d k",
-            "metric_forms": "smooth forms of the tuning cost (optimize/cost.py smooth_metrics), mean over scenarios",
-            "gains": _gains.to_dict(gains),
-            "batch": args.batch,
-            "seed": args.seed,
-            "duration_s": duration,
-            "seconds": dt,
-        },
+    s = sens.study(
+        model,
+        gains,
+        base,
+        batch=args.batch,
+        seed=args.seed,
+        duration=duration,
+        out=args.out,
+        at=where,
+        log=lambda m: print(m, flush=True),
     )
-    sens.plot(s, os.path.join(args.out, "sensitivity.png"), title=f"{args.batch} scenarios, {duration:g} s")
+    print(sens.table(s))
+    dt = time.perf_counter() - t0
     print(f"results in {args.out}: sensitivity.csv, sensitivity.json, sensitivity.png ({dt:.0f} s)")
     return 0
 

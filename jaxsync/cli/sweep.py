@@ -76,6 +76,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.io import gains_file
     from jaxsync.optimize import sweep
 

@@ -7,6 +7,8 @@ import math
 from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_distributed_arguments, add_model_argument
 from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.methods import METHODS
+from jaxsync.optimize.params import TUNABLE, TuneSpec
 
 
 def _weights(items: list[str] | None) -> CostWeights:
@@ -37,7 +39,6 @@ def run(args) -> int:
     from jaxsync.io import gains_file
     from jaxsync.optimize import pipeline
     from jaxsync.optimize import tune as tuning
-    from jaxsync.optimize.params import TUNABLE, TuneSpec
     from jaxsync.physics.model import load_model
 
     tuned = _names(args.tune) or list(TuneSpec().tuned)
@@ -129,9 +130,6 @@ def change_text(before: float | None, after: float | None) -> str:
 
 
 def add_parser(sub) -> None:
-    from jaxsync.optimize.methods import METHODS
-    from jaxsync.optimize.params import TUNABLE
-
     p = sub.add_parser(
         "tune",
         help="tune the synchronisation and impedance gains by gradient through MJX rollouts",

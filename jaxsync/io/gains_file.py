@@ -11,6 +11,9 @@ from __future__ import annotations
 import json
 import os
 
+import jax
+import numpy as np
+
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
@@ -56,3 +59,16 @@ def load_constant(path: str | os.PathLike, command: str) -> Gains:
             "(compare and tune --per-phase take schedules)"
         )
     return g
+
+
+def same_gains(a, b, rtol: float = 1e-12) -> bool:
+    """Whether ``a`` and ``b`` (gains or schedules of one shape) hold the same
+    values to ``rtol`` (what an export read back is checked against)."""
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    if len(la) != len(lb):
+        return False
+    for x, y in zip(la, lb, strict=True):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        if x.shape != y.shape or not bool((abs(x - y) <= rtol * abs(y) + 1e-300).all()):
+            return False
+    return True

@@ -19,7 +19,7 @@ from jaxsync._errors import ConfigError
 # The outermost folder each ensure_writable_dir call created, so that a run
 # that then fails can remove what it created and left empty
 # (remove_created_dirs; jaxsync.cli.main does): a rejected run leaves no empty
-# output folder behind (issue 11).
+# output folder behind.
 _created: list[str] = []
 
 
@@ -126,7 +126,7 @@ def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after the backend is chosen
 
     return plt
 

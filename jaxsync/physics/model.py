@@ -29,14 +29,13 @@ SolverName = Literal["accurate", "unrolled"]
 # its ``while_loop``) for every rollout, compare, sweep, validation and
 # training; gradients through it are implicit (``_physics.solve_implicit``:
 # the implicit function theorem at the solve's optimality condition), exact
-# for the converged physics. ``unrolled`` is the former "differentiable"
-# setting, kept only to compare against (the benchmark's old path): one
-# outer iteration per ``mjx.solve`` call, the call unrolled ``SOLVER_UNROLL``
-# times per step and differentiated through (a single iteration launched the
-# clamped ball off the pads; three matched the converged solve on the default
-# gains). It needs ``jaxsync.runtime.patches.mjx_elliptic_gradient`` for finite
-# gradients; it is a different physics on short in-contact horizons
-# (docs/tuning.md).
+# for the converged physics. ``unrolled`` is a reference to compare against
+# (the benchmark's "unrolled" gradient path): one outer iteration per
+# ``mjx.solve`` call, the call unrolled ``SOLVER_UNROLL`` times per step and
+# differentiated through (a single iteration launched the clamped ball off the
+# pads; three matched the converged solve on the default gains). It needs
+# ``jaxsync.runtime.patches.mjx_elliptic_gradient`` for finite gradients; it
+# is a different physics on short in-contact horizons (docs/tuning.md).
 SOLVERS: dict[str, dict[str, int]] = {
     "accurate": {"iterations": 20, "ls_iterations": 10},
     "unrolled": {"iterations": 1, "ls_iterations": 4},
@@ -235,7 +234,7 @@ def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate
     if solver == "differentiable":
         raise ConfigError(
             "solver 'differentiable' is gone: the 'accurate' solver is differentiable (implicit adjoint of its "
-            "converged solve) and is the one to use; 'unrolled' is the former setting"
+            "converged solve) and is the one to use; 'unrolled' (one-iteration solves) is a reference"
         )
     if solver not in SOLVERS:
         raise ConfigError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
@@ -261,8 +260,8 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") 
       path: an MJCF file; the packaged paper model when ``None``.
       solver: ``"accurate"`` (the default and jaxsync's one physics: Newton
         converged, differentiable by the implicit adjoint) or ``"unrolled"``
-        (the former differentiable setting, three one-iteration solves per
-        step, kept to compare against).
+        (three one-iteration solves per step, differentiated through: a
+        reference to compare against).
 
     Raises:
       ModelFileError: the file is missing, unreadable or does not compile.
@@ -274,3 +273,35 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") 
     path = str(path) if path is not None else default_model_path()
     mx = mjx.put_model(m, device=_physics.local_device(), impl="jax")
     return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=_build_index(m, mx, path))
+
+
+def summary(model: DualArmModel) -> dict:
+    """A plain-dict description of a loaded model (``jaxsync info`` prints it)."""
+    m = model.mj_model
+    name = lambda obj, i: mujoco.mj_id2name(m, obj, i)  # noqa: E731
+    arms = {}
+    for arm in model.index.arms:
+        arms[arm.prefix] = [name(mujoco.mjtObj.mjOBJ_JOINT, int(m.dof_jntid[a])) for a in arm.dof_adr]
+    return {
+        "model": model.path,
+        "bodies": m.nbody,
+        "nq": m.nq,
+        "nv": m.nv,
+        "joints_per_arm": {k: len(v) for k, v in arms.items()},
+        "arm_joints": arms,
+        "actuators": m.nu,
+        "sensors": [name(mujoco.mjtObj.mjOBJ_SENSOR, i) for i in range(m.nsensor)],
+        "contact_pairs": [
+            f"{name(mujoco.mjtObj.mjOBJ_GEOM, int(m.pair_geom1[i]))}-"
+            f"{name(mujoco.mjtObj.mjOBJ_GEOM, int(m.pair_geom2[i]))}"
+            for i in range(m.npair)
+        ],
+        "colliding_geoms_outside_pairs": int(((m.geom_contype != 0) | (m.geom_conaffinity != 0)).sum()),
+        "object_mass_kg": float(m.body_subtreemass[model.index.object_body]),
+        "object_radius_m": float(m.geom_size[model.index.object_geom][0]),
+        "timestep_s": float(m.opt.timestep),
+        "integrator": mujoco.mjtIntegrator(m.opt.integrator).name,
+        "solver": f"{mujoco.mjtSolver(m.opt.solver).name} ({model.solver}: iterations={m.opt.iterations}, "
+        f"ls_iterations={m.opt.ls_iterations})",
+        "cone": mujoco.mjtCone(m.opt.cone).name,
+    }

@@ -84,7 +84,7 @@ def import_mujoco():
     requested = os.environ.get("MUJOCO_GL")
     os.environ["MUJOCO_GL"] = "disable"
     try:
-        import mujoco
+        import mujoco  # here, under MUJOCO_GL=disable: the point of this function
     finally:
         if requested is None:
             del os.environ["MUJOCO_GL"]

@@ -182,3 +182,12 @@ def to_dict(m: Metrics) -> dict:
         v = v.item()
         out[k] = None if isinstance(v, float) and math.isnan(v) else v
     return out
+
+
+def drop_time(m) -> float | None:
+    """When the object was lost (s), None if it was held; ``m`` Metrics or their to_dict()."""
+    get = m.get if isinstance(m, dict) else lambda k: getattr(m, k)
+    if not bool(np.asarray(get("dropped"))):
+        return None
+    t = get("drop_time_s")
+    return float(np.asarray(t)) if t is not None else float("nan")
