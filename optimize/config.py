@@ -35,7 +35,7 @@ class TuneConfig:
     checkpoint_every: int = 5
     max_bad_steps: int = 3
     train_start: str = "approach"  # keyframe the training rollouts start from
-    train_task: tuple = ()  # (field, value) overrides of the training task
+    train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
     task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500

@@ -29,7 +29,15 @@ from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.rollout import make_rollout
 
 # TuneConfig fields the training loss's program depends on (the rest steer the loop)
-_PROGRAM_FIELDS = ("train_duration", "eval_duration", "truncate_every", "train_start", "train_task", "task", "batch")
+_PROGRAM_FIELDS = (
+    "train_duration",
+    "eval_duration",
+    "truncate_every",
+    "train_start",
+    "train_scenario",
+    "task",
+    "batch",
+)
 
 
 def make_loss(

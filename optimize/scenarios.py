@@ -17,8 +17,8 @@ from jaxsync.sim import scenario as _scenario
 def training_base(cfg) -> tuple[_scenario.Scenario, float]:
     """The training scenario family's base and its rollout duration (``cfg``: a TuneConfig)."""
     if cfg.task == "full":
-        return _scenario.default_scenario(**dict(cfg.train_task)), cfg.eval_duration
-    return _scenario.short_task(**dict(cfg.train_task)), cfg.train_duration
+        return _scenario.default_scenario(**dict(cfg.train_scenario)), cfg.eval_duration
+    return _scenario.short_task(**dict(cfg.train_scenario)), cfg.train_duration
 
 
 def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scenario.Scenario:

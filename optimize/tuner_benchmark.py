@@ -82,8 +82,8 @@ class Programs:
         self.value_and_grad = jax.jit(jax.value_and_grad(f))
         self.values = jax.jit(jax.vmap(f_forward, in_axes=(0, None)))
         self.value = jax.jit(f_forward)
-        self.base_task = _scenario.short_task() if cfg.task == "short" else _scenario.default_scenario()
-        self.heldout = sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, self.base_task)
+        self.base_scenario = _scenario.short_task() if cfg.task == "short" else _scenario.default_scenario()
+        self.heldout = sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, self.base_scenario)
         # the tie map of the constant problem: x160 = T @ x22
         spec22 = PROBLEMS["constant"]
         th22 = spec22.init(base)
@@ -100,7 +100,7 @@ class Programs:
         self.x0_constant = np.asarray(x22)
 
     def training(self, seed: int):
-        return sample_scenarios(jax.random.key(seed), self.cfg.batch, self.base_task)
+        return sample_scenarios(jax.random.key(seed), self.cfg.batch, self.base_scenario)
 
     def to_full(self, problem: str, x) -> np.ndarray:
         return self.tie @ x if problem == "constant" else np.asarray(x)
