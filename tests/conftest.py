@@ -6,18 +6,36 @@ Every jitted function is compiled once per session through the fixtures here.
 from __future__ import annotations
 
 import gc
+import hashlib
+import inspect
 
 import jax
+import numpy as np
 import pytest
 
+import jaxsync
+from jaxsync.control.gains import classical_equivalent, default_gains
+from jaxsync.optimize import loss as loss_mod
+from jaxsync.optimize import tune as tune_mod
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.scenarios import sample_scenarios, training_base
 from jaxsync.runtime import programs
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
+from jaxsync.sim import rollout as _rollout
+from jaxsync.sim.rollout import rollout
+from jaxsync.sim.scenario import min_duration, short_task
+
+# isort: split
+# after jaxsync, whose import keeps MJX's warp message out of the output and
+# defers MUJOCO_GL's OpenGL backend to the first Renderer (jaxsync.runtime.gl)
+from mujoco import mjx
 
 set_xla_flags()  # as the command line does (half the memory of compiling); before any JAX computation
 jax.config.update("jax_enable_x64", True)
 # every program, also the small ones of eager operations (about 600 of them in
-# three test files, 24 s of compiling that a warm run now reads back)
+# three test files, 24 s of compiling that a warm run reads back)
 enable_compilation_cache(min_compile_time_s=0.0)
 
 
@@ -73,26 +91,18 @@ def _free_compiled_programs():
 
 @pytest.fixture(scope="session")
 def model():
-    import jaxsync
-
     return jaxsync.load_model(solver="accurate")
 
 
 @pytest.fixture(scope="session")
 def unrolled_model():
-    """The former differentiable setting (one Newton iteration per solve), kept to compare against."""
-    import jaxsync
-
+    """The unrolled solver (one Newton iteration per solve), kept as a reference."""
     return jaxsync.load_model(solver="unrolled")
 
 
 @pytest.fixture(scope="session")
 def forward_sense(model):
     """jit(mjx.forward, then sense): one compile for the session."""
-    from mujoco import mjx
-
-    import jaxsync
-
     index = model.index
 
     @jax.jit
@@ -110,18 +120,12 @@ TEST_DURATION = 1.7
 
 
 def fast_scenario(**overrides):
-    from jaxsync.sim.scenario import short_task
-
     return short_task(**overrides)
 
 
 @pytest.fixture(scope="session")
 def rollouts(model):
     """Rollouts of the fast scenario, computed once per session and shared."""
-    from jaxsync.control.gains import classical_equivalent, default_gains
-    from jaxsync.sim.rollout import rollout
-    from jaxsync.sim.scenario import min_duration
-
     assert min_duration(fast_scenario()) == TEST_DURATION
 
     g = default_gains()
@@ -144,12 +148,6 @@ def shared_rollout():
     tests need (the backends' agreement, both sim-to-sim checks) run once.
     Tests pass it where ``rollout`` is called, or put it in place of
     ``jaxsync.optimize.compare.rollout``."""
-    import hashlib
-    import inspect
-
-    import numpy as np
-
-    from jaxsync.sim import rollout as _rollout
 
     def digest(tree):
         h = hashlib.sha256()
@@ -183,13 +181,6 @@ def tuning_program(model):
     same program back (traced form from disk, executable from the persistent
     cache). Used by the full-task gradient check (test_gradient) and the
     resumed-run test (test_tune)."""
-    from jaxsync.control.gains import default_gains
-    from jaxsync.optimize import loss as loss_mod
-    from jaxsync.optimize import tune as tune_mod
-    from jaxsync.optimize.cost import CostWeights
-    from jaxsync.optimize.params import TuneSpec
-    from jaxsync.optimize.scenarios import sample_scenarios, training_base
-
     cfg = tune_mod.TuneConfig(batch=2)
     spec, base, weights = TuneSpec(), default_gains(), CostWeights()
     loss = loss_mod.make_loss(model, spec, base, cfg, weights)

@@ -14,6 +14,9 @@ import json
 
 import pytest
 
+from jaxsync.cli import main
+from jaxsync.optimize.benchmark import table, targets
+
 KEYS = (
     "mujoco_c_env_steps_per_s",
     "bare_mj_step_per_s",
@@ -30,8 +33,6 @@ KEYS = (
 
 def run_cli(argv: list[str]) -> int:
     """``jaxsync bench ...`` in this process."""
-    from jaxsync.cli import main
-
     return main(argv)
 
 
@@ -47,11 +48,13 @@ def test_quick_bench_writes_every_key(tmp_path, capsys):
     r = json.loads((tmp_path / "bench.json").read_text())
     for key in KEYS:
         assert isinstance(r[key], (int, float)) and r[key] > 0, key
-    assert set(r["paths"]) == {"new", "old"}
-    for p in ("new", "old"):
+    assert set(r["paths"]) == {"implicit", "unrolled"}
+    for p in ("implicit", "unrolled"):
         assert r["paths"][p]["grad_s"] > 0 and r["paths"][p]["grad_over_forward"] > 0
-    assert r["grad_s_over_old"] == pytest.approx(r["paths"]["new"]["grad_s"] / r["paths"]["old"]["grad_s"])
-    assert r["details"]["forward_and_gradient"]["new"]["grad_finite"]
+    assert r["grad_s_over_unrolled"] == pytest.approx(
+        r["paths"]["implicit"]["grad_s"] / r["paths"]["unrolled"]["grad_s"]
+    )
+    assert r["details"]["forward_and_gradient"]["implicit"]["grad_finite"]
     assert all(t["judged"] is False and isinstance(t["met"], bool) for t in r["targets"].values())
     assert r["mjx_env_steps_per_s"] and all(v > 0 for v in r["mjx_env_steps_per_s"].values())
     m = r["machine"]
@@ -65,8 +68,6 @@ def test_quick_bench_writes_every_key(tmp_path, capsys):
 
 
 def test_table_marks_missed_targets_also_in_quick_mode():
-    from jaxsync.cli.bench import table, targets
-
     path = dict(
         label="x",
         forward_s=1.0,
@@ -76,7 +77,7 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         grad_compile_warm_s=2.0,
         tune_step_peak_rss_gib=1.0,
     )
-    old = {**path, "grad_compile_cold_s": None, "grad_compile_warm_s": None, "tune_step_peak_rss_gib": None}
+    unrolled = {**path, "grad_compile_cold_s": None, "grad_compile_warm_s": None, "tune_step_peak_rss_gib": None}
     r = {
         "mjx_env_steps_per_s": {"1": 1000.0},
         "mjx_best_batch": 1,
@@ -84,7 +85,7 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         "bare_mj_step_per_s": 9000.0,
         "mjx_over_mujoco_c": 2.0,
         "grad_over_forward": 5.0,
-        "grad_s_over_old": 1.0,
+        "grad_s_over_unrolled": 1.0,
         "grad_compile_cold_s": 100.0,
         "grad_compile_warm_s": 2.0,
         "grad_compile_warm_persistent_cache_only_s": 3.0,
@@ -93,14 +94,17 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         "grad_compile_cold_xla_default_s": 159.25,
         "tune_step_peak_rss_xla_default_gib": 2.5,
         "xla_flags": "--xla_cpu_use_fusion_emitters=false",
-        "paths": {"new": path, "old": old},
+        "paths": {"implicit": path, "unrolled": unrolled},
     }
     for judged in (True, False):
         r["targets"] = targets(r, judged=judged)
         rows = {line.split("  ")[0]: line for line in table(r).splitlines()}
         assert "MISSED" in rows["gradient / forward"] and "MISSED" in rows["gradient compile cold, s"]
         assert "MISSED" in rows["MJX best (batch 1) / MuJoCo C"]
-        assert " met" in rows["gradient compile warm (as the CLI), s"] and " met" in rows["gradient s, new / old"]
+        assert (
+            " met" in rows["gradient compile warm (as the CLI), s"]
+            and " met" in rows["gradient s, implicit / unrolled"]
+        )
         assert ("not a benchmark" in rows["gradient / forward"]) is (not judged)
         assert "159.2" in rows["with XLA's default CPU emitters: gradient compile cold, s"]
         assert "2.50" in rows["with XLA's default CPU emitters: tuning step peak RSS (compiling), GiB"]

@@ -7,7 +7,11 @@ import os
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax._src import core, pjit
 
+import jaxsync.mjcf
+import jaxsync.optimize.cost
+import jaxsync.optimize.tune
 from jaxsync.control.gains import default_gains
 from jaxsync.runtime import cache as _cache
 from jaxsync.runtime import patches
@@ -45,10 +49,6 @@ def test_fingerprint_covers_the_cost_the_loss_and_the_model():
     """The cost and the loss (jaxsync.optimize) and the model (jaxsync.mjcf) are
     hashed wherever they are installed from: in a checkout or an editable
     install they live outside jaxsync/ (the bug: only jaxsync/ was hashed)."""
-    import jaxsync.mjcf
-    import jaxsync.optimize.cost
-    import jaxsync.optimize.tune
-
     files = _cache.source_files()
     for module in (jaxsync.optimize.cost, jaxsync.optimize.tune, _cache):
         assert os.path.realpath(module.__file__) in files, module.__name__
@@ -59,8 +59,6 @@ def test_fingerprint_covers_the_cost_the_loss_and_the_model():
 def test_editing_the_cost_changes_the_key(tmp_path, monkeypatch):
     """Edit a copy of the cost's source: the fingerprint, and so the file the
     traced function is kept in, changes; the unedited copy gives the same key."""
-    import jaxsync.optimize.cost
-
     copy = tmp_path / "cost.py"
     copy.write_bytes(open(jaxsync.optimize.cost.__file__, "rb").read())
     files = [*(f for f in _cache.source_files() if not f.endswith(os.sep + "cost.py")), str(copy)]
@@ -82,8 +80,6 @@ def test_dead_code_elimination_is_memoised_for_the_whole_process():
     inner jaxpr pruned the same way is the same object even after more other
     prunings than JAX's own cache keeps (2048), so a program lowered after a
     big trace is the module it would be in a fresh process (its cache key)."""
-    from jax._src import core, pjit
-
     assert patches.stable_lowering()
     closed = jax.make_jaxpr(lambda x: (jnp.sin(x), jnp.cos(x)))(1.0)
     first = pjit._dce_jaxpr_pjit(closed, (True, False))[0]

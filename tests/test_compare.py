@@ -11,9 +11,16 @@ import sys
 import jax
 import numpy as np
 import pytest
-from jaxsync.optimize import compare as _compare
+from conftest import TEST_DURATION
+from PIL import Image
 
+from jaxsync.cli import main
 from jaxsync.control.gains import default_gains
+from jaxsync.io import render as _render
+from jaxsync.io import results as _results
+from jaxsync.optimize import compare as _compare
+from jaxsync.optimize.compare_video import VIDEO_FPS, compare_video
+from jaxsync.runtime.cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.scenario import default_scenario
 
@@ -69,8 +76,6 @@ def test_paper_claims(model, overrides):
 
 
 def test_compare_rejects_bad_input(tmp_path, capsys):
-    from jaxsync.cli import main
-
     blocker = tmp_path / "afile"
     blocker.write_text("x")
     bad_gains = tmp_path / "g.json"
@@ -100,16 +105,12 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts, capsys):
     """``jaxsync render`` writes a non-blank PNG; the comparison video has one
     frame per 1/25 s of slowed-down rollout, its rendering counted on stderr
     (skipped without an OpenGL backend)."""
-    from jaxsync.cli.render import VIDEO_FPS, compare_video
-    from jaxsync.io import render as _render
-
     try:
         _render.select_gl_backend()
     except _render.RenderUnavailableError as err:
         pytest.skip(f"no OpenGL backend: {err}")
     out = _cli("render", "--out", str(tmp_path), "--width", "320", "--height", "240", cwd=tmp_path)
     assert out.returncode == 0, out.stderr
-    from PIL import Image
 
     img = np.asarray(Image.open(tmp_path / "grasp.png"))
     assert img.shape == (240, 320, 3) and len(np.unique(img.reshape(-1, 3), axis=0)) > 50
@@ -130,8 +131,6 @@ def test_render_cli_and_compare_video(tmp_path, model, rollouts, capsys):
 
 
 def test_infinite_duration_and_bad_cache_dir_are_clear_errors(tmp_path, capsys):
-    from jaxsync.cli import main
-
     with pytest.raises(SystemExit) as exc:
         main(["compare", "--duration", "inf", "--out", str(tmp_path / "o")])
     assert exc.value.code == 2 and "finite" in capsys.readouterr().err
@@ -151,8 +150,6 @@ def test_a_drop_is_marked_not_measured(tmp_path, rollouts, monkeypatch):
     """When a controller drops the object its settled peak and the ratio mean
     nothing: the progress line and the table say when it dropped, the ratio
     is null, and the plot marks the drop (no settled peak line)."""
-    from jaxsync.io import results as _results
-
     s = rollouts["scenario"]
     results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
     results["classical"] = (results["classical"][0], _dropped(results["classical"][1]))
@@ -189,9 +186,6 @@ def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, m
     status 4, no settled peak quoted for the dropped controller; the video
     (rendering replaced by a stand-in) is listed in the last line. The
     rollouts are the session's (no compiling)."""
-    from jaxsync.cli import main, render
-    from jaxsync.runtime import gl as _gl
-
     trajs = {id(rollouts[n]): n for n in ("classical", "synchronous")}
     monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
     summarize = _metrics.summarize
@@ -200,8 +194,10 @@ def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, m
         "summarize",
         lambda traj, s: _dropped(summarize(traj, s)) if trajs.get(id(traj)) == "classical" else summarize(traj, s),
     )
-    monkeypatch.setattr(_gl, "select_gl_backend", lambda: "egl")
-    monkeypatch.setattr(render, "compare_video", lambda model, results, s, out, speed: os.path.join(out, "compare.mp4"))
+    monkeypatch.setattr(_compare, "select_gl_backend", lambda: "egl")
+    monkeypatch.setattr(
+        _compare, "compare_video", lambda model, results, s, out, speed, **kw: os.path.join(out, "compare.mp4")
+    )
     out = tmp_path / "o"
     assert main(["compare", "--out", str(out), "--video"]) == 4
     captured = capsys.readouterr()
@@ -221,8 +217,6 @@ def test_compile_watch_tells_compiling_from_a_cache_read():
     from the persistent cache, or neither (already compiled in this process;
     only small eager programs compiled, which the cache does not keep). The
     events as jax reports them (a cache read is timed inside its compile event)."""
-    from jaxsync.runtime.cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
-
     with compile_watch() as w:  # a big program read back from the cache
         jax.monitoring.record_event_duration_secs(_RETRIEVAL_EVENT, 2.9)
         jax.monitoring.record_event_duration_secs(_COMPILE_EVENT, 3.0)
@@ -243,12 +237,10 @@ def test_compile_watch_tells_compiling_from_a_cache_read():
 
 
 def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
-    """Issue 15, item 2: gains against a baseline on MJX and on MuJoCo C with the
+    """Gains against a baseline on MJX and on MuJoCo C with the
     same jitted control law. MJX's side is the session's own rollout to the last
     digit; MuJoCo C lands within 5 % of it; the factors agree and the table says
     so; a disagreement or a drop is flagged with a WARNING line."""
-    from conftest import TEST_DURATION
-
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
@@ -280,8 +272,6 @@ def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monke
     """compare --mujoco-check: the check's table is printed, summary.json records it,
     and a disagreement ends in a one-line WARNING and exit status 5 (the rollouts
     are the session's, the check a stand-in: no compiling)."""
-    from jaxsync.cli import main
-
     monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
     row = lambda peak: [{"settled_peak_resultant_N": peak, "grip_force_error_rel": 0.003, "lost": False}]  # noqa: E731
     per = {"mjx_before": row(0.01), "mjx_after": row(0.001), "mujoco_before": row(0.01), "mujoco_after": row(0.004)}

@@ -1,4 +1,4 @@
-"""Control laws, rollouts and metrics (issue: the paper's two controllers)."""
+"""Control laws, rollouts and metrics: the paper's two controllers."""
 
 from __future__ import annotations
 
@@ -8,14 +8,16 @@ import numpy as np
 import pytest
 from conftest import TEST_DURATION, fast_scenario
 
-from jaxsync import ConfigError
+from jaxsync import ConfigError, Trajectory
 from jaxsync.control import gains as _gains
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import default_gains
 from jaxsync.io import gains_file
+from jaxsync.physics import step as _physics
 from jaxsync.sim import metrics as _metrics
+from jaxsync.sim import rollout as _rollout
 from jaxsync.sim.rollout import make_rollout, rollout, steps_for
 
 # ------------------------------------------------------------ pure laws
@@ -146,9 +148,6 @@ def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollout
     them (a weak float, or an array committed to a device, as a computation on
     the model's arrays returns it, was another argument type, another 29 s
     compile), with the same values as the strong array."""
-    from jaxsync.physics import step as _physics
-    from jaxsync.sim import rollout as _rollout
-
     s, g = rollouts["scenario"], rollouts["gains"]
     program = _rollout._jitted(model, TEST_DURATION, 1)
     strong = rollout(model, g._replace(k_rl=jnp.asarray(np.float64(0.2))), s, duration=TEST_DURATION)
@@ -191,8 +190,6 @@ def test_mjx_and_mujoco_c_backends_agree(model, rollouts, shared_rollout):
 
 def _hand_made(T=10):
     """Two pads on the y axis squeezing with 10 N, plus a known net force."""
-    from jaxsync import Trajectory
-
     z = lambda *shape: jnp.zeros((T, *shape))  # noqa: E731
     pad_pos = jnp.tile(jnp.array([[0.0, -0.1, 1.0], [0.0, 0.1, 1.0]]), (T, 1, 1))
     normal = jnp.tile(jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]]), (T, 1, 1))

@@ -1,4 +1,4 @@
-"""Multi-process runs on JAX's distributed runtime (issue 14), with real processes.
+"""Multi-process runs on JAX's distributed runtime, with real processes.
 
 Two local processes (CPU, one device each, JAX's gloo collectives, a
 coordinator on 127.0.0.1 and a free port) run a sweep and two tuning
@@ -25,6 +25,9 @@ import pytest
 from test_sweep import FAST, run_cli
 
 from jaxsync._errors import ConfigError
+from jaxsync.cli import main
+from jaxsync.control import gains as _gains
+from jaxsync.optimize.tune import tune
 from jaxsync.runtime import distributed as _distributed
 
 TIMEOUT_S = 600  # each launched process
@@ -65,8 +68,6 @@ def test_bad_settings_are_named(args, message):
 
 
 def test_cli_rejects_a_partial_multi_process_setting(tmp_path, capsys):
-    from jaxsync.cli import main
-
     for cmd in (["sweep", "--param", "k_rk=0,1"], ["tune"]):
         rc = main([*cmd, "--out", str(tmp_path / "o"), "--coordinator", "127.0.0.1:1"])
         err = capsys.readouterr().err
@@ -212,10 +213,6 @@ def test_two_process_tuning_equals_one_process_with_both_batches(model, tuning_p
     process with batch 2 (the scenarios of both), to float64 rounding: the
     data-parallel cost and gradient (optimize.parallel) average what one
     process's batch averages. Process 0 alone writes the results."""
-    from jaxsync.optimize.tune import tune
-
-    from jaxsync.control import gains as _gains
-
     cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, validate_every=0, method="lbfgs")
     assert cfg.batch == 2 and cfg.task == "full"
     one = tune(model, tuning_program["spec"], tuning_program["base"], cfg, progress=False)

@@ -1,13 +1,17 @@
-"""jaxsync export (issue 15, item 1): every format reads back to the same gains, constant and scheduled."""
+"""jaxsync export: every format reads back to the same gains, constant and scheduled."""
 
 from __future__ import annotations
+
+import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import yaml
 
 from jaxsync._errors import ConfigError
+from jaxsync.cli import main
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import export as _export
@@ -55,8 +59,6 @@ def test_every_format_round_trips(tmp_path, fmt, kind):
 
 
 def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
-    import yaml
-
     g = _tuned_like()
     _export.export(g, "ros2-admittance", str(tmp_path))
     doc = yaml.safe_load((tmp_path / "admittance_left.yaml").read_text())
@@ -75,8 +77,6 @@ def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
 
 
 def test_yaml_names_every_gain_with_its_unit(tmp_path):
-    import yaml
-
     (path,) = _export.export(_gains.default_gains(), "yaml", str(tmp_path))
     doc = yaml.safe_load(open(path))["jaxsync_gains"]["gains"]
     assert set(doc) == set(_gains.Gains._fields)
@@ -84,12 +84,8 @@ def test_yaml_names_every_gain_with_its_unit(tmp_path):
 
 
 def test_export_cli_and_its_errors(tmp_path, capsys):
-    from jaxsync.cli import main
-
     src = tmp_path / "gains.json"
     _gains_file = {"gains": _schedule.to_file_dict(_schedule_like())}
-    import json
-
     src.write_text(json.dumps(_gains_file))
     assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "r")]) == 0
     out = capsys.readouterr().out
@@ -111,10 +107,6 @@ def test_ros2_refuses_what_the_admittance_controller_cannot_hold(tmp_path, capsy
     """Out of its bounds, or a damping with zero stiffness (its D = 2 zeta sqrt(M K)
     is then 0 whatever the ratio, and jaxsync's damping is always > 0): a
     one-line error, and nothing written."""
-    import json
-
-    from jaxsync.cli import main
-
     g = _gains.default_gains()
     k0 = g._replace(imp_stiffness=g.imp_stiffness.at[1, 2].set(0.0))
     with pytest.raises(ConfigError, match="left arm, axis z.*zero stiffness.*--format yaml or json"):
@@ -137,12 +129,6 @@ def test_ros2_refuses_what_the_admittance_controller_cannot_hold(tmp_path, capsy
 def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
     """joint_damping 0 (jaxsync's law has none), the missing force set-point named,
     and a note when the mass is anisotropic (the controller applies it in the base frame)."""
-    import json
-
-    import yaml
-
-    from jaxsync.cli import main
-
     _export.export(_gains.default_gains(), "ros2-admittance", str(tmp_path / "d"))
     text = (tmp_path / "d" / "admittance_right.yaml").read_text()
     params = yaml.safe_load(text)["admittance_controller_right"]["ros__parameters"]

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 from mujoco import mjx
 
 from jaxsync.physics import step as _physics
@@ -172,8 +173,6 @@ def test_full_task_gradient_matches_central_differences(tuning_program):
     gain point no other test uses, on randomised scenarios: cosine >= 0.9999
     and relative error <= 1e-4 against 4-point central differences in all 22
     parameters."""
-    from jax.flatten_util import ravel_pytree
-
     loss, scen = tuning_program["loss"], tuning_program["scenarios"]
     # a point other than the defaults
     theta = jax.tree_util.tree_map(
@@ -196,8 +195,6 @@ def test_full_task_gradient_along_two_directions(tuning_program):
     derivative along the gradient's own direction and along a random one,
     from central differences of the same program's values (no other compile),
     within 1e-4 of the gradient's norm."""
-    from jax.flatten_util import ravel_pytree
-
     scen, vg = tuning_program["scenarios"], tuning_program["value_and_grad"]
     theta = jax.tree_util.tree_map(
         lambda x: x + 0.1 * jnp.cos(jnp.arange(x.size).reshape(x.shape) + 1.0), tuning_program["theta0"]

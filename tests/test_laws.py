@@ -9,12 +9,14 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import TEST_DURATION
 from mujoco import mjx
 
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.sim import closed_loop as _closed_loop
+from jaxsync.sim import rollout as _rollout
 
 # ------------------------------------------------------- joint-space law
 
@@ -140,10 +142,6 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     the rounding: every field within 1e-11 of its largest value (measured:
     7e-13 at most, the contact forces). Checked against the session's plain
     rollout of the test task (grasp, lift, hold)."""
-    from conftest import TEST_DURATION
-
-    from jaxsync.sim import rollout as _rollout
-
     plain = rollouts["synchronous"]
     fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, passes="tree", truncate_every=100)
     prod = jax.jit(fn)(rollouts["gains"], rollouts["scenario"])

@@ -95,15 +95,21 @@ def test_imports_inside_functions_say_why():
         lines = path.read_text().split("\n")
         tree = ast.parse("\n".join(lines))
         top = {id(n) for n in tree.body}
-        for node in ast.walk(tree):
-            if isinstance(node, (ast.Import, ast.ImportFrom)) and id(node) not in top:
-                near = lines[node.lineno - 1] + (lines[node.lineno - 2] if node.lineno > 1 else "")
-                block_start = node.lineno - 2
-                while block_start > 0 and lines[block_start].strip().startswith(("from ", "import ")):
-                    near += lines[block_start - 1]  # the comment above a block of imports
-                    block_start -= 1
-                if "#" not in near:
-                    silent.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+        imports = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]
+        in_import = {i for n in imports for i in range(n.lineno, n.end_lineno + 1)}
+        for node in imports:
+            if id(node) in top:
+                continue
+            # its own line, or the comment above the block of imports it is in
+            reason = "#" in lines[node.lineno - 1]
+            i = node.lineno - 1
+            while not reason and i >= 1 and (i in in_import or not lines[i - 1].strip()):
+                reason = "#" in lines[i - 1]
+                i -= 1
+            if not reason and i >= 1:
+                reason = lines[i - 1].strip().startswith("#")
+            if not reason:
+                silent.append(f"{path.relative_to(ROOT)}:{node.lineno}")
     assert not silent, f"imports inside functions without a reason: {silent}"
 
 

@@ -6,14 +6,18 @@ import os
 import shutil
 import subprocess
 import sys
+from types import ModuleType
 
 import jax
 import mujoco
 import numpy as np
 import pytest
+from mujoco.mjx._src import solver as mjx_solver
 
 import jaxsync
+import jaxsync.optimize  # noqa: F401  (a subpackage is an attribute once imported)
 from jaxsync.physics.model import JOINTS_PER_ARM
+from jaxsync.runtime.patches import sqrt_zero_safe
 
 
 def _axes_and_anchors(m, d, prefix):
@@ -208,14 +212,10 @@ def test_cli_info_prints_versions_and_model(tmp_path):
 
 def test_mjx_solver_sqrt_has_a_finite_derivative_at_zero():
     """The elliptic-cone fix (jaxsync.runtime.patches.mjx_elliptic_gradient) is installed by load_model."""
-    from mujoco.mjx._src import solver
-
-    from jaxsync.runtime.patches import sqrt_zero_safe
-
     jaxsync.load_model(solver="unrolled")
 
-    assert solver.jp.sqrt is sqrt_zero_safe
-    assert solver.jp.zeros is jax.numpy.zeros  # everything else is jax.numpy's
+    assert mjx_solver.jp.sqrt is sqrt_zero_safe
+    assert mjx_solver.jp.zeros is jax.numpy.zeros  # everything else is jax.numpy's
     assert float(jax.grad(sqrt_zero_safe)(0.0)) == 0.0
     assert abs(float(jax.grad(sqrt_zero_safe)(4.0)) - 0.25) < 1e-15
     assert float(sqrt_zero_safe(9.0)) == 3.0
@@ -225,15 +225,7 @@ def test_public_names_are_the_documented_ones():
     """dir(jaxsync) lists the public API (``__all__``) and its subpackages, no
     plumbing, and every name in ``__all__`` resolves (the lazily imported
     tuning and sweep API included)."""
-    import types
-
-    import jaxsync.optimize  # noqa: F401  (a subpackage is an attribute once imported)
-
-    import jaxsync
-
-    public = {
-        n for n in dir(jaxsync) if not n.startswith("_") and not isinstance(getattr(jaxsync, n), types.ModuleType)
-    }
+    public = {n for n in dir(jaxsync) if not n.startswith("_") and not isinstance(getattr(jaxsync, n), ModuleType)}
     assert public == set(jaxsync.__all__), public ^ set(jaxsync.__all__)
     for name in jaxsync.__all__:
         assert getattr(jaxsync, name) is not None, name

@@ -7,9 +7,12 @@ the machine; file writing and frame arithmetic are tested everywhere.
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from jaxsync._errors import ConfigError, JaxsyncError
 from jaxsync.io import render
@@ -120,8 +123,6 @@ def _frames(n: int, w: int = 64, h: int = 48) -> list[np.ndarray]:
 
 
 def test_write_gif_frame_count(tmp_path):
-    from PIL import Image
-
     frames = _frames(7)
     path = render.write_video(frames, tmp_path / "clip.gif", fps=30)
     assert path == str(tmp_path / "clip.gif")
@@ -132,8 +133,6 @@ def test_write_gif_frame_count(tmp_path):
 
 
 def test_write_video_falls_back_to_gif(tmp_path, monkeypatch):
-    from PIL import Image
-
     monkeypatch.setattr(_video, "mp4_available", lambda: False)
     path = render.write_video(_frames(5), tmp_path / "clip.mp4", fps=10)
     assert path == str(tmp_path / "clip.gif")
@@ -157,8 +156,6 @@ def test_write_video_rejects_bad_input(tmp_path):
 
 
 def test_save_png_atomic(tmp_path):
-    from PIL import Image
-
     img = _frames(1)[0]
     path = render.save_png(img, tmp_path / "sub" / "a.png")
     with Image.open(path) as im:
@@ -202,12 +199,9 @@ def test_existing_mujoco_gl_is_respected(monkeypatch):
 
 def test_a_mujoco_gl_that_cannot_load_breaks_only_rendering(tmp_path):
     """MUJOCO_GL naming a backend MuJoCo does not know (or one not installed)
-    made ``import mujoco``, and with it every command, fail. Now only the
-    render commands need OpenGL, and they say what to set and install (one
+    breaks neither ``import mujoco`` nor the commands that do not render: only
+    the render commands need OpenGL, and they say what to set and install (one
     line, exit 2, no folder created); --help and info work. One interpreter."""
-    import subprocess
-    import sys
-
     code = """
 import sys
 from jaxsync.cli import main

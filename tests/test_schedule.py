@@ -1,4 +1,4 @@
-"""Gain schedules (issue 13, item 1): blending, files, the tuned parameters, rollouts."""
+"""Gain schedules: blending, files, the tuned parameters, rollouts."""
 
 from __future__ import annotations
 
@@ -11,11 +11,15 @@ import pytest
 from conftest import TEST_DURATION
 
 from jaxsync._errors import ConfigError
+from jaxsync.cli import main
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import gains_file
+from jaxsync.optimize import compare as _compare
 from jaxsync.optimize.params import TuneSpec
+from jaxsync.sim import metrics as _metrics
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.rollout import rollout
 
 
 def _bounds(s):
@@ -116,8 +120,6 @@ def test_tune_spec_with_a_schedule_has_160_parameters_and_starts_at_the_base():
 
 @pytest.fixture(scope="module")
 def schedule_rollouts(model, rollouts):
-    from jaxsync.sim.rollout import rollout
-
     g, s = rollouts["gains"], rollouts["scenario"]
     const = _schedule.constant(g)
     hold_changed = const._replace(phases=const.phases._replace(k_rk=jnp.array([0.5, 0.5, 0.5, 0.0])))
@@ -143,8 +145,6 @@ def test_a_schedule_acts_from_its_phase_on(rollouts, schedule_rollouts):
 
 
 def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
-    from jaxsync.cli import main
-
     path = tmp_path / "sched.json"
     path.write_text(json.dumps({"gains": {"schedule": {"hold": {"k_rk": 0.1}}}}))
     for cmd in (["sensitivity"], ["sweep", "--param", "k_rl=0.2,0.4"]):
@@ -156,9 +156,6 @@ def test_commands_that_take_constant_gains_name_the_schedule(tmp_path, capsys):
 
 def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
     """compare --gains takes a schedule: its summary.json records it in the gains-file form."""
-    from jaxsync.optimize import compare as _compare
-    from jaxsync.sim import metrics as _metrics
-
     s = rollouts["scenario"]
     sched = _schedule.from_dict({"all": {"k_rl": 0.4}, "hold": {"k_rk": -0.2}})
     results = {n: (rollouts[n], _metrics.summarize(rollouts[n], s)) for n in ("classical", "synchronous")}

@@ -14,6 +14,8 @@ import pytest
 from mujoco import mjx
 
 import jaxsync
+from jaxsync.physics import body_tree as _body_tree
+from jaxsync.physics import step as _physics
 from jaxsync.physics.step import static_contact_geoms
 
 N_CONFIGS = 20
@@ -84,8 +86,6 @@ def test_leaf_sensors_equal_mjx_sensor_acc_in_contact(model, forward_sense):
     tree) against MJX's ``sensor_acc`` (run by ``mjx.forward``), both pads
     pressed into the object, the arms moving: the same readings and the same
     end-effector accelerations to 1e-12."""
-    from jaxsync.physics import step as _physics
-
     m, index = model.mj_model, model.index
     rng = np.random.default_rng(4)
     d = mujoco.MjData(m)
@@ -114,8 +114,6 @@ def test_leaf_sensors_equal_mjx_sensor_acc_in_contact(model, forward_sense):
 def test_leaf_sensor_plan_leaves_other_sensors_to_mjx():
     """A force sensor on a body with children needs the children's wrenches:
     the plan is None and ``after_control`` runs MJX's own ``sensor_acc``."""
-    from jaxsync.physics import step as _physics
-
     xml = """<mujoco><worldbody><body name="a"><joint type="hinge"/><geom size=".1"/><site name="sa"/>
       <body name="b" pos="0 0 -.3"><joint type="hinge"/><geom size=".1"/><site name="sb"/></body>
       </body></worldbody><sensor><force site="%s"/><torque site="%s"/></sensor></mujoco>"""
@@ -153,11 +151,8 @@ def test_position_and_velocity_stages_equal_mjx(model, forward_sense, random_pai
     unit length (kinematics normalises it, in ``qpos`` too): every position
     and velocity field the step reads, to 1e-12 (rounding: the two sum in
     other orders)."""
-    from jaxsync.physics import body_tree as _body_tree
-    from jaxsync.physics import step as _physics
-
     m, mx, index = model.mj_model, model.mjx_model, model.index
-    assert _body_tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the new code runs
+    assert _body_tree.kinematics_plan(mx) is not None  # the dual-arm tree is covered: the tree passes run
     clamp = mujoco.MjData(m)
     clamp.qpos[:] = model.keyframe_qpos("grasp")
     clamp.qpos[index.right.qpos_adr[1]] += 0.05
@@ -194,8 +189,6 @@ def test_tree_passes_cover_each_joint_type():
     two subtrees whose parents lie at different places, everything moving:
     jaxsync's tree passes and Jacobians give MuJoCo C's fields;
     a body with two joints or a mocap body is left to MJX."""
-    from jaxsync.physics import body_tree as _body_tree
-
     xml = """<mujoco><option><flag contact="disable"/></option><worldbody>
       <body name="f" pos=".1 .2 .3"><freejoint/><geom size=".1"/>
         <body pos="0 .2 0" quat=".9 .1 .3 .2"><joint type="ball" pos=".05 0 0"/><geom size=".1"/><site/>
@@ -384,8 +377,6 @@ def test_grad_of_sensed_quantities_matches_central_differences(model):
     """jax.grad through one physics step (the converged solve, implicit
     adjoint) and ``sense`` of the next state, the right pad pressed 2 mm into
     the object: against a central difference along a random direction."""
-    from jaxsync.physics import step as _physics
-
     mx, index = model.mjx_model, model.index
     d = mujoco.MjData(model.mj_model)
     d.qpos[:] = model.keyframe_qpos("grasp")

@@ -9,9 +9,14 @@ import json
 import jax
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 import jaxsync
+from jaxsync.cli import main
 from jaxsync.control import gains as _gains
+from jaxsync.optimize.scenarios import sample_scenarios
+from jaxsync.optimize.sensitivity import METRICS, elasticities, metrics_function, sensitivity
+from jaxsync.physics import model as _model
 
 DURATION = 1.7  # the short task's shortest horizon with a settled window
 BATCH = 2
@@ -19,9 +24,6 @@ BATCH = 2
 
 @pytest.fixture(scope="module")
 def computed(model):
-    from jaxsync.optimize.scenarios import sample_scenarios
-    from jaxsync.optimize.sensitivity import sensitivity
-
     scen = sample_scenarios(jax.random.key(0), BATCH, jaxsync.short_task())  # the command's --seed 0
     return scen, sensitivity(model, _gains.default_gains(), scen, DURATION)
 
@@ -33,9 +35,6 @@ def test_elasticities_match_central_differences(model, computed):
     (in k for the signed factors) against the reverse-mode elasticities,
     relative error at most 1e-4 per metric over the entries. The step is
     1e-4: at 1e-3 the differences themselves drift by up to 4e-4 (measured)."""
-    from jax.flatten_util import ravel_pytree
-    from jaxsync.optimize.sensitivity import METRICS, metrics_function
-
     scen, s = computed
     assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 44)
     assert np.all(np.isfinite(s.elasticity)) and np.all(s.values > 0)
@@ -65,8 +64,6 @@ def test_elasticities_match_central_differences(model, computed):
 
 
 def test_elasticity_scaling():
-    from jaxsync.optimize.sensitivity import elasticities
-
     names = ["k_rk", "kp_pos"]
     e = elasticities(names, np.array([0.5, 200.0]), np.array([2.0]), np.array([[3.0, 0.01]]))
     np.testing.assert_allclose(e, [[1.5, 1.0]])  # k: (1/m) dm/dk; positive gain: (g/m) dm/dg
@@ -74,9 +71,6 @@ def test_elasticity_scaling():
 
 @pytest.mark.slow
 def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monkeypatch, capsys):
-    from jaxsync.cli import main
-    from jaxsync.physics import model as _model
-
     monkeypatch.setattr(_model, "load_model", lambda *a, **k: model)  # the fixture's compiled program
     out = tmp_path / "sens"
     argv = ["sensitivity", "--task", "short", "--duration", str(DURATION), "--batch", str(BATCH), "--out", str(out)]
@@ -102,8 +96,6 @@ def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monk
     ],
 )
 def test_command_rejects_bad_input_before_writing(tmp_path, capsys, extra, message):
-    from jaxsync.cli import main
-
     out = tmp_path / "never"
     try:
         code = main(["sensitivity", "--out", str(out), *extra])

@@ -8,11 +8,16 @@ import os
 import subprocess
 import sys
 
+import jax
 import numpy as np
 import pytest
-from jaxsync.optimize import sweep
 
 from jaxsync._errors import ConfigError
+from jaxsync.cli import main
+from jaxsync.io import results as _results
+from jaxsync.optimize import sweep, sweep_report
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.rollout import cpu_vmap_limit
 
 # The tests' task (jaxsync.short_task, tests/conftest.py) as fixed sweep parameters, 1.7 s rollouts.
 FAST = [
@@ -36,8 +41,6 @@ GRID = ["--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk
 
 def run_cli(argv: list[str]) -> int:
     """``jaxsync sweep ...`` in this process."""
-    from jaxsync.cli import main
-
     return main(argv)
 
 
@@ -75,8 +78,6 @@ def test_grid_lists_and_names():
     assert g.imp_damping[0, 1, 0] == 90.0 and g.imp_damping[0, 0, 0] != 90.0
     np.testing.assert_array_equal(s.mass_estimate, s.object_mass)  # the controller knows the mass
     assert s.lift[0].tolist() == [0.05, 0.0, 0.05]
-    import jax
-
     assert s.noise_key[0].tolist() == np.asarray(jax.random.key_data(jax.random.key(3))).tolist()
 
 
@@ -153,11 +154,6 @@ def test_a_folder_holding_a_sweep_needs_resume_or_restart(tmp_path, capsys):
 @pytest.mark.parametrize("params", [["k_rk=0,0.5,1"], ["k_rk=0,1", "object_mass=0.5,0.6"]], ids=["line", "heatmap"])
 def test_a_plot_where_every_point_dropped_says_so(tmp_path, monkeypatch, params):
     """Not an empty plot: a note that every point dropped the object."""
-    from jaxsync.optimize import sweep_report
-
-    from jaxsync.io import results as _results
-    from jaxsync.sim import metrics as _metrics
-
     plan = sweep.make_plan(params, duration=4.0)
     n = len(plan.points)
     metrics = {k: np.full(n, np.nan) if k.endswith("_time_s") else np.ones(n) for k in _metrics.Metrics._fields}
@@ -208,8 +204,6 @@ def test_sweep_point_equals_the_direct_rollout(uninterrupted, rollouts):
     """The point k_rk = 0.5, object_mass = 0.5 is the tests' task with the
     default gains: its metrics, from a vmapped chunk, are those of the single
     rollout (tests/conftest.py)."""
-    from jaxsync.sim import metrics as _metrics
-
     (row,) = [r for r in _rows(uninterrupted / "results.csv") if (r["k_rk"], r["object_mass"]) == ("0.5", "0.5")]
     want = _metrics.to_dict(_metrics.summarize(rollouts["synchronous"], rollouts["scenario"]))
     for k in ("settled_peak_resultant_N", "mean_grip_force_N", "grip_force_error_rel", "sync_error_rms_m"):
@@ -276,18 +270,12 @@ def test_sharded_over_two_devices_equals_unsharded(uninterrupted, tmp_path):
 
 
 def test_chunk_must_split_over_devices(tmp_path, capsys, monkeypatch):
-    import jax
-
     monkeypatch.setattr(jax, "local_devices", lambda *a: ["d0", "d1"])
     with pytest.raises(ConfigError, match="multiple of the 2 devices"):
         sweep.run(sweep.make_plan(["k_rk=0,1"]), str(tmp_path), chunk=3)
 
 
 def test_cpu_chunks_stay_below_the_lapack_deadlock(monkeypatch):
-    import jax
-
-    from jaxsync.sim.rollout import cpu_vmap_limit
-
     monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT", raising=False)
     if jax.default_backend() == "cpu":
         assert cpu_vmap_limit() == 64

@@ -5,17 +5,34 @@ plumbing and errors."""
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import json
+import time
 
 import jax
 import numpy as np
 import pytest
+import tqdm as tqdm_module
+from conftest import TEST_DURATION
 
 import jaxsync
+from jaxsync.cli import build_parser, main
+from jaxsync.cli.tune import change_text, mujoco_text
 from jaxsync.control import gains as _gains
+from jaxsync.optimize import checkpoint, methods, tune_state
+from jaxsync.optimize import compare as _compare
+from jaxsync.optimize import loss as loss_mod
+from jaxsync.optimize import tune as tune_mod
+from jaxsync.optimize.cost import CostWeights
+from jaxsync.optimize.loss import make_loss
+from jaxsync.optimize.methods import LBFGS, Oracle
 from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
-from jaxsync.optimize.scenarios import sample_scenarios
+from jaxsync.optimize.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
+from jaxsync.optimize.tune_state import select_iterate
+from jaxsync.physics import step as _physics
+from jaxsync.sim import metrics as _metrics
 
 # The resumed-run test tunes with jaxsync tune's defaults (the full task, the
 # exact gradient) at batch 2: the program of the session fixture
@@ -127,10 +144,6 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     over large vmapped batches): each loss traced up to its first physics
     stage, whose ``passes`` is recorded (the trace stops there: no step is
     traced, nothing compiled)."""
-    from jaxsync.optimize.cost import CostWeights
-    from jaxsync.optimize.loss import make_loss
-    from jaxsync.optimize.scenarios import training_base
-    from jaxsync.physics import step as _physics
 
     class Reached(Exception):
         pass
@@ -156,8 +169,6 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
 
 
 def test_select_iterate_keeps_the_grip_error():
-    from jaxsync.optimize.tune_state import select_iterate
-
     def v(i, peak, grip, dropped=0):
         return {
             "iteration": i,
@@ -174,8 +185,6 @@ def test_select_iterate_keeps_the_grip_error():
 
 
 def test_tune_cli_rejects_bad_input(tmp_path, capsys):
-    from jaxsync.cli import main
-
     bad = tmp_path / "g.json"
     bad.write_text('{"k_lk": -2}')
     blocker = tmp_path / "f"
@@ -208,11 +217,6 @@ def fake_tuning(monkeypatch):
     """The optimisation loop and the held-out rollouts replaced by stand-ins
     (both are tested above; compiling them for a CLI test would cost minutes).
     Returns the dict the fake loop records its arguments in."""
-    import collections
-
-    from jaxsync.optimize import loss as loss_mod
-    from jaxsync.optimize import tune as tune_mod
-
     fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite")
     fake_metrics = collections.namedtuple("FakeMetrics", fields)(
         settled_peak_resultant_N=np.array([0.01, 0.02]),
@@ -235,8 +239,6 @@ def fake_tuning(monkeypatch):
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
 
-    from jaxsync.optimize import compare as _compare
-
     def fake_sim_to_sim(model, gains, baseline, scenarios, duration, *, n=4, mjx_rows=None, **kw):
         """MuJoCo C's rollouts replaced: the held-out MJX rows as given, MuJoCo C's
         settled peak after tuning 0.03 N in every scenario (MJX: 0.01, 0.02)."""
@@ -256,11 +258,7 @@ def fake_tuning(monkeypatch):
 
 def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
     """The command's plumbing (files, summary keys, selected vs last gains)."""
-    import json
-
     calls = fake_tuning
-    from jaxsync.cli import build_parser
-
     parser = build_parser()
     out = tmp_path / "run"
     args = parser.parse_args(["tune", "--out", str(out), "--weight", "grip=3", "--iterations", "1"])
@@ -302,10 +300,6 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
     """A checkpoint in --out without --resume is refused (naming --resume and
     --restart), before anything is evaluated or written; --restart starts over
     and leaves none of the old run's files behind."""
-    import json
-
-    from jaxsync.cli import main
-
     out = tmp_path / "run"
     out.mkdir()
     old = {"checkpoint.pkl": "old", "gains.json": '{"gains": {"k_rl": 0.1}}', "summary.json": "{}"}
@@ -332,8 +326,6 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
 
 
 def test_result_line_says_higher_when_tuning_made_it_worse():
-    from jaxsync.cli.tune import change_text
-
     assert change_text(0.01183, 0.10249) == " (8.66x higher)"
     assert change_text(0.01062, 0.00390) == " (2.72x lower)"
     assert change_text(None, 0.1) == "" and change_text(0.1, None) == ""
@@ -350,10 +342,6 @@ def test_clip_must_be_positive(clip):
     [({"k_rk": True}, "not true/false"), ({"k_rk": "abc"}, "a number"), (5, "JSON object"), ({"k_rk": []}, "number")],
 )
 def test_gains_values_must_be_numbers(tmp_path, capsys, data, message):
-    import json
-
-    from jaxsync.cli import main
-
     with pytest.raises(jaxsync.ConfigError, match=message):
         _gains.from_dict(data)
     path = tmp_path / "g.json"
@@ -365,8 +353,6 @@ def test_gains_values_must_be_numbers(tmp_path, capsys, data, message):
 def test_checkpoint_keeps_records_plain(tmp_path):
     """History rows and validation entries come back as the Python values they
     were (a 0-d array 'iteration' crashed a resumed run at its end)."""
-    from jaxsync.optimize import checkpoint
-
     state = {
         "theta": {"k_rk": jax.numpy.asarray(0.5)},
         "opt_state": (),
@@ -387,12 +373,6 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
     first, which traces and compiles the gradient (an ETA of 08:45 for a run
     then taking seconds per step). The gradient is a stand-in whose first
     call takes 1 s ("compiling") and later ones next to nothing."""
-    import time
-
-    import tqdm as tqdm_module
-
-    from jaxsync.optimize import tune as tune_mod
-
     etas = []
 
     class RecordingBar(tqdm_module.tqdm):
@@ -424,12 +404,10 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
     assert eta is not None and eta < 0.75, etas  # 2 iterations left; counting the first: 2 s or more
 
 
-# ---------------------------------------------------------------- methods (issue 13)
+# ---------------------------------------------------------------- methods
 
 
 def _quadratic(scale=(1.0, 100.0, 1e4)):
-    from jaxsync.optimize.methods import Oracle
-
     a = np.diag(scale)
     return Oracle(
         value_and_grad=lambda x: (0.5 * x @ a @ x, a @ x),
@@ -439,8 +417,6 @@ def _quadratic(scale=(1.0, 100.0, 1e4)):
 
 @pytest.mark.parametrize("name", ["adam", "lbfgs", "cmaes", "cmaes-lbfgs"])
 def test_methods_minimise_an_ill_conditioned_quadratic(name):
-    from jaxsync.optimize import methods
-
     m, oracle = methods.get(name), _quadratic()
     state = m.init(np.ones(3), seed=0)
     f0 = 0.5 * (1 + 100 + 1e4)
@@ -460,8 +436,6 @@ def test_methods_minimise_an_ill_conditioned_quadratic(name):
 
 
 def test_lbfgs_skips_non_finite_trials_and_keeps_the_iterate():
-    from jaxsync.optimize.methods import LBFGS, Oracle
-
     calls = []
 
     def vg(x):
@@ -486,12 +460,9 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     assert [row["iteration"] for row in h] == [0, 1] and all(row["skipped"] == 0 for row in h)
     assert all(row["gradient_calls"] >= 1 for row in h)
     # the fixed batch's cost at the start, from the same program
-    from jaxsync.optimize.scenarios import training_base, training_batch
-
     scen = training_batch(cfg, 0, training_base(cfg)[0])
     (c0, _), _ = tuning_program["value_and_grad"](spec.init(base), scen)
     assert h[0]["cost"] < float(c0) and h[1]["cost"] < h[0]["cost"]
-    from jaxsync.optimize import tune_state
 
     saved = tune_state.resumed_state(str(tmp_path / "l" / "checkpoint.pkl"), None, spec, base, None)
     mine = r.state.opt_state
@@ -507,7 +478,6 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
     the curvature memory is reset) is convergence on the fixed batch: tune() stops,
     validates and checkpoints the last iterate and returns normally (it raised
     'iterations in a row without a step' after 46 iterations of a real run)."""
-    from jaxsync.optimize import tune as tune_mod
 
     def fake_traced(loss, model, spec, base, cfg, weights, args, log):
         theta0 = args[0]
@@ -532,16 +502,10 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
 
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
-    """Issue 15, item 2: the gains before and after on MuJoCo C beside MJX, through
+    """The gains before and after on MuJoCo C beside MJX, through
     the one sim-to-sim check (jaxsync.optimize.compare.sim_to_sim) with MJX's rows as tune
     has them from its held-out scoring; the factors agree here (the same control
     law, the same scenario), and a disagreement is flagged in the printed line."""
-    from conftest import TEST_DURATION
-
-    from jaxsync.cli.tune import mujoco_text
-    from jaxsync.optimize import compare as _compare
-    from jaxsync.sim import metrics as _metrics
-
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import warnings
 
+import jax.numpy as jnp
 import pytest
 
 import jaxsync
@@ -52,8 +53,6 @@ def test_flags_reach_xla_and_a_users_own_setting_wins():
 
 
 def test_after_the_backend_started_nothing_changes_and_it_warns(monkeypatch):
-    import jax.numpy as jnp
-
     jnp.ones(1).block_until_ready()  # the backend has started in this process
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
     with pytest.warns(UserWarning, match="before the first JAX computation"):
