@@ -383,7 +383,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
             etas.append((d["n"], (d["total"] - d["n"]) / rate if rate else None))
             return shown
 
-    monkeypatch.setattr(tqdm_module, "tqdm", RecordingBar)
+    monkeypatch.setattr(tune_mod, "tqdm", RecordingBar)  # the bar tune() draws
     calls = []
 
     def fake_traced(loss, model, spec, base, cfg, weights, args, log):
@@ -396,7 +396,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
 
         return value_and_grad
 
-    monkeypatch.setattr(tune_mod, "_traced_value_and_grad", fake_traced)
+    monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
     cfg = TuneConfig(iterations=4, batch=1, validate_every=0, task="short", method="adam")
     tune(model, TuneSpec(), _gains.default_gains(), cfg, progress=True)
     assert len(calls) == 4
@@ -490,7 +490,7 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
 
         return value_and_grad
 
-    monkeypatch.setattr(tune_mod, "_traced_value_and_grad", fake_traced)
+    monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
     cfg = TuneConfig(iterations=10, batch=1, validate_every=5, task="short", method="lbfgs")
     r = tune(
         model, TuneSpec(), _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation
