@@ -23,3 +23,7 @@ class ModelStructureError(ModelError):
 
 class ConfigError(JaxsyncError):
     """A gain, scenario or option value outside what is allowed."""
+
+
+class DroppedObjectError(JaxsyncError):
+    """Gains that drop the object wherever they are tried: nothing to measure or tune."""

@@ -9,7 +9,7 @@ import optax
 
 from jaxsync._errors import ConfigError
 from jaxsync.optimize import methods as _methods
-from jaxsync.optimize.loop import make_optimizer
+from jaxsync.optimize.loop import first_order_problem, make_optimizer
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,9 +61,18 @@ class TuneConfig:
                 f"the training, validation and held-out seeds must differ (got {self.seed}, "
                 f"{self.validation_seed}, {self.heldout_seed}): held-out scenarios are never trained on or selected on"
             )
-        if not hasattr(optax, self.optimizer) or self.optimizer.startswith("_"):
+        why = first_order_problem(self.optimizer)
+        if why is not None:
             raise ConfigError(
-                f"optimizer must name an optax optimiser (adam, adamw, sgd, lion, ...), got {self.optimizer!r}"
+                "optimizer must name an optax optimiser that steps from (updates, state, params) alone, a "
+                f"first-order one (adam, adamw, sgd, lion, rmsprop, ...), got {self.optimizer!r}: {str(why)[:200]}"
+            )
+        if self.truncate_every is not None and (
+            int(self.truncate_every) != self.truncate_every or self.truncate_every < 1
+        ):
+            raise ConfigError(
+                "truncate every must be a positive number of steps (or none: the exact gradient), "
+                f"got {self.truncate_every}"
             )
         if self.task not in ("short", "full"):
             raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")

@@ -22,6 +22,26 @@ class Update(NamedTuple):
     finite: jax.Array  # bool: the value and the gradient were finite and the step was taken
 
 
+def first_order_problem(name: str) -> str | None:
+    """Why ``optax.<name>(learning_rate)`` cannot be the tuner's optimiser, or
+    None when it can: a gradient transformation whose ``update`` takes
+    ``(updates, state, params)`` alone (optax's lbfgs also needs the value and a
+    line search; ``tree_utils`` is not an optimiser). Traced on shapes only
+    (``jax.eval_shape``): nothing runs."""
+    factory = getattr(optax, name, None) if isinstance(name, str) and not name.startswith("_") else None
+    if not callable(factory):
+        return "not an optax optimiser"
+    try:
+        opt = factory(1e-3)
+        if not isinstance(opt, optax.GradientTransformation):
+            return f"optax.{name}(learning_rate) is not a gradient transformation"
+        p = {"x": jax.ShapeDtypeStruct((2,), jnp.float32)}
+        jax.eval_shape(lambda p: opt.update(p, opt.init(p), p), p)
+    except Exception as err:  # noqa: BLE001  (any failure means: not usable here; the message says which)
+        return f"optax.{name} does not step from (updates, state, params) alone ({type(err).__name__}: {err})"
+    return None
+
+
 def make_optimizer(
     learning_rate: float,
     *,

@@ -38,6 +38,8 @@ import dataclasses
 from collections.abc import Callable
 
 import cma
+import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 
@@ -75,7 +77,6 @@ class Adam:
     needs = ("value_and_grad",)
 
     def _opt(self):
-
         return optax.chain(optax.clip_by_global_norm(self.clip_norm), optax.adam(self.learning_rate))
 
     def init(self, x0, seed: int = 0) -> dict:
@@ -83,7 +84,6 @@ class Adam:
         return {"x": x, "opt": self._opt().init(x)}
 
     def step(self, state, oracle: Oracle):
-
         f, g = oracle.vg(state["x"])
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 1}
         if not (np.isfinite(f) and np.all(np.isfinite(g))):
@@ -95,6 +95,14 @@ class Adam:
 
     def incumbent(self, state):
         return state["x"]
+
+    def to_data(self, state) -> dict:
+        return {"x": state["x"], "opt": [np.asarray(v) for v in jax.tree_util.tree_leaves(state["opt"])]}
+
+    def from_data(self, data) -> dict:
+        x = np.asarray(data["x"], dtype=float)
+        template = jax.tree_util.tree_structure(self._opt().init(x))
+        return {"x": x, "opt": jax.tree_util.tree_unflatten(template, [jnp.asarray(v) for v in data["opt"]])}
 
 
 # ----------------------------------------------------------------- L-BFGS
@@ -159,6 +167,12 @@ class LBFGS:
     def incumbent(self, state):
         return state["x"]
 
+    def to_data(self, state) -> dict:
+        return dict(state)  # arrays, floats and lists of arrays already
+
+    def from_data(self, data) -> dict:
+        return {**data, "s": list(data["s"]), "y": list(data["y"])}
+
 
 # ----------------------------------------------------------------- CMA-ES
 
@@ -169,21 +183,53 @@ class CMAES:
     popsize: int = 16
     needs = ("values",)
 
-    def init(self, x0, seed: int = 0) -> dict:
-        es = cma.CMAEvolutionStrategy(
+    def _strategy(self, x0, seed: int):
+        return cma.CMAEvolutionStrategy(
             np.asarray(x0, dtype=float), self.sigma, {"popsize": self.popsize, "seed": seed + 1, "verbose": -9}
         )
-        return {"es": es}
+
+    def init(self, x0, seed: int = 0) -> dict:
+        x0 = np.asarray(x0, dtype=float)
+        return {"es": self._strategy(x0, seed), "x0": x0, "seed": int(seed), "told": []}
 
     def step(self, state, oracle: Oracle):
         es = state["es"]
         xs = es.ask()
         fs = oracle.pop(np.stack(xs))
-        es.tell(xs, [float(v) if np.isfinite(v) else 1e12 for v in fs])
-        return state, {"train_cost": float(np.nanmin(fs)), "sigma": float(es.sigma), "accepted": 1}
+        told = [float(v) if np.isfinite(v) else 1e12 for v in fs]
+        es.tell(xs, told)
+        row = {"train_cost": float(np.nanmin(fs)), "sigma": float(es.sigma), "accepted": 1}
+        return {**state, "told": [*state["told"], told]}, row
 
     def incumbent(self, state):
         return np.asarray(state["es"].mean, dtype=float)
+
+    def to_data(self, state) -> dict:
+        """The strategy as data: where it started, its seed and every generation's
+        told costs (``cma``'s object is not data); :meth:`from_data` replays them."""
+        return {
+            "x0": state["x0"],
+            "seed": state["seed"],
+            "told": [list(t) for t in state["told"]],
+            "mean": np.asarray(state["es"].mean, dtype=float),
+            "sigma": float(state["es"].sigma),
+        }
+
+    def from_data(self, data) -> dict:
+        """The strategy rebuilt by replaying its generations: the same samples
+        (``cma`` draws them from its seed) told the same costs give the same
+        state; checked against the saved mean and step size."""
+        es = self._strategy(data["x0"], int(data["seed"]))
+        for told in data["told"]:
+            es.tell(es.ask(), [float(v) for v in told])
+        mean, sigma = np.asarray(es.mean, dtype=float), float(es.sigma)
+        if not (np.array_equal(mean, np.asarray(data["mean"], dtype=float)) and sigma == float(data["sigma"])):
+            raise ConfigError(
+                "--resume: the CMA-ES state replayed from the checkpoint differs from the one saved "
+                f"(mean off by {float(np.max(np.abs(mean - data['mean']))):.3g}, step size {sigma} against "
+                f"{data['sigma']}): another version of the 'cma' package? --restart starts over"
+            )
+        return {"es": es, "x0": np.asarray(data["x0"], dtype=float), "seed": int(data["seed"]), "told": data["told"]}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,6 +255,14 @@ class CMAESThenLBFGS:
     def incumbent(self, state):
         m = self.cmaes if state["phase"] == "cmaes" else self.lbfgs
         return m.incumbent(state["inner"])
+
+    def to_data(self, state) -> dict:
+        m = self.cmaes if state["phase"] == "cmaes" else self.lbfgs
+        return {**state, "inner": m.to_data(state["inner"])}
+
+    def from_data(self, data) -> dict:
+        m = self.cmaes if data["phase"] == "cmaes" else self.lbfgs
+        return {**data, "n": int(data["n"]), "inner": m.from_data(data["inner"])}
 
 
 def get(name: str, **options):

@@ -103,6 +103,14 @@ class TuneSpec:
         return theta
 
     def _init_constant(self, base: Gains) -> dict:
+        logs = [n for n in ("imp_mass", "imp_stiffness", "imp_damping_ratio") if n in self.tuned]
+        for name in ("imp_mass", "imp_stiffness"):
+            if logs and not np.all(np.asarray(getattr(base, name)) > 0):
+                raise ConfigError(
+                    f"the starting gains' {name} holds {np.asarray(getattr(base, name)).tolist()}: tuning "
+                    f"{', '.join(logs)} needs every {name} > 0 (the impedance is tuned in log space and through its "
+                    f"damping ratio); start from a positive {name}, or --freeze {','.join(logs)}"
+                )
         theta = {}
         for name in self.tuned:
             if name in SYNC:
@@ -144,6 +152,22 @@ class TuneSpec:
             zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
         g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
         return Gains(**g)
+
+    def moved(self, base, rtol: float = 1e-6) -> list[str]:
+        """Where the tuned parameterisation does not hold ``base`` as given: each
+        gain that ``to_gains(init(base), base)`` changes (clipped into its band,
+        e.g. k = 1 to 0.999, or shared across arms or axes), as "name: given ->
+        used" with the largest change."""
+        used = self.to_gains(self.init(base), base)
+        a, b = (base.phases, used.phases) if isinstance(base, _schedule.Schedule) else (base, used)
+        out = []
+        for name in Gains._fields:
+            given, now = np.asarray(getattr(a, name), dtype=float), np.asarray(getattr(b, name), dtype=float)
+            diff = np.abs(now - given)
+            if np.any(diff > rtol * np.maximum(np.abs(given), 1e-12)):
+                i = np.unravel_index(int(np.argmax(diff)), diff.shape) if diff.shape else ()
+                out.append(f"{name}: {float(given[i]):.6g} -> {float(now[i]):.6g}")
+        return out
 
     def size(self) -> int:
         """How many scalars are tuned."""

@@ -10,11 +10,13 @@ them on MuJoCo C, and writes the run's folder: ``gains.json`` (selected),
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
 from collections.abc import Callable
 
+from jaxsync._errors import DroppedObjectError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import results as _results
@@ -25,10 +27,11 @@ from jaxsync.optimize import tune as _tune
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.tune_report import plot_loss
-from jaxsync.optimize.tune_state import prepare_out
+from jaxsync.optimize.tune_state import CHECKPOINT, prepare_out
 from jaxsync.physics.model import DualArmModel
 from jaxsync.runtime import distributed as _distributed
 
+HELDOUT_BEFORE = "heldout_before.json"
 MUJOCO_CHECK_SCENARIOS = 4
 """Held-out scenarios the MuJoCo C check rolls out (before and after)."""
 
@@ -78,15 +81,31 @@ def tune_and_evaluate(
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
-    if main:
+    if not main:
+        _distributed.barrier("tune: output folder ready")
+        return _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
+    _results.ensure_writable_dir(out)
+    with _results.run_lock(out, "tune", log=say):
         prepare_out(out, resume=resume, restart=restart)
-        _results.ensure_writable_dir(out)
-    _distributed.barrier("tune: output folder ready")
+        _distributed.barrier("tune: output folder ready")
+        before_path = os.path.join(out, HELDOUT_BEFORE)
+        wrote_before = not (resume and os.path.exists(before_path))
+        try:
+            return _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
+        except Exception:
+            # a run that failed before its first checkpoint leaves nothing of value: not even the
+            # held-out scores it wrote, which would make the corrected command ask for --restart
+            if wrote_before and not os.path.exists(os.path.join(out, CHECKPOINT)):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(before_path)
+            raise
 
+
+def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main):
     t_start = time.perf_counter()
     evaluate = _loss.make_evaluator(model, cfg.eval_duration)  # one physics: training, validation and held out
     held = _scenarios.heldout_scenarios(cfg)
-    before_path = os.path.join(out, "heldout_before.json")
+    before_path = os.path.join(out, HELDOUT_BEFORE)
     before = None
     if not main:
         before = {}
@@ -96,7 +115,16 @@ def tune_and_evaluate(
     if before is None:
         say(f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...")
         before = _loss.eval_summary(evaluate(base, held))
+        if before["settled_peak_resultant_N"] is None:  # every held-out scenario dropped (or diverged)
+            raise DroppedObjectError(
+                f"the starting gains drop the object (or diverge) in all {cfg.heldout_batch} held-out scenarios "
+                f"({before['dropped']} dropped, {before['nonfinite']} non-finite): there is no grasp to tune; "
+                "start from gains that hold it (--gains, or the defaults)"
+            )
         _results.write_json(before_path, before)
+    moved = spec.moved(base)
+    if moved:
+        say("the starting gains were moved into the tuning bands: " + "; ".join(moved))
 
     say(
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
@@ -175,6 +203,7 @@ def tune_and_evaluate(
         "options": options if options is not None else {},
         "weights": weights._asdict(),
         "tune": described,
+        "start_moved_into_bands": moved,
         "mujoco_check": check,
     }
     _results.write_json(os.path.join(out, "summary.json"), summary)

@@ -165,10 +165,17 @@ def run(
       >>> summary = run(plan, "results/sweep", progress=False)  # doctest: +SKIP
       >>> summary["best_ok_point"]["settled_peak_resultant_N"]  # doctest: +SKIP
     """
+    _check(chunk, budget_gib, plot_metrics, len(jax.local_devices()))  # the options, before any folder
+    if jax.process_index() != 0:  # process 0 holds the folder for the whole run
+        return _run(plan, out, chunk, budget_gib, restart, resume, progress, max_chunks, plot_metrics, log)
+    _results.ensure_writable_dir(out)
+    with _results.run_lock(out, "sweep", log=log):
+        return _run(plan, out, chunk, budget_gib, restart, resume, progress, max_chunks, plot_metrics, log)
 
+
+def _run(plan, out, chunk, budget_gib, restart, resume, progress, max_chunks, plot_metrics, log) -> dict:
     devices = jax.local_devices()
     n_dev = len(devices)
-    _check(chunk, budget_gib, plot_metrics, n_dev)
     t_start = time.perf_counter()
     nproc, me = jax.process_count(), jax.process_index()
     main_proc = me == 0

@@ -113,7 +113,8 @@ def _number(text: str, where: str) -> float:
 def parse_param(text: str, random: bool = False) -> Param:
     """Parse ``NAME=VALUES``. VALUES: ``lo:hi:n`` (n points, ends included),
     ``a,b,c`` (a list), ``v`` (one value: a fixed override) or, with
-    ``--samples``, ``lo:hi`` (an interval to draw from)."""
+    ``--samples``, ``lo:hi`` (an interval to draw from); with ``--samples`` a
+    list or ``lo:hi:n`` gives the values drawn from, each equally likely."""
     if "=" not in text:
         raise ConfigError(f"--param {text!r}: expected NAME=VALUES, e.g. k_rk=-1:1:11 or object_mass=0.5,1,2")
     name, spec = (s.strip() for s in text.split("=", 1))
@@ -140,11 +141,11 @@ def parse_param(text: str, random: bool = False) -> Param:
                 raise ConfigError(f"{where}: empty range: {n} points")
             if n == 1 and lo != hi:
                 raise ConfigError(f"{where}: one point cannot span [{lo:g}, {hi:g}]; give a single value")
-        if random:
+        if random and len(parts) == 2:
             interval = (lo, hi)
         elif len(parts) == 2:
             raise ConfigError(f"{where}: a range needs a point count, lo:hi:n (lo:hi alone is for --samples)")
-        else:
+        else:  # a grid; with --samples, the n values drawn from (as from a list)
             values = tuple(float(v) for v in np.linspace(lo, hi, n))
     else:
         items = spec.split(",")

@@ -39,6 +39,7 @@ from jaxsync.optimize.loss import make_loss, traced_value_and_grad
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.scenarios import training_base, training_batch
 from jaxsync.optimize.tune_state import (
+    CHECKPOINT,
     TuneResult,
     TuneState,
     fresh_state,
@@ -176,7 +177,7 @@ def tune(
     With ``validate`` (gains -> an evaluation dict, see :func:`select_iterate`)
     the start and every ``cfg.validate_every`` iterations (and the last) are
     evaluated, and the returned gains are the selected iterate's; without it,
-    the last iterate's. Checkpoints (``out/checkpoint.pkl``) every
+    the last iterate's. Checkpoints (``out/checkpoint.npz``, data only) every
     ``cfg.checkpoint_every`` iterations and on Ctrl-C; ``resume`` continues
     from the last one and ends where an uninterrupted run with the same seed
     ends; a checkpoint already in ``out`` is an error unless ``resume`` or
@@ -206,14 +207,18 @@ def tune(
     method = None if cfg.method == "adam" else _methods.get(cfg.method, **_method_options(cfg))
     opt = cfg.optimizer_transform() if method is None else None
     train_base = training_base(cfg)[0]
-    ckpt = os.path.join(out, "checkpoint.pkl") if out else None
+    ckpt = os.path.join(out, CHECKPOINT) if out else None
+    # a cosine learning-rate decay spans the run: its length is part of the state
+    decay = cfg.iterations if method is None and cfg.schedule == "cosine" else None
     if ckpt and not resume and not restart and os.path.exists(ckpt) and main:
         prepare_out(out)  # the error naming --resume and --restart
     if out and main:
         _results.ensure_writable_dir(out)
     write_ckpt = ckpt if main else None  # every process reads a checkpoint to resume; process 0 writes them
     state = (
-        resumed_state(ckpt, fingerprint, spec, base, opt) if resume else fresh_state(spec, base, opt, method, cfg.seed)
+        resumed_state(ckpt, fingerprint, spec, base, opt, method, decay)
+        if resume
+        else fresh_state(spec, base, opt, method, cfg.seed)
     )
     every = cfg.validate_every if validate is not None else 0
 
@@ -272,13 +277,13 @@ def tune(
             if every and ((i + 1) % every == 0 or last):
                 state = validated(state, validate, spec, base, say)
             if (i + 1) % cfg.checkpoint_every == 0 or last:
-                save_state(write_ckpt, state, fingerprint)
+                save_state(write_ckpt, state, fingerprint, method, decay)
             if converged:
                 say(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
                 break
     except KeyboardInterrupt:
         if write_ckpt:
-            save_state(write_ckpt, state, fingerprint)
+            save_state(write_ckpt, state, fingerprint, method, decay)
             say(
                 f"interrupted: checkpoint saved to {ckpt} after {state.iteration} iterations; "
                 "run again with --resume to continue"

@@ -69,19 +69,40 @@ def fresh_state(spec: TuneSpec, base, opt, method=None, seed: int = 0) -> TuneSt
     return TuneState(theta, opt.init(theta), 0, 0, (), (), {})
 
 
-def resumed_state(path: str, fingerprint, spec: TuneSpec, base, opt) -> TuneState:
+def _differences(saved: dict | None, given: dict) -> list[str]:
+    saved = saved or {}
+    return [
+        f"{k}: {saved.get(k)!r} then, {given.get(k)!r} now"
+        for k in sorted(set(saved) | set(given))
+        if saved.get(k) != given.get(k)
+    ]
+
+
+def resumed_state(
+    path: str, fingerprint, spec: TuneSpec, base, opt, method=None, schedule_iterations: int | None = None
+) -> TuneState:
+    """The state a checkpoint holds. ``opt``: the optax optimiser (Adam's loop)
+    or None for an ``optimize.methods`` ``method``. ``schedule_iterations``: the
+    run's length where the learning-rate schedule depends on it (a cosine
+    decay): a resumed run of another length would not end where an
+    uninterrupted one ends, and is refused."""
     saved = checkpoint.load(path)
     if fingerprint is not None and saved.get("fingerprint") != fingerprint:
+        diff = "; ".join(_differences(saved.get("fingerprint"), fingerprint))
+        raise ConfigError(f"--resume: {path} was written by a run with other options ({diff}): --restart starts over")
+    was = saved.get("schedule_iterations")
+    if schedule_iterations is not None and was is not None and was != schedule_iterations:
         raise ConfigError(
-            f"--resume: {path} was written by a run with other options; its options: {saved.get('fingerprint')}"
+            f"--resume: --iterations {schedule_iterations}, but the run in {path} decays its learning rate over "
+            f"{was} iterations (--schedule cosine): resume with --iterations {was}, or --restart "
+            "(--schedule constant runs can be extended)"
         )
     theta = jax.tree_util.tree_map(jnp.asarray, saved["theta"])
-    if opt is None:  # an optimize.methods state: plain Python and numpy, kept as saved
-        opt_state = saved["opt_state"]
+    if opt is None:  # an optimize.methods state, rebuilt from its data
+        opt_state = method.from_data(saved["opt_state"])
     else:
         template = jax.tree_util.tree_structure(opt.init(theta))
-        opt_state = jax.tree_util.tree_unflatten(template, jax.tree_util.tree_leaves(saved["opt_state"]))
-        opt_state = jax.tree_util.tree_map(jnp.asarray, opt_state)
+        opt_state = jax.tree_util.tree_unflatten(template, [jnp.asarray(v) for v in saved["opt_state"]])
     return TuneState(
         theta=theta,
         opt_state=opt_state,
@@ -93,10 +114,22 @@ def resumed_state(path: str, fingerprint, spec: TuneSpec, base, opt) -> TuneStat
     )
 
 
-def save_state(path: str | None, state: TuneState, fingerprint) -> None:
+def save_state(
+    path: str | None, state: TuneState, fingerprint, method=None, schedule_iterations: int | None = None
+) -> None:
+    """Write ``state`` to the checkpoint ``path`` (data only: ``optimize.checkpoint``)."""
     if path:
         d = state._asdict()
-        d.update(history=list(state.history), validation=list(state.validation), fingerprint=fingerprint)
+        if method is not None:
+            d["opt_state"] = method.to_data(state.opt_state)
+        else:
+            d["opt_state"] = [np.asarray(v) for v in jax.tree_util.tree_leaves(state.opt_state)]
+        d.update(
+            history=list(state.history),
+            validation=list(state.validation),
+            fingerprint=fingerprint,
+            schedule_iterations=schedule_iterations,
+        )
         checkpoint.save(path, d)
 
 
@@ -117,10 +150,11 @@ def validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log) -
     return state._replace(validation=validation, kept=kept)
 
 
-# What a tuning run writes to its folder (checkpoint.pkl by tune(), the rest by
+CHECKPOINT = "checkpoint.npz"
+# What a tuning run writes to its folder (the checkpoint by tune(), the rest by
 # jaxsync tune): removed together when a run starts over (--restart).
 RUN_FILES = (
-    "checkpoint.pkl",
+    CHECKPOINT,
     "heldout_before.json",
     "gains.json",
     "gains_last.json",
@@ -140,7 +174,7 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
     """
     if resume and restart:
         raise ConfigError("--resume continues the run in --out and --restart discards it: give one of them")
-    ckpt = os.path.join(out, "checkpoint.pkl")
+    ckpt = os.path.join(out, CHECKPOINT)
     if resume:
         if not os.path.exists(ckpt):
             raise ConfigError(f"--resume: no checkpoint at {ckpt}")
@@ -150,7 +184,7 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
         for f in found:
             os.unlink(os.path.join(out, f))
         return
-    if "checkpoint.pkl" in found:
+    if CHECKPOINT in found:
         raise ConfigError(
             f"output folder {out!r} holds a tuning run ({', '.join(found)}): pass --resume to continue it, "
             "--restart to discard it and start over, or choose another --out"

@@ -112,7 +112,7 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
 
     with pytest.raises(KeyboardInterrupt):
         tune(model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
-    assert (tmp_path / "b" / "checkpoint.pkl").exists()
+    assert (tmp_path / "b" / "checkpoint.npz").exists()
     r_res = tune(model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
     resumed, hist_res = r_res.gains, r_res.history
     assert len(hist_res) == len(hist_full) == cfg.iterations
@@ -302,7 +302,7 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
     and leaves none of the old run's files behind."""
     out = tmp_path / "run"
     out.mkdir()
-    old = {"checkpoint.pkl": "old", "gains.json": '{"gains": {"k_rl": 0.1}}', "summary.json": "{}"}
+    old = {"checkpoint.npz": "old", "gains.json": '{"gains": {"k_rl": 0.1}}', "summary.json": "{}"}
     for name, text in old.items():
         (out / name).write_text(text)
     for extra, message in [
@@ -314,13 +314,13 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
         assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
         assert "cfg" not in fake_tuning  # refused before tuning
     assert {p.name: p.read_text() for p in out.iterdir()} == old  # nothing touched
-    (out / "checkpoint.pkl").unlink()  # results without a checkpoint: only --restart
+    (out / "checkpoint.npz").unlink()  # results without a checkpoint: only --restart
     assert main(["tune", "--out", str(out), "--iterations", "1"]) == 2
     assert "no checkpoint to --resume from: pass --restart" in capsys.readouterr().err
-    (out / "checkpoint.pkl").write_text("old")
+    (out / "checkpoint.npz").write_text("old")
     assert main(["tune", "--out", str(out), "--iterations", "1", "--restart"]) == 0
     assert fake_tuning["kw"]["resume"] is False
-    assert not (out / "checkpoint.pkl").exists()  # the old run's (the stand-in loop writes none)
+    assert not (out / "checkpoint.npz").exists()  # the old run's (the stand-in loop writes none)
     assert json.loads((out / "gains.json").read_text())["gains"]["k_rl"] == 0.5
     assert json.loads((out / "summary.json").read_text())["iterations"] == 1
 
@@ -464,7 +464,8 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     (c0, _), _ = tuning_program["value_and_grad"](spec.init(base), scen)
     assert h[0]["cost"] < float(c0) and h[1]["cost"] < h[0]["cost"]
 
-    saved = tune_state.resumed_state(str(tmp_path / "l" / "checkpoint.pkl"), None, spec, base, None)
+    ckpt = str(tmp_path / "l" / "checkpoint.npz")
+    saved = tune_state.resumed_state(ckpt, None, spec, base, None, methods.get("lbfgs"))
     mine = r.state.opt_state
     assert saved.iteration == 2
     np.testing.assert_array_equal(saved.opt_state["x"], mine["x"])
@@ -497,7 +498,7 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
     )
     assert [row["skipped"] for row in r.history] == [1, 1]
     assert [v["iteration"] for v in r.validation] == [0, 2]  # the last iterate validated
-    assert (tmp_path / "checkpoint.pkl").exists()
+    assert (tmp_path / "checkpoint.npz").exists()
     np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
 
 

@@ -16,7 +16,8 @@ import traceback
 
 import jax
 
-from jaxsync._errors import JaxsyncError
+from jaxsync._errors import DroppedObjectError, JaxsyncError
+from jaxsync.cli._common import EXIT_DROPPED
 from jaxsync.io import results as _results
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.runtime.cache import enable_compilation_cache
@@ -38,7 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxsync",
         description="Differentiable dual-arm contact-force synchronous control with JAX and MuJoCo MJX.",
         epilog="Exit status: 0 done; 2 bad input (a one-line message; an output folder the run created is "
-        "removed again if it stayed empty); 3 internal error; 4 compare: a controller dropped the object; "
+        "removed again if it stayed empty); 3 internal error; 4 the object was dropped (compare: by a controller; "
+        "tune: by the starting gains in every held-out scenario, before any tuning); 5 compare --mujoco-check: "
+        "MuJoCo C and MJX disagree; "
         "130 interrupted.",
     )
     parser.add_argument(
@@ -74,6 +77,9 @@ def _run(args: argparse.Namespace) -> int:
     try:
         _setup_jax(args)
         return args.func(args)
+    except DroppedObjectError as err:
+        print(f"jaxsync {args.command}: {err}", file=sys.stderr)
+        return EXIT_DROPPED
     except JaxsyncError as err:
         print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
         return 2

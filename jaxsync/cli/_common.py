@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import argparse
 
+# exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
+EXIT_DROPPED = 4  # the object was dropped: compare (files written) or tune (by the start, nothing tuned)
+EXIT_SIM_TO_SIM = 5  # compare --mujoco-check: MuJoCo C and MJX disagree (files written)
+
 
 def positive(kind):
     """An argparse type: ``kind(text)``, which must be > 0."""

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jaxsync.cli._common import add_model_argument, positive
+from jaxsync.cli._common import EXIT_DROPPED, EXIT_SIM_TO_SIM, add_model_argument, positive
 
 
 def scenario_from_args(args: argparse.Namespace):
@@ -28,13 +28,6 @@ def scenario_from_args(args: argparse.Namespace):
     if "object_mass" in overrides:
         overrides["mass_estimate"] = overrides["object_mass"]
     return default_scenario(**overrides)
-
-
-# the exit status when a controller dropped the object: the files are written,
-# but the run did not show what compare measures (a settled grasp)
-EXIT_DROPPED = 4
-# the exit status when --mujoco-check finds MuJoCo C and MJX disagreeing (the files are written)
-EXIT_SIM_TO_SIM = 5
 
 
 def run(args: argparse.Namespace) -> int:

@@ -94,8 +94,8 @@ def run(args) -> int:
         return 0
     b, a = summary["heldout_settled_peak_resultant_N_before"], summary["heldout_settled_peak_resultant_N_after"]
     gb, ga = summary["heldout_grip_force_error_rel_before"], summary["heldout_grip_force_error_rel_after"]
-    print(f"held-out settled peak resultant: {b:.5f} N -> {a:.5f} N" + change_text(b, a))
-    print(f"held-out grip-force error: {gb:.4f} -> {ga:.4f}")
+    print(f"held-out settled peak resultant: {_num(b, '.5f')} N -> {_num(a, '.5f')} N" + change_text(b, a))
+    print(f"held-out grip-force error: {_num(gb, '.4f')} -> {_num(ga, '.4f')}")
     if summary["mujoco_check"] is not None:
         print(mujoco_text(summary["mujoco_check"]))
     print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
@@ -120,10 +120,18 @@ def mujoco_text(c: dict) -> str:
     return head + f"WARNING: MuJoCo C and MJX disagree: {why} (docs/export.md)"
 
 
+def _num(v: float | None, fmt: str) -> str:
+    """``v`` formatted, or 'n/a' (every scenario dropped)."""
+    return "n/a" if v is None else format(v, fmt)
+
+
 def change_text(before: float | None, after: float | None) -> str:
-    """' (2.73x lower)' or ' (8.66x higher)': the factor always >= 1, the direction in words."""
+    """' (2.73x lower)', ' (8.66x higher)' or ' (unchanged)': the factor always
+    above 1 as printed, the direction in words."""
     if not before or not after:
         return ""
+    if f"{before / after:.2f}" == "1.00":
+        return " (unchanged)"
     if after <= before:
         return f" ({before / after:.2f}x lower)"
     return f" ({after / before:.2f}x higher)"

@@ -10,7 +10,9 @@ import csv
 import io
 import json
 import os
+import socket
 import tempfile
+import time
 
 import numpy as np
 
@@ -40,6 +42,67 @@ def ensure_writable_dir(path: str) -> str:
     except OSError as err:
         raise ConfigError(f"output folder {path!r} cannot be written: {err.strerror or err}") from None
     return path
+
+
+LOCK = ".jaxsync.lock"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process: alive
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def run_lock(out: str, what: str = "run", log=None):
+    """Hold ``out`` for one run: a lock file (``.jaxsync.lock``: the process,
+    its host and when it started) made with ``O_EXCL``, so a second run started
+    into the same folder at the same time is refused instead of overwriting
+    the first. Removed when the run ends, however it ends; a lock left by a
+    killed run on this host (its process is gone) is named and taken over."""
+    path = os.path.join(out, LOCK)
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": time.strftime("%Y-%m-%d %H:%M:%S"), "what": what}
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                with open(path) as f:
+                    held = json.load(f)
+            except (OSError, ValueError):
+                held = {}
+            pid, host = held.get("pid"), held.get("host")
+            if isinstance(pid, int) and host == me["host"] and not _alive(pid):
+                if log is not None:
+                    log(
+                        f"{path}: a lock left by a run that was killed ({held.get('what', 'run')}, "
+                        f"process {pid}, started {held.get('started')}); taking the folder over"
+                    )
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(path)
+                continue
+            raise ConfigError(
+                f"output folder {out!r} is in use by another jaxsync {held.get('what', 'run')} (process {pid} on "
+                f"{host}, started {held.get('started')}): wait for it to end, or choose another --out "
+                f"(if that process is gone, remove {path})"
+            ) from None
+        with os.fdopen(fd, "w") as f:
+            json.dump(me, f)
+        break
+    else:
+        raise ConfigError(f"output folder {out!r}: cannot take its lock {path}")
+    try:
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            with open(path) as f:
+                ours = json.load(f).get("pid") == me["pid"]
+            if ours:
+                os.unlink(path)
 
 
 def forget_created_dirs() -> None:

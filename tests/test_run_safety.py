@@ -1,0 +1,301 @@
+"""Runs that lose nothing and run nothing they should not: data-only
+checkpoints, resuming every method, one run per folder, inputs checked before
+any work, and clear endings for expected outcomes.
+
+The tuning loop and the held-out rollouts are stand-ins here (the real ones
+are tested in test_tune.py); what is tested is the plumbing around them.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import pickle
+import socket
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jaxsync._errors import ConfigError
+from jaxsync.cli import main
+from jaxsync.cli.tune import change_text
+from jaxsync.control.gains import default_gains
+from jaxsync.io import results as _results
+from jaxsync.optimize import checkpoint, methods, sweep, tune_state
+from jaxsync.optimize import loss as loss_mod
+from jaxsync.optimize import tune as tune_mod
+from jaxsync.optimize.config import TuneConfig
+from jaxsync.optimize.methods import Oracle
+from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.sweep_spec import parse_param
+from jaxsync.optimize.tune import TuneResult
+
+QUICK = ["--iterations", "1", "--no-mujoco-check"]
+
+
+def _quadratic():
+    a = np.diag([1.0, 30.0, 300.0])
+    return Oracle(
+        value_and_grad=lambda x: (0.5 * x @ a @ x, a @ x),
+        values=lambda xs: 0.5 * np.einsum("pi,ij,pj->p", xs, a, xs),
+    )
+
+
+# ------------------------------------------------------------ checkpoints
+
+
+def test_a_checkpoint_is_data_and_a_pickle_is_refused_unread(tmp_path):
+    """A file whose unpickling would run code is refused without being
+    unpickled: the code does not run (here it would create a file)."""
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (open, (str(marker), "w"))
+
+    path = tmp_path / "checkpoint.npz"
+    path.write_bytes(pickle.dumps({"theta": Payload()}))
+    with pytest.raises(ConfigError, match="not a jaxsync checkpoint"):
+        checkpoint.load(str(path))
+    assert not marker.exists()
+    # an .npz whose arrays are pickled objects is refused too
+    np.savez(path.with_suffix(".obj.npz"), x=np.array([Payload()], dtype=object))
+    with pytest.raises(ConfigError, match="not a jaxsync checkpoint"):
+        checkpoint.load(str(path.with_suffix(".obj.npz")))
+    assert not marker.exists()
+
+
+def test_checkpoints_keep_the_loops_types(tmp_path):
+    state = {
+        "theta": {"k_rk": np.float64(0.3) * np.ones(())},
+        "kept": {5: {"k_rk": np.ones(3)}},
+        "history": [{"iteration": 1, "cost": float("nan"), "term_grip": 2.5}],
+        "fingerprint": {"weight": ["grip=3"], "pair": (1, 2), "gains": None},
+        "count": np.int64(4),
+    }
+    checkpoint.save(str(tmp_path / "c.npz"), state)
+    back = checkpoint.load(str(tmp_path / "c.npz"))
+    assert back["kept"][5]["k_rk"].tolist() == [1.0, 1.0, 1.0] and type(back["count"]) is int
+    assert back["fingerprint"] == state["fingerprint"] and back["history"][0]["iteration"] == 1
+    assert np.isnan(back["history"][0]["cost"])
+
+
+@pytest.mark.parametrize("name", ["cmaes", "cmaes-lbfgs", "lbfgs", "adam"])
+def test_every_method_resumes_where_an_uninterrupted_run_goes(tmp_path, name):
+    """Two steps, the state through a checkpoint file, two more: the same
+    iterate, bit for bit, as four steps in one go (CMA-ES's state is replayed
+    from its told costs; cmaes-lbfgs switches to L-BFGS after the resume)."""
+    opts = {"generations": 3} if name == "cmaes-lbfgs" else {}
+    method = methods.get(name, **opts)
+    x0 = np.array([1.0, -0.5, 0.2])
+    whole = method.init(x0, seed=3)
+    for _ in range(4):
+        whole, _ = method.step(whole, _quadratic())
+    part = method.init(x0, seed=3)
+    for _ in range(2):
+        part, _ = method.step(part, _quadratic())
+    checkpoint.save(str(tmp_path / "c.npz"), {"opt_state": method.to_data(part)})
+    part = method.from_data(checkpoint.load(str(tmp_path / "c.npz"))["opt_state"])
+    for _ in range(2):
+        part, _ = method.step(part, _quadratic())
+    np.testing.assert_array_equal(method.incumbent(part), method.incumbent(whole))
+
+
+def test_a_cmaes_tuning_state_saves_and_resumes(tmp_path):
+    """The tuner's own state of a CMA-ES run through save_state / resumed_state."""
+    spec, base, method = TuneSpec(), default_gains(), methods.get("cmaes")
+    state = tune_state.fresh_state(spec, base, None, method, seed=0)
+    mstate, _ = method.step(state.opt_state, _quadratic_like(method.incumbent(state.opt_state)))
+    state = state._replace(opt_state=mstate, iteration=1)
+    path = str(tmp_path / "checkpoint.npz")
+    tune_state.save_state(path, state, {"method": "cmaes"}, method)
+    back = tune_state.resumed_state(path, {"method": "cmaes"}, spec, base, None, method)
+    np.testing.assert_array_equal(method.incumbent(back.opt_state), method.incumbent(mstate))
+    assert back.iteration == 1
+
+
+def _quadratic_like(x0):
+    n = len(x0)
+    return Oracle(
+        value_and_grad=lambda x: (float(np.sum((x - 1) ** 2)), 2 * (x - 1)),
+        values=lambda xs: np.sum((np.asarray(xs) - 1) ** 2, axis=1) + 0 * n,
+    )
+
+
+def test_a_resume_names_the_options_that_differ(tmp_path):
+    spec, base = TuneSpec(), default_gains()
+    opt = TuneConfig(method="adam").optimizer_transform()
+    state = tune_state.fresh_state(spec, base, opt)
+    path = str(tmp_path / "checkpoint.npz")
+    tune_state.save_state(path, state, {"seed": 0, "batch": 4, "lr": 0.05})
+    with pytest.raises(ConfigError) as err:
+        tune_state.resumed_state(path, {"seed": 7, "batch": 4, "lr": 0.05}, spec, base, opt)
+    assert "seed: 0 then, 7 now" in str(err.value) and "batch" not in str(err.value)
+
+
+def test_a_cosine_run_resumed_with_other_iterations_is_refused(tmp_path):
+    """Its learning rate decays over the first length: a longer resumed run
+    would not be the longer run. A constant-rate run can be extended."""
+    spec, base = TuneSpec(), default_gains()
+    opt = TuneConfig(method="adam", iterations=3).optimizer_transform()
+    state = tune_state.fresh_state(spec, base, opt)
+    path = str(tmp_path / "checkpoint.npz")
+    tune_state.save_state(path, state, None, None, 3)
+    with pytest.raises(ConfigError, match="--iterations 5, but the run .* decays its learning rate over 3"):
+        tune_state.resumed_state(path, None, spec, base, opt, None, 5)
+    assert tune_state.resumed_state(path, None, spec, base, opt, None, 3).iteration == 0
+    tune_state.save_state(path, state, None, None, None)  # constant rate
+    assert tune_state.resumed_state(path, None, spec, base, opt, None, None).iteration == 0
+
+
+# ----------------------------------------------------------------- one run per folder
+
+
+def test_a_folder_is_held_by_one_run_at_a_time(tmp_path):
+    out = str(tmp_path)
+    with _results.run_lock(out, "tune") as path:
+        assert os.path.exists(path)
+        with pytest.raises(ConfigError, match=r"in use by another jaxsync tune \(process \d+"):
+            with _results.run_lock(out, "sweep"):
+                pass
+    assert not os.path.exists(path)  # released
+    # a lock left by a killed run on this host: named and taken over
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    with open(path, "w") as f:
+        json.dump({"pid": gone.pid, "host": socket.gethostname(), "started": "then", "what": "tune"}, f)
+    said = []
+    with _results.run_lock(out, "tune", log=said.append):
+        pass
+    assert len(said) == 1 and f"process {gone.pid}" in said[0] and "killed" in said[0]
+
+
+# ----------------------------------------------------------------- the command
+
+
+@pytest.fixture
+def stand_ins(monkeypatch):
+    """The held-out rollouts and the loop replaced; ``calls["metrics"]`` sets
+    what the held-out scoring sees (both scenarios held by default)."""
+    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite")
+    Fake = collections.namedtuple("FakeMetrics", fields)
+    calls = {
+        "metrics": Fake(np.array([0.01, 0.02]), np.array([0.004, 0.006]), np.zeros(2, bool), np.zeros(2, bool)),
+        "evaluated": 0,
+    }
+
+    def evaluator(model, duration):
+        def evaluate(g, s):
+            calls["evaluated"] += 1
+            return calls["metrics"]
+
+        return evaluate
+
+    def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, out=None, **kw):
+        calls["cfg"] = cfg
+        calls["locked"] = os.path.exists(os.path.join(out, _results.LOCK))
+        v0 = {"iteration": 0, **validate(base)} if validate else None
+        row = {"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1}
+        return TuneResult(base, [row], [v0] if v0 else [], v0, base, None)
+
+    monkeypatch.setattr(loss_mod, "make_evaluator", evaluator)
+    monkeypatch.setattr(tune_mod, "tune", fake_tune)
+    return calls
+
+
+def test_tune_holds_its_folder_and_a_second_run_is_refused(tmp_path, stand_ins, capsys):
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), *QUICK]) == 0
+    assert stand_ins["locked"] and not (out / _results.LOCK).exists()
+    other = tmp_path / "busy"
+    other.mkdir()
+    (other / _results.LOCK).write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))
+    stand_ins["evaluated"] = 0
+    assert main(["tune", "--out", str(other), *QUICK]) == 2
+    err = capsys.readouterr().err
+    assert "in use by another jaxsync" in err and "Traceback" not in err
+    assert stand_ins["evaluated"] == 0  # refused before any rollout
+    assert sorted(p.name for p in other.iterdir()) == [_results.LOCK]  # the other run's lock left alone
+
+
+def test_a_sweep_into_a_folder_in_use_is_refused(tmp_path, capsys):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / _results.LOCK).write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))
+    assert main(["sweep", "--param", "k_rk=0:0.5:2", "--out", str(out), "--no-progress"]) == 2
+    assert "in use by another jaxsync" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == [_results.LOCK]
+
+
+def test_a_start_that_drops_the_object_everywhere_stops_before_tuning(tmp_path, stand_ins, capsys):
+    stand_ins["metrics"] = stand_ins["metrics"]._replace(dropped=np.ones(2, bool))
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), *QUICK]) == 4
+    err = capsys.readouterr().err
+    assert "drop the object" in err and "held-out scenarios" in err
+    assert "Traceback" not in err and "internal error" not in err
+    assert "cfg" not in stand_ins  # the budget is not spent
+    assert not out.exists()  # the folder this run created, with nothing of value, is gone
+
+
+@pytest.mark.parametrize(
+    "flags, message",
+    [
+        (["--method", "adam", "--optimizer", "lbfgs"], "steps from (updates, state, params) alone"),
+        (["--method", "adam", "--optimizer", "tree_utils"], "'tree_utils'"),
+        (["--truncate-every", "-5"], "truncate every must be a positive number of steps"),
+    ],
+)
+def test_options_are_checked_before_any_work(tmp_path, stand_ins, capsys, flags, message):
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), *QUICK, *flags]) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert stand_ins["evaluated"] == 0 and not out.exists()
+
+
+def test_a_run_that_fails_leaves_no_results_that_block_the_corrected_command(tmp_path, stand_ins, monkeypatch):
+    def broken(*a, **k):
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(tune_mod, "tune", broken)
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), *QUICK]) == 3
+    assert not out.exists()  # heldout_before.json was of no value without a run behind it
+
+
+def test_the_start_moved_into_the_bands_is_said(tmp_path, stand_ins, capsys):
+    gains = tmp_path / "g.json"
+    g = {k: np.asarray(v).tolist() for k, v in default_gains()._asdict().items()}
+    gains.write_text(json.dumps({**g, "k_rk": 1.0}))
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), "--gains", str(gains), *QUICK]) == 0
+    said = capsys.readouterr().out
+    assert "moved into the tuning bands: k_rk: 1 -> 0.999" in said
+    assert json.loads((out / "summary.json").read_text())["start_moved_into_bands"] == ["k_rk: 1 -> 0.999"]
+
+
+def test_a_zero_stiffness_start_is_refused_when_tuned_in_log_space():
+    g = default_gains()
+    with pytest.raises(ConfigError, match="imp_stiffness > 0"):
+        TuneSpec().init(g._replace(imp_stiffness=g.imp_stiffness * 0))
+    TuneSpec(tuned=("k_rk", "k_lk")).init(g._replace(imp_stiffness=g.imp_stiffness * 0))  # not tuned: fine
+
+
+def test_a_grid_count_with_samples_gives_the_values_drawn_from():
+    """``lo:hi:n`` with --samples: the n grid values, drawn from as a list is
+    (the count is not ignored); ``lo:hi``: the interval."""
+    p = parse_param("k_rl=0.2:0.8:3", random=True)
+    assert p.values == (0.2, 0.5, 0.8) and p.interval is None
+    assert parse_param("k_rl=0.2:0.8", random=True).interval == (0.2, 0.8)
+    points = sweep.make_plan(["k_rl=0.2:0.8:3"], samples=40, seed=1).points[:, 0]
+    assert set(np.round(points, 12)) == {0.2, 0.5, 0.8}
+
+
+def test_an_unchanged_score_says_unchanged():
+    assert change_text(0.01, 0.01) == " (unchanged)"
+    assert change_text(0.010001, 0.01) == " (unchanged)"
+    assert change_text(0.0102, 0.01) == " (1.02x lower)"
