@@ -1,4 +1,4 @@
-"""Tuners measured against each other on the same rollouts (issue 13, item 2).
+"""Tuners measured against each other on the same rollouts.
 
 Every method (``optimize.methods``) gets the same parameters, the same fixed
 training batch (per seed), the same held-out scenarios and the same

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ast
 import pathlib
+import re
 
 import pytest
 
@@ -117,3 +118,17 @@ def test_imports_inside_functions_say_why():
 def test_no_module_over_500_lines(module):
     n = len(MODULES[module].read_text().split("\n"))
     assert n <= MAX_LINES, f"{module}: {n} lines"
+
+
+def test_the_project_speaks_of_itself_as_it_is():
+    """No tracker or session numbers, and no "new/old path" names, in the code,
+    tests or docs: names say what a thing is, not when or why it came."""
+    pattern = re.compile(r"\b(issue #?\d+|session \d+|(new|old) path)\b", re.IGNORECASE)
+    files = [*ROOT.glob("*.md"), *ROOT.glob("docs/*.md"), *ROOT.glob("experiments/*.py"), *ROOT.glob("tests/*.py")]
+    files += sorted(set(MODULES.values()))
+    found = []
+    for path in files:
+        for i, line in enumerate(path.read_text().split("\n"), 1):
+            if pattern.search(line) and path.name != "test_layout.py":
+                found.append(f"{path.relative_to(ROOT)}:{i}: {line.strip()[:80]}")
+    assert not found, found
