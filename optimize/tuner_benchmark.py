@@ -210,9 +210,9 @@ def annotate(runs: list[dict]) -> list[dict]:
     """Each run with the figures that compare methods on its seed: the hard
     target (``HARD_TOLERANCE`` above the best held-out cost any method reached
     on that problem and seed) and the time to it, the held-out cost at 25, 50
-    and 100 % of the budget, and the worst held-out cost after the first
-    iteration as a multiple of the start's (above 1: the tuner made what is
-    held out worse than where it started)."""
+    and 100 % of the budget, and the worst held-out cost of any iterate (the
+    first one's on) as a multiple of the start's (above 1: the tuner made what
+    is held out worse than where it started)."""
     best: dict = {}
     for r in runs:
         key = (r["problem"], r["seed"])
@@ -221,15 +221,15 @@ def annotate(runs: list[dict]) -> list[dict]:
     for r in runs:
         budget = float(r.get("budget_s") or r["curve"][-1][0])
         hard = (1 + HARD_TOLERANCE) * best[(r["problem"], r["seed"])]
-        after_first = [c for _, c in r["curve"][2:]]
-        worst = max(after_first, default=r["initial_heldout_cost"])
+        iterates = [c for _, c in r["curve"][1:]]
+        worst = max(iterates, default=r["initial_heldout_cost"])
         out.append(
             {
                 **r,
                 "hard_target_cost": hard,
                 "time_to_hard_target_s": time_to(r["curve"], hard),
                 **{f"cost_at_{round(100 * f)}pct": cost_at(r["curve"], f * budget) for f in FRACTIONS},
-                "worst_after_first_over_start": float(worst / r["initial_heldout_cost"]),
+                "worst_iterate_over_start": float(worst / r["initial_heldout_cost"]),
             }
         )
     return out
@@ -244,8 +244,8 @@ def summarize(runs: list[dict]) -> list[dict]:
     """Per problem and method, over seeds: how many reached each target, the
     time to the half-cost and to the hard target (median, min, max; a run that
     missed counts as infinitely slow), the best held-out cost, the held-out
-    cost at 25, 50 and 100 % of the budget, and the worst held-out cost after
-    the first iteration over the start's (with how many seeds went above 1)."""
+    cost at 25, 50 and 100 % of the budget, and the worst held-out cost of any
+    iterate over the start's (with how many seeds went above 1)."""
     runs = annotate(runs)
     out = []
     keys = sorted({(r["problem"], r["method"]) for r in runs}, key=lambda k: (k[0], _methods.METHODS.index(k[1])))
@@ -253,7 +253,7 @@ def summarize(runs: list[dict]) -> list[dict]:
         rs = [r for r in runs if r["problem"] == problem and r["method"] == method]
         tt = [r["time_to_target_s"] if r["time_to_target_s"] is not None else np.inf for r in rs]
         th = [r["time_to_hard_target_s"] if r["time_to_hard_target_s"] is not None else np.inf for r in rs]
-        worst = [r["worst_after_first_over_start"] for r in rs]
+        worst = [r["worst_iterate_over_start"] for r in rs]
         row = {
             "problem": problem,
             "method": method,
@@ -261,8 +261,8 @@ def summarize(runs: list[dict]) -> list[dict]:
             "seed_list": sorted(r["seed"] for r in rs),
             "reached": int(np.isfinite(tt).sum()),
             "reached_hard": int(np.isfinite(th).sum()),
-            "above_start_after_first": int(sum(w > 1 for w in worst)),
-            "worst_after_first_over_start_max": float(max(worst)),
+            "above_start": int(sum(w > 1 for w in worst)),
+            "worst_iterate_over_start_max": float(max(worst)),
         }
         for name, values in (
             ("time_to_target", tt),
@@ -293,10 +293,10 @@ def table(summary: list[dict]) -> str:
 
     lines = [
         f"{'problem':9s} {'method':12s} {'to half, s':>22s} {'to hard (10 %), s':>22s} {'cost at 25 %':>22s}"
-        f" {'cost at 50 %':>22s} {'cost at 100 %':>22s} {'worst/start after it 1':>24s}"
+        f" {'cost at 50 %':>22s} {'cost at 100 %':>22s} {'worst iterate / start':>24s}"
     ]
     for r in summary:
-        worst = f"{g(r['worst_after_first_over_start_max'])} ({r['above_start_after_first']}/{r['seeds']} > 1)"
+        worst = f"{g(r['worst_iterate_over_start_max'])} ({r['above_start']}/{r['seeds']} > 1)"
         lines.append(
             f"{r['problem']:9s} {r['method']:12s} {span(r, 'time_to_target', s):>22s}"
             f" {span(r, 'time_to_hard_target', s):>22s} {span(r, 'cost_at_25pct', g):>22s}"
