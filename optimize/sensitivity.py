@@ -208,17 +208,22 @@ def write_results(out: str, s: Sensitivity, gains, *, batch: int, seed: int, dur
     return ["sensitivity.csv", "sensitivity.json", "sensitivity.png"]
 
 
+def check_duration(base, duration: float, name: str = "duration", task: str = "this task") -> None:
+    """ConfigError unless ``duration`` reaches ``base``'s settled window."""
+    if duration < min_duration(base):
+        raise ConfigError(
+            f"{name} must be at least {min_duration(base):g} s for {task} (its settled "
+            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
+        )
+
+
 def study(
     model, gains, base, *, batch: int, seed: int, duration: float, out: str, at: str = "the given gains", log=print
 ) -> Sensitivity:
     """``jaxsync sensitivity``'s job: the sensitivities of the smooth metrics
     to every gain entry over ``batch`` randomised scenarios around ``base``
     (a :class:`~jaxsync.Scenario`), written to ``out`` (:func:`write_results`)."""
-    if duration < min_duration(base):
-        raise ConfigError(
-            f"duration must be at least {min_duration(base):g} s for this task (its settled "
-            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
-        )
+    check_duration(base, duration)
     _results.ensure_writable_dir(out)
     scen = sample_scenarios(jax.random.key(seed), batch, base)
     log(

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import time
 
-from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_model_argument, positive
 
 
@@ -14,17 +13,13 @@ def run(args) -> int:
     from jaxsync.io import gains_file
     from jaxsync.optimize import sensitivity as sens
     from jaxsync.physics.model import load_model
-    from jaxsync.sim.scenario import default_scenario, min_duration, short_task
+    from jaxsync.sim.scenario import default_scenario, short_task
 
     # every input is checked before anything is written
     gains = gains_file.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
     base = short_task() if args.task == "short" else default_scenario()
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
-    if duration < min_duration(base):
-        raise ConfigError(
-            f"--duration must be at least {min_duration(base):g} s for the {args.task} task (its settled "
-            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
-        )
+    sens.check_duration(base, duration, "--duration", f"the {args.task} task")
     model = load_model(args.model)
     where = "the gains of " + args.gains if args.gains else "the default gains"
     t0 = time.perf_counter()

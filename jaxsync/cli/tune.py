@@ -73,7 +73,6 @@ def run(args) -> int:
     ).validate()
     weights = _weights(args.weight)
     base = gains_file.load(args.gains) if args.gains else _gains.default_gains()
-    spec.init(base)  # a schedule file needs --per-phase: say so before any folder is touched
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
     summary = pipeline.tune_and_evaluate(

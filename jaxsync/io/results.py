@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.runtime.files import atomic_path, atomic_write_bytes  # noqa: F401  (part of this module's API)
 
 # The outermost folder each ensure_writable_dir call created, so that a run
 # that then fails can remove what it created and left empty
@@ -122,36 +123,6 @@ def remove_created_dirs() -> list[str]:
                 os.rmdir(root)
                 removed.append(root)
     return removed
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
-    """A temporary file name beside ``path`` (same extension) to write to; on
-    success it replaces ``path`` as an ordinary file (umask permissions, not
-    mkstemp's 0600), on failure it is removed."""
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    fd, tmp = tempfile.mkstemp(
-        dir=directory, prefix=".tmp-" + os.path.basename(path) + "-", suffix=os.path.splitext(path)[1]
-    )
-    os.close(fd)
-    try:
-        yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def atomic_write_bytes(path: str, data: bytes) -> None:
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
 
 
 def atomic_write_text(path: str, text: str) -> None:

@@ -15,6 +15,7 @@ from jax import export
 
 from jaxsync._errors import ConfigError
 from jaxsync.runtime import patches, programs
+from jaxsync.runtime.files import atomic_write_bytes
 
 ENV_VAR = "JAXSYNC_CACHE_DIR"
 
@@ -187,13 +188,6 @@ def _register_export_types(args) -> None:
             pass  # already registered
 
 
-def _atomic_write(path: str, data: bytes) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-
-
 def _one_placement(jitted):
     """``jitted`` called with every argument committed to the first device.
 
@@ -256,7 +250,7 @@ def traced_on_disk(fn, args: tuple, key: str, log=None, cache_dir: str | None = 
                 exp = export.deserialize(bytearray(f.read()))
         else:
             exp = export.export(raw)(*args)
-            _atomic_write(path, exp.serialize())
+            atomic_write_bytes(path, exp.serialize())
         loaded = _one_placement(jax.jit(exp.call))
     except Exception as err:  # noqa: BLE001  (an optimisation only: fall back to tracing)
         if log is not None:
