@@ -32,6 +32,13 @@ def main(argv=None) -> int:
     p.add_argument("--heldout-batch", type=int, default=8, help="held-out scenarios (8)")
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
     p.add_argument("--target", type=float, default=0.5, help="target: this fraction of the start's held-out cost")
+    p.add_argument(
+        "--sampling",
+        choices=("stratified", "iid"),
+        default="stratified",
+        help="the fixed training batch: a Latin hypercube on the scenario ranges' ends (stratified, as jaxsync tune) "
+        "or independent uniform draws (iid)",
+    )
     p.add_argument("--out", default="results/tuner_benchmark")
     args = p.parse_args(argv)
 
@@ -68,6 +75,7 @@ def main(argv=None) -> int:
         heldout_batch=args.heldout_batch,
         popsize=args.popsize,
         target=args.target,
+        stratified=args.sampling == "stratified",
     )
     runs_path = os.path.join(args.out, "runs.jsonl")
     runs = []

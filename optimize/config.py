@@ -42,6 +42,7 @@ class TuneConfig:
     validation_batch: int = 16
     method: str = "lbfgs"  # optimize.methods.METHODS (docs/tuning.md: measured best); "adam" is the optax loop
     popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
+    sampling: str = "stratified"  # training batches: the ranges' ends (optimize.scenarios) or "iid"
 
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
@@ -80,6 +81,8 @@ class TuneConfig:
             raise ConfigError(f"method must be one of {list(_methods.METHODS)}, got {self.method!r}")
         if self.popsize < 2:
             raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
+        if self.sampling not in ("stratified", "iid"):
+            raise ConfigError(f"sampling must be 'stratified' or 'iid', got {self.sampling!r}")
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         return self

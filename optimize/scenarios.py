@@ -21,11 +21,23 @@ def training_base(cfg) -> tuple[_scenario.Scenario, float]:
     return _scenario.short_task(**dict(cfg.train_scenario)), cfg.train_duration
 
 
-def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scenario.Scenario:
+def sample_scenarios(
+    key: jax.Array, n: int, base: _scenario.Scenario, *, stratified: bool = False
+) -> _scenario.Scenario:
     """A batch of randomised scenarios around ``base``: object mass +-30 % (the
     controller keeps the nominal estimate), offset along the clamping axis
     +-5 mm, contact time constant 15-30 ms, friction 0.8-1.2, wrist force
     noise 0.05-0.15 N, fresh noise keys.
+
+    Each quantity is drawn independently and uniformly over its range. With
+    ``stratified`` the batch is a Latin hypercube on the ranges' ends instead:
+    each quantity takes ``n`` evenly spaced levels from the bottom of its
+    range to the top (both ends included), each level once, the levels paired
+    at random across quantities. A batch of 2 then holds the softest and the
+    stiffest contact, the lightest and the heaviest object, and so on: a small
+    fixed training batch holds the range's extremes, where the controller is
+    closest to its limits (the softest contact is the first to chatter when a
+    gain moves toward instability), rather than whatever the draw gave.
 
     Example:
       >>> batch = sample_scenarios(jax.random.key(0), 4, jaxsync.short_task())
@@ -33,24 +45,34 @@ def sample_scenarios(key: jax.Array, n: int, base: _scenario.Scenario) -> _scena
       (4,)
     """
     ks = jax.random.split(key, 7)
-    u = lambda k, lo, hi: jax.random.uniform(k, (n,), minval=lo, maxval=hi, dtype=jnp.float64)  # noqa: E731
+    strata = jax.random.split(jax.random.fold_in(key, 1), 5)
+
+    def u(i, lo, hi):
+        if stratified:
+            r = jax.random.permutation(strata[i], n) / max(n - 1, 1) if n > 1 else jnp.full((1,), 0.5)
+        else:
+            r = jax.random.uniform(ks[i], (n,), dtype=jnp.float64)
+        return lo + (hi - lo) * r
+
     rep = lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x)))  # noqa: E731
     batch = jax.tree_util.tree_map(rep, base)
-    offset = jnp.zeros((n, 3)).at[:, 1].set(u(ks[1], -0.005, 0.005))
+    offset = jnp.zeros((n, 3)).at[:, 1].set(u(1, -0.005, 0.005))
     noise_keys = jax.vmap(lambda k: jax.random.key_data(k))(jax.random.split(ks[6], n)).astype(jnp.uint32)
     return batch._replace(
-        object_mass=base.object_mass * u(ks[0], 0.7, 1.3),
+        object_mass=base.object_mass * u(0, 0.7, 1.3),
         object_offset=offset,
-        contact_timeconst=u(ks[2], 0.015, 0.03),
-        friction=u(ks[3], 0.8, 1.2),
-        force_noise=u(ks[4], 0.05, 0.15),
+        contact_timeconst=u(2, 0.015, 0.03),
+        friction=u(3, 0.8, 1.2),
+        force_noise=u(4, 0.05, 0.15),
         noise_key=noise_keys,
     )
 
 
 def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.Scenario:
-    """The training batch of one iteration (seeded by ``cfg.seed`` and the iteration)."""
-    return sample_scenarios(jax.random.fold_in(jax.random.key(cfg.seed), iteration), cfg.batch, base)
+    """The training batch of one iteration (seeded by ``cfg.seed`` and the iteration;
+    holding the ranges' ends unless ``cfg.sampling`` is "iid")."""
+    key = jax.random.fold_in(jax.random.key(cfg.seed), iteration)
+    return sample_scenarios(key, cfg.batch, base, stratified=cfg.sampling == "stratified")
 
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:

@@ -61,6 +61,7 @@ class BenchConfig:
     target: float = 0.5  # target held-out cost = this x the starting gains' held-out cost
     task: str = "short"  # the training and held-out task ("short": 2 s; "full": 4 s)
     max_iterations: int = 10_000
+    stratified: bool = True  # the fixed training batch holds the ranges' ends (sample_scenarios), as jaxsync tune's
 
 
 class Programs:
@@ -100,7 +101,9 @@ class Programs:
         self.x0_constant = np.asarray(x22)
 
     def training(self, seed: int):
-        return sample_scenarios(jax.random.key(seed), self.cfg.batch, self.base_scenario)
+        return sample_scenarios(
+            jax.random.key(seed), self.cfg.batch, self.base_scenario, stratified=self.cfg.stratified
+        )
 
     def to_full(self, problem: str, x) -> np.ndarray:
         return self.tie @ x if problem == "constant" else np.asarray(x)

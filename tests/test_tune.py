@@ -87,6 +87,41 @@ def test_scenario_sampling_is_seeded_and_in_range():
     assert np.abs(np.asarray(a.object_offset)[:, 1]).max() <= 0.005
 
 
+def test_stratified_batches_hold_each_ranges_ends():
+    """A stratified batch takes every level from the bottom of each range to its
+    top once (a batch of 2: the softest and the stiffest contact, ...), paired
+    differently per seed; the default iid draw is unchanged by the option."""
+    base = jaxsync.short_task()
+    ranges = {
+        "contact_timeconst": (0.015, 0.03),
+        "friction": (0.8, 1.2),
+        "force_noise": (0.05, 0.15),
+    }
+    for n in (2, 4):
+        s = sample_scenarios(jax.random.key(5), n, base, stratified=True)
+        for name, (lo, hi) in ranges.items():
+            np.testing.assert_allclose(np.sort(np.asarray(getattr(s, name))), np.linspace(lo, hi, n), rtol=1e-12)
+        np.testing.assert_allclose(
+            np.sort(np.asarray(s.object_mass)) / float(base.object_mass), np.linspace(0.7, 1.3, n), rtol=1e-12
+        )
+        np.testing.assert_allclose(np.sort(np.asarray(s.object_offset)[:, 1]), np.linspace(-0.005, 0.005, n))
+    pairings = {
+        tuple(np.argsort(np.asarray(sample_scenarios(jax.random.key(k), 4, base, stratified=True).friction)))
+        for k in range(6)
+    }
+    assert len(pairings) > 1  # the levels are paired at random, not in one fixed order
+    iid = sample_scenarios(jax.random.key(5), 4, base)
+    assert not np.allclose(np.sort(np.asarray(iid.contact_timeconst)), np.linspace(0.015, 0.03, 4))
+    # training batches are stratified by default, iid on request
+    cfg = TuneConfig(batch=2, task="short")
+    tb = training_batch(cfg, 0, base)
+    np.testing.assert_allclose(np.sort(np.asarray(tb.contact_timeconst)), [0.015, 0.03])
+    tb_iid = training_batch(dataclasses.replace(cfg, sampling="iid"), 0, base)
+    assert not np.allclose(np.sort(np.asarray(tb_iid.contact_timeconst)), [0.015, 0.03])
+    with pytest.raises(jaxsync.ConfigError, match="sampling must be"):
+        TuneConfig(sampling="sobol").validate()
+
+
 def _fake_validation(g):
     """A cheap stand-in for the held-out-style evaluation: a smooth function of the gains."""
     return {
@@ -217,12 +252,13 @@ def fake_tuning(monkeypatch):
     """The optimisation loop and the held-out rollouts replaced by stand-ins
     (both are tested above; compiling them for a CLI test would cost minutes).
     Returns the dict the fake loop records its arguments in."""
-    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite")
+    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "chattering")
     fake_metrics = collections.namedtuple("FakeMetrics", fields)(
         settled_peak_resultant_N=np.array([0.01, 0.02]),
         grip_force_error_rel=np.array([0.004, 0.006]),
         dropped=np.array([False, False]),
         nonfinite=np.array([False, False]),
+        chattering=np.array([False, False]),
     )
     monkeypatch.setattr(loss_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
     calls = {}

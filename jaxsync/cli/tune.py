@@ -70,6 +70,7 @@ def run(args) -> int:
         task=args.task,
         method=args.method,
         popsize=args.popsize,
+        sampling=args.sampling,
     ).validate()
     weights = _weights(args.weight)
     base = gains_file.load(args.gains) if args.gains else _gains.default_gains()
@@ -207,6 +208,14 @@ def add_parser(sub) -> None:
         choices=["full", "short"],
         help="training task: 'short' (2 s, compressed phases) or 'full' (the 4 s default task the held-out "
         "scenarios use; twice the cost per step of 'short') (full)",
+    )
+    p.add_argument(
+        "--sampling",
+        default="stratified",
+        choices=["stratified", "iid"],
+        help="training batches: 'stratified' holds each scenario range's ends (a batch of 2: the softest and "
+        "the stiffest contact, the lightest and the heaviest object, ...), 'iid' draws each scenario "
+        "independently (stratified)",
     )
     p.add_argument(
         "--weight",
