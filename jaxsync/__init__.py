@@ -59,6 +59,7 @@ from jaxsync._errors import (
 from jaxsync.control.controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
 from jaxsync.control.gains import Gains, classical_equivalent, default_gains
 from jaxsync.physics.model import DualArmModel, default_model_path, load_model
+from jaxsync.physics.robot import Robot, load_robot
 from jaxsync.physics.sensing import ArmState, ObjectState, Sensed, sense
 from jaxsync.physics.step import after_control, before_control, put_data
 from jaxsync.runtime.cache import enable_compilation_cache
@@ -110,6 +111,8 @@ __all__ = [
     "before_control",
     "default_model_path",
     "load_model",
+    "load_robot",
+    "Robot",
     "put_data",
     "sense",
     # controller

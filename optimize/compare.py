@@ -30,7 +30,9 @@ SUMMARY_KEYS = (
     "mean_grip_force_N",
     "grip_force_error_rel",
     "sync_error_rms_m",
+    "force_chatter_N",
     "dropped",
+    "chattering",
 )
 
 
@@ -109,6 +111,11 @@ def table(summary: dict) -> list[str]:
     else:
         lines.append(f"resultant_ratio (classical / synchronous): {ratio:.3f}" if ratio else "resultant_ratio: n/a")
     return lines
+
+
+def chattering(summary: dict) -> list[str]:
+    """The controllers whose pad forces chattered in the settled window (``jaxsync.sim.metrics.chattering``)."""
+    return [n for n in CONTROLLERS if summary[n].get("chattering")]
 
 
 def plot_forces(

@@ -13,6 +13,14 @@ from jaxsync.sim.metrics import BOOL_METRICS
 DEFAULT_PLOT_METRICS = ("settled_peak_resultant_N", "grip_force_error_rel")
 
 
+def _ok(metrics: dict) -> np.ndarray:
+    """The points whose metrics mean something: held, finite, not chattering."""
+    bad = metrics["dropped"].astype(bool) | metrics["nonfinite"].astype(bool)
+    if "chattering" in metrics:
+        bad = bad | metrics["chattering"].astype(bool)
+    return ~bad
+
+
 def write_csv(path: str, plan: Plan, metrics: dict) -> None:
     cols: dict[str, list] = {"point": list(range(len(plan.points)))}
     for j, p in enumerate(plan.params):
@@ -20,7 +28,7 @@ def write_csv(path: str, plan: Plan, metrics: dict) -> None:
         cols[p.name] = [int(v) for v in col] if p.target.integer else [float(v) for v in col]
     for k, v in metrics.items():
         cols[k] = [int(x) for x in v] if k in BOOL_METRICS else [float(x) for x in v]
-    ok = ~(metrics["dropped"].astype(bool) | metrics["nonfinite"].astype(bool))
+    ok = _ok(metrics)
     cols["ok"] = [int(x) for x in ok]
     _results.write_csv(path, cols)
 
@@ -33,12 +41,13 @@ def _stats(x: np.ndarray) -> dict | None:
 
 
 def summarize_sweep(plan: Plan, metrics: dict) -> dict:
-    ok = ~(metrics["dropped"].astype(bool) | metrics["nonfinite"].astype(bool))
+    ok = _ok(metrics)
     out = {
         "n_points": len(plan.points),
         "n_ok": int(ok.sum()),
         "n_dropped": int(metrics["dropped"].astype(bool).sum()),
         "n_nonfinite": int(metrics["nonfinite"].astype(bool).sum()),
+        "n_chattering": int(metrics["chattering"].astype(bool).sum()) if "chattering" in metrics else 0,
         "metrics_over_ok_points": {},
         "best_ok_point": {},
     }
@@ -74,7 +83,7 @@ def plot(out: str, plan: Plan, metrics: dict, plot_metrics) -> str | None:
     swept = [j for j, p in enumerate(plan.params) if p.swept]
     if not swept or len(swept) > 2 and plan.samples is not None:
         return None
-    ok = ~(metrics["dropped"].astype(bool) | metrics["nonfinite"].astype(bool))
+    ok = _ok(metrics)
     axes_j = swept[:2]
     others = [plan.params[j].name for j in swept[2:]]
     note = f" (mean over {', '.join(others)})" if others else ""

@@ -21,18 +21,21 @@ from jaxsync.optimize.params import TuneSpec
 def select_iterate(validation: list[dict]) -> dict | None:
     """The validated iterate with the lowest settled peak resultant whose grip
     error is not worse than the start's (the first entry, which therefore always
-    qualifies). Entries: {"iteration", "settled_peak_resultant_N",
-    "grip_force_error_rel", "dropped", "nonfinite", ...}."""
+    qualifies), that dropped nothing and chattered in no scenario more than the
+    start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``). Entries:
+    {"iteration", "settled_peak_resultant_N", "grip_force_error_rel",
+    "dropped", "nonfinite", "chattering", ...}."""
     if not validation:
         return None
     grip0 = validation[0]["grip_force_error_rel"]
+    chatter0 = validation[0].get("chattering", 0)
     ok = [
         v
         for v in validation
         if v["settled_peak_resultant_N"] is not None
         and not v["dropped"]
         and not v["nonfinite"]
-        and (v is validation[0] or v["grip_force_error_rel"] <= grip0)
+        and (v is validation[0] or (v["grip_force_error_rel"] <= grip0 and v.get("chattering", 0) <= chatter0))
     ]
     return min(ok, key=lambda v: v["settled_peak_resultant_N"]) if ok else validation[0]
 

@@ -7,6 +7,7 @@ import argparse
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
 EXIT_DROPPED = 4  # the object was dropped: compare (files written) or tune (by the start, nothing tuned)
 EXIT_SIM_TO_SIM = 5  # compare --mujoco-check: MuJoCo C and MJX disagree (files written)
+EXIT_UNSTABLE = 6  # compare: a controller's pad forces chattered (unstable at these gains; files written)
 
 
 def positive(kind):
@@ -27,7 +28,28 @@ def positive(kind):
 
 
 def add_model_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--model", default=None, help="MJCF file (default: the packaged paper model)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--model", default=None, help="MJCF file in jaxsync's convention (default: the paper model)")
+    g.add_argument(
+        "--robot",
+        default=None,
+        metavar="FILE",
+        help="robot file (YAML, docs/robots.md): any dual-arm robot from its own MJCF, the task scene composed "
+        "around it",
+    )
+    p.add_argument(
+        "--no-visual", action="store_true", help="with --robot: load without the robot's meshes (missing files)"
+    )
+
+
+def model_source(args) -> str | None:
+    """The model a command loads: --robot's file, --model's, or None (the paper model)."""
+    return getattr(args, "robot", None) or getattr(args, "model", None)
+
+
+def model_options(args) -> dict:
+    """load_model's keyword options from the model flags."""
+    return {"visual": not getattr(args, "no_visual", False)}
 
 
 def add_distributed_arguments(p: argparse.ArgumentParser) -> None:

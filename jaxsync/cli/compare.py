@@ -5,10 +5,18 @@ from __future__ import annotations
 import argparse
 import sys
 
-from jaxsync.cli._common import EXIT_DROPPED, EXIT_SIM_TO_SIM, add_model_argument, positive
+from jaxsync.cli._common import (
+    EXIT_DROPPED,
+    EXIT_SIM_TO_SIM,
+    EXIT_UNSTABLE,
+    add_model_argument,
+    model_options,
+    model_source,
+    positive,
+)
 
 
-def scenario_from_args(args: argparse.Namespace):
+def scenario_from_args(args: argparse.Namespace, model=None):
     # imported here, not at the top: `jaxsync --help` stays fast
     import jax
     import numpy as np
@@ -16,6 +24,9 @@ def scenario_from_args(args: argparse.Namespace):
     from jaxsync.sim.scenario import default_scenario
 
     overrides = {}
+    if model is not None and model.robot is not None:  # the robot file's object
+        overrides["object_mass"] = model.robot["object_mass"]
+        overrides["object_radius"] = model.robot["object_radius"]
     if args.object_mass is not None:
         overrides["object_mass"] = args.object_mass
     if args.grip_force is not None:
@@ -35,13 +46,21 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
     from jaxsync.optimize import compare as _compare
+    from jaxsync.physics.inertia import pad_apparent_inertia
     from jaxsync.physics.model import load_model
+    from jaxsync.sim.metrics import CHATTER_THRESHOLD_N
 
-    gains = gains_file.load(args.gains) if args.gains else _gains.default_gains()
-    scenario = scenario_from_args(args)
+    model = load_model(model_source(args), solver="accurate", **model_options(args))
+    gains = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
+    ratio = _gains.stability_ratio(gains, pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
+    print(
+        f"normal-axis stability ratio (M + B dt + K dt^2) / apparent inertia: right {ratio[0]:.2f}, left "
+        f"{ratio[1]:.2f} (above 1 stable against a stiff contact; docs/robots.md)"
+    )
+    scenario = scenario_from_args(args, model)
     _compare.check_duration(scenario, args.duration)
     summary, files = _compare.paper_comparison(
-        load_model(args.model, solver="accurate"),
+        model,
         gains,
         scenario,
         args.out,
@@ -76,6 +95,19 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_SIM_TO_SIM
+    unstable = _compare.chattering(summary)
+    if unstable:
+        print(
+            "jaxsync compare: WARNING: "
+            + "; ".join(
+                f"the {n} controller's pad forces chattered (RMS change per step {summary[n]['force_chatter_N']:.3g} N"
+                f" > {CHATTER_THRESHOLD_N:g} N): unstable at these gains, its force metrics mean little"
+                for n in unstable
+            )
+            + f" (exit status {EXIT_UNSTABLE}; docs/metrics.md)",
+            file=sys.stderr,
+        )
+        return EXIT_UNSTABLE
     return 0
 
 
@@ -87,7 +119,8 @@ def add_parser(sub) -> None:
         "impedance parameters on the same scenario; write summary.json, series.csv and force plots.",
         epilog=f"Exit status: 0 done; 2 bad input; {EXIT_DROPPED} a controller dropped the object (the files are "
         "written, the drop marked in the table and plots, resultant_ratio null in summary.json); 3 internal error; "
-        f"{EXIT_SIM_TO_SIM} --mujoco-check: MuJoCo C disagrees with MJX (files written); 130 interrupted.",
+        f"{EXIT_SIM_TO_SIM} --mujoco-check: MuJoCo C disagrees with MJX (files written); {EXIT_UNSTABLE} a "
+        "controller's pad forces chattered (files written); 130 interrupted.",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     p.add_argument("--grip-force", type=positive(float), default=None, help="desired grip force f_d, N (10)")

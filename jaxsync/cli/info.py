@@ -6,7 +6,7 @@ import argparse
 import os
 import platform
 
-from jaxsync.cli._common import add_model_argument
+from jaxsync.cli._common import add_model_argument, model_options, model_source
 
 
 def run(args: argparse.Namespace) -> int:
@@ -18,7 +18,7 @@ def run(args: argparse.Namespace) -> int:
 
     from jaxsync.physics.model import load_model, summary
 
-    model = load_model(args.model, solver=args.solver)
+    model = load_model(model_source(args), solver=args.solver, **model_options(args))
     print(f"jaxsync      {version('jaxsync')}")
     print(f"python       {platform.python_version()} on {platform.machine()}")
     print(f"jax          {jax.__version__} (x64: {jax.config.jax_enable_x64})")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from jaxsync.cli._common import add_model_argument
+from jaxsync.cli._common import add_model_argument, model_options, model_source
 
 
 def run(args) -> int:
@@ -14,7 +14,7 @@ def run(args) -> int:
     from jaxsync.physics.model import load_model
 
     backend = _render.select_gl_backend()
-    model = load_model(args.model)
+    model = load_model(model_source(args), **model_options(args))
     _results.ensure_writable_dir(args.out)  # the input is checked: only now the folder
     image = _render.render_pose(model.mj_model, model.keyframe_qpos(args.keyframe), args.width, args.height)
     path = _render.save_png(image, os.path.join(args.out, f"{args.keyframe}.png"))

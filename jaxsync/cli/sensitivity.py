@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from jaxsync.cli._common import add_model_argument, positive
+from jaxsync.cli._common import add_model_argument, model_options, model_source, positive
 
 
 def run(args) -> int:
@@ -20,7 +20,7 @@ def run(args) -> int:
     base = short_task() if args.task == "short" else default_scenario()
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
     sens.check_duration(base, duration, "--duration", f"the {args.task} task")
-    model = load_model(args.model)
+    model = load_model(model_source(args), **model_options(args))
     where = "the gains of " + args.gains if args.gains else "the default gains"
     t0 = time.perf_counter()
     s = sens.study(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from jaxsync._errors import ConfigError
-from jaxsync.cli._common import add_distributed_arguments, add_model_argument
+from jaxsync.cli._common import add_distributed_arguments, add_model_argument, model_options, model_source
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.methods import METHODS
 from jaxsync.optimize.params import TUNABLE, TuneSpec
@@ -73,11 +73,12 @@ def run(args) -> int:
         sampling=args.sampling,
     ).validate()
     weights = _weights(args.weight)
-    base = gains_file.load(args.gains) if args.gains else _gains.default_gains()
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
+    model = load_model(model_source(args), **model_options(args))
+    base = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
     summary = pipeline.tune_and_evaluate(
-        load_model(args.model),
+        model,
         spec,
         base,
         cfg,

@@ -16,11 +16,15 @@ import numpy as np
 from mujoco import mjx
 
 from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
+from jaxsync.physics import compose as _compose
+from jaxsync.physics import ik as _ik
 from jaxsync.physics import step as _physics
+from jaxsync.physics.robot import is_robot_file, load_robot
 from jaxsync.runtime import patches
 
 ARMS = ("r", "l")
-JOINTS_PER_ARM = 7
+JOINTS_PER_ARM = 7  # the paper model's; a robot's arms have 6 or 7 (joints_per_arm)
+ARM_JOINT_COUNTS = (6, 7)
 
 SolverName = Literal["accurate", "unrolled"]
 
@@ -86,8 +90,16 @@ class ModelIndex:
         return (self.right, self.left)
 
 
-def required_names() -> dict[str, list[str]]:
-    """Every MJCF name jaxsync relies on, by kind."""
+def joints_per_arm(m: mujoco.MjModel) -> int:
+    """How many joints ``r_joint1``, ``r_joint2``, ... the model has (0 if none)."""
+    n = 0
+    while _id(m, "joint", f"r_joint{n + 1}") >= 0:
+        n += 1
+    return n
+
+
+def required_names(n: int = JOINTS_PER_ARM) -> dict[str, list[str]]:
+    """Every MJCF name jaxsync relies on, by kind (``n`` joints per arm)."""
     names: dict[str, list[str]] = {
         "body": ["object"],
         "joint": ["object_free"],
@@ -98,8 +110,8 @@ def required_names() -> dict[str, list[str]]:
     }
     for a in ARMS:
         names["body"].append(f"{a}_ee")
-        names["joint"] += [f"{a}_joint{k}" for k in range(1, JOINTS_PER_ARM + 1)]
-        names["actuator"] += [f"{a}_motor{k}" for k in range(1, JOINTS_PER_ARM + 1)]
+        names["joint"] += [f"{a}_joint{k}" for k in range(1, n + 1)]
+        names["actuator"] += [f"{a}_motor{k}" for k in range(1, n + 1)]
         names["site"] += [f"{a}_pad", f"{a}_ft", f"{a}_flange"]
         names["geom"].append(f"{a}_pad")
         names["sensor"] += [f"{a}_ft_force", f"{a}_ft_torque"]
@@ -121,14 +133,18 @@ def _id(m: mujoco.MjModel, kind: str, name: str) -> int:
 
 
 def _check_structure(m: mujoco.MjModel, path: str) -> None:
+    n = joints_per_arm(m)
+    n = n if n in ARM_JOINT_COUNTS else JOINTS_PER_ARM
     missing = [
-        f"{kind} '{name}'" for kind, names in required_names().items() for name in names if _id(m, kind, name) < 0
+        f"{kind} '{name}'" for kind, names in required_names(n).items() for name in names if _id(m, kind, name) < 0
     ]
     problems = []
     if missing:
         problems.append("missing " + ", ".join(missing))
+    if _id(m, "joint", f"r_joint{n + 1}") >= 0 or _id(m, "joint", f"l_joint{n + 1}") >= 0:
+        problems.append(f"more than {n} joints per arm (r_joint{n + 1}); jaxsync arms have 6 or 7")
     for a in ARMS:
-        for k in range(1, JOINTS_PER_ARM + 1):
+        for k in range(1, n + 1):
             j = _id(m, "joint", f"{a}_joint{k}")
             if j >= 0 and m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
                 problems.append(f"joint '{a}_joint{k}' is not a hinge")
@@ -173,14 +189,16 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
     geoms = _physics.static_contact_geoms(mx)
     obj_geom = _id(m, "geom", "object")
 
+    n = joints_per_arm(m)
+
     def arm(a: str) -> ArmIndex:
-        joints = [_id(m, "joint", f"{a}_joint{k}") for k in range(1, JOINTS_PER_ARM + 1)]
+        joints = [_id(m, "joint", f"{a}_joint{k}") for k in range(1, n + 1)]
         pad_geom = _id(m, "geom", f"{a}_pad")
         return ArmIndex(
             prefix=a,
             qpos_adr=tuple(int(m.jnt_qposadr[j]) for j in joints),
             dof_adr=tuple(int(m.jnt_dofadr[j]) for j in joints),
-            actuator_ids=tuple(_id(m, "actuator", f"{a}_motor{k}") for k in range(1, JOINTS_PER_ARM + 1)),
+            actuator_ids=tuple(_id(m, "actuator", f"{a}_motor{k}") for k in range(1, n + 1)),
             ee_body=_id(m, "body", f"{a}_ee"),
             root_body=int(m.body_rootid[_id(m, "body", f"{a}_ee")]),
             pad_site=_id(m, "site", f"{a}_pad"),
@@ -215,6 +233,7 @@ class DualArmModel:
     mj_model: mujoco.MjModel
     mjx_model: mjx.Model
     index: ModelIndex
+    robot: dict | None = None  # a robot file's composition: joint names, limits, notes, poses (load_model)
 
     @property
     def solver_unroll(self) -> int:
@@ -231,6 +250,12 @@ class DualArmModel:
 def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate") -> mujoco.MjModel:
     """Compile the MJCF file to a MuJoCo C model with the chosen solver settings."""
     path = str(path) if path is not None else default_model_path()
+    _check_solver(solver)
+    m, _ = _compile_model(path, visual=True)
+    return _with_solver(m, solver)
+
+
+def _check_solver(solver: str) -> None:
     if solver == "differentiable":
         raise ConfigError(
             "solver 'differentiable' is gone: the 'accurate' solver is differentiable (implicit adjoint of its "
@@ -238,41 +263,87 @@ def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate
         )
     if solver not in SOLVERS:
         raise ConfigError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
-    if not os.path.isfile(path):
-        raise ModelFileError(f"{path}: no such MJCF file")
-    if not os.access(path, os.R_OK):
-        raise ModelFileError(f"{path}: MJCF file is not readable")
-    try:
-        m = mujoco.MjModel.from_xml_path(path)
-    except (ValueError, OSError) as err:  # mujoco reports XML and compile errors as ValueError
-        raise ModelFileError(f"{path}: cannot compile MJCF: {err}") from None
-    _check_structure(m, path)
+
+
+def _with_solver(m: mujoco.MjModel, solver: str) -> mujoco.MjModel:
     m.opt.solver = mujoco.mjtSolver.mjSOL_NEWTON
     for key, value in SOLVERS[solver].items():
         setattr(m.opt, key, value)
     return m
 
 
-def load_model(path: str | os.PathLike | None = None, solver: str = "accurate") -> DualArmModel:
+def _compile_model(path: str, visual: bool) -> tuple[mujoco.MjModel, dict | None]:
+    """An MJCF file in jaxsync's convention, or a robot file's composed scene (and its report)."""
+    if not os.path.isfile(path):
+        raise ModelFileError(f"{path}: no such {'robot' if is_robot_file(path) else 'MJCF'} file")
+    if not os.access(path, os.R_OK):
+        raise ModelFileError(f"{path}: file is not readable")
+    if is_robot_file(path):
+        m, report = compose_robot(path, visual=visual)
+        _check_structure(m, path)
+        return m, report
+    try:
+        m = mujoco.MjModel.from_xml_path(path)
+    except (ValueError, OSError) as err:  # mujoco reports XML and compile errors as ValueError
+        raise ModelFileError(f"{path}: cannot compile MJCF: {err}") from None
+    _check_structure(m, path)
+    return m, None
+
+
+def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, dict]:
+    """A robot file's task scene (``jaxsync.physics.compose``) with its grasp and
+    approach keyframes solved (``jaxsync.physics.ik``), compiled; and a report."""
+    robot = load_robot(path)
+    composed = _compose.compose(robot, visual=visual)
+    m = composed.spec.compile()
+    centre = m.body_pos[_id(m, "body", "object")].copy()
+    poses = _ik.add_keyframes(
+        m, composed.spec, centre, robot.object_radius, composed.torque_limits, _ik.CHECK_GRIP_FORCE,
+        robot.object_mass, path,
+    )  # fmt: skip
+    m = composed.spec.compile()
+    report = {
+        "robot": robot.name,
+        "robot_file": robot.path,
+        "joint_names": composed.joint_names,
+        "torque_limits": composed.torque_limits,
+        "object_radius": robot.object_radius,
+        "object_mass": robot.object_mass,
+        "notes": composed.notes,
+        "poses": poses,
+        "to_task": {"R": composed.to_task[0].tolist(), "t": composed.to_task[1].tolist()},
+        "spec": composed.spec,
+    }
+    return m, report
+
+
+def load_model(path: str | os.PathLike | None = None, solver: str = "accurate", *, visual: bool = True) -> DualArmModel:
     """Load the dual-arm MJCF model for MuJoCo C and MJX.
 
     Args:
-      path: an MJCF file; the packaged paper model when ``None``.
+      path: an MJCF file in jaxsync's convention, or a robot file (YAML,
+        ``jaxsync.physics.robot``: any robot from its own MJCF, the task
+        scene composed around it); the packaged paper model when ``None``.
       solver: ``"accurate"`` (the default and jaxsync's one physics: Newton
         converged, differentiable by the implicit adjoint) or ``"unrolled"``
         (three one-iteration solves per step, differentiated through: a
         reference to compare against).
+      visual: False drops a robot's mesh geoms (missing mesh files do not
+        stop it from loading; bodies must carry their own inertials).
 
     Raises:
       ModelFileError: the file is missing, unreadable or does not compile.
       ModelStructureError: bodies, joints, sites, sensors, actuators or
         contact pairs that jaxsync needs are missing (all are named).
     """
-    m = load_mj_model(path, solver)
-    patches.mjx_elliptic_gradient()
+    _check_solver(solver)
     path = str(path) if path is not None else default_model_path()
+    m, report = _compile_model(path, visual)
+    m = _with_solver(m, solver)
+    patches.mjx_elliptic_gradient()
     mx = mjx.put_model(m, device=_physics.local_device(), impl="jax")
-    return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=_build_index(m, mx, path))
+    index = _build_index(m, mx, path)
+    return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=index, robot=report)
 
 
 def summary(model: DualArmModel) -> dict:
@@ -304,4 +375,19 @@ def summary(model: DualArmModel) -> dict:
         "solver": f"{mujoco.mjtSolver(m.opt.solver).name} ({model.solver}: iterations={m.opt.iterations}, "
         f"ls_iterations={m.opt.ls_iterations})",
         "cone": mujoco.mjtCone(m.opt.cone).name,
+        **({"robot": robot_summary(model.robot)} if model.robot is not None else {}),
+    }
+
+
+def robot_summary(report: dict) -> dict:
+    """What composing a robot file decided, as plain data (no MjSpec)."""
+    poses = report["poses"]
+    return {
+        "name": report["robot"],
+        "file": report["robot_file"],
+        "joints": {arm: list(v) for arm, v in report["joint_names"].items()},
+        "torque_limits_Nm": {arm: list(v) for arm, v in report["torque_limits"].items()},
+        "grasp_manipulability": {arm: poses[arm]["manipulability"] for arm in poses},
+        "grasp_static_torque_share_max": {arm: max(poses[arm]["static_torque_share"]) for arm in poses},
+        "notes": list(report["notes"]),
     }

@@ -19,6 +19,13 @@ from jaxsync.sim.scenario import GRAVITY, Scenario, phase_times
 # far from its planned position (it fell, or slipped out of the grasp).
 DROP_DISTANCE = 0.03
 
+# A rollout counts as chattering when a pad's normal force changes, from one
+# control step to the next, by more than this (RMS over the settled window).
+# A held ball's force follows the sensor noise (~0.1-0.3 N per step on the
+# paper model's default task); a discrete force loop past its stability limit
+# flips the force by 10 N and more every step (docs/metrics.md).
+CHATTER_THRESHOLD_N = 1.0
+
 
 def normal_forces(pad_forces: jax.Array, pad_normal: jax.Array) -> jax.Array:
     """(T, 2) each pad's force on the object along the pad normal (pushing: positive).
@@ -99,6 +106,17 @@ class Metrics(NamedTuple):
     drop_time_s: jax.Array  # first time the object was lost, nan if never
     nonfinite: jax.Array  # bool
     nonfinite_time_s: jax.Array
+    force_chatter_N: jax.Array  # RMS step-to-step change of a pad's normal force, settled window (worse pad)
+    chattering: jax.Array  # bool: force_chatter_N > CHATTER_THRESHOLD_N
+
+
+def force_chatter(pad_forces: jax.Array, pad_normal: jax.Array, mask: jax.Array) -> jax.Array:
+    """() the RMS over the masked window of each pad's step-to-step change in
+    normal force, the larger of the two pads' (N)."""
+    fn = normal_forces(pad_forces, pad_normal)
+    d = fn[1:] - fn[:-1]
+    m = (mask[1:] * mask[:-1])[:, None]
+    return jnp.sqrt(jnp.max(jnp.sum(m * d**2, 0) / jnp.maximum(jnp.sum(m), 1.0)))
 
 
 def _masked_mean(x, mask):
@@ -138,6 +156,8 @@ def summarize(traj, s: Scenario) -> Metrics:
         drop_time_s=_first_time(lost, traj.time),
         nonfinite=~finite.all(),
         nonfinite_time_s=_first_time(~finite, traj.time),
+        force_chatter_N=(chatter := force_chatter(traj.pad_forces, traj.pad_normal, mask)),
+        chattering=chatter > CHATTER_THRESHOLD_N,
     )
 
 
@@ -166,7 +186,7 @@ def series(traj, s: Scenario) -> dict[str, jax.Array]:
     }
 
 
-BOOL_METRICS = ("dropped", "nonfinite")
+BOOL_METRICS = ("dropped", "nonfinite", "chattering")
 
 
 def to_arrays(m: Metrics) -> dict[str, np.ndarray]:

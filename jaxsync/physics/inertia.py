@@ -1,0 +1,39 @@
+"""The arms' apparent inertia at the pads, on MuJoCo C at a keyframe.
+
+Lambda^-1 = J M^-1 J^T is the operational-space inverse inertia of one arm at
+its pad (J the 6 x n pad Jacobian, M the arm's block of the joint-space mass
+matrix, armature included); its diagonal in the pad frame, inverted, is the
+mass (kg) or rotational inertia (kg m^2) the pad presents along each of its
+axes x, y, z (z: the normal) and about them. It sets how fast a force loop
+through the pad may be (``jaxsync.control.gains.stability_ratio``).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+
+def pad_apparent_inertia(m: mujoco.MjModel, key: str = "grasp") -> np.ndarray:
+    """(2, 6) per arm (right, left), pad-frame axes x, y, z then rotations about them."""
+    d = mujoco.MjData(m)
+    k = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, key)
+    if k >= 0:
+        mujoco.mj_resetDataKeyframe(m, d, k)
+    mujoco.mj_forward(m, d)
+    M = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, M)
+    out = []
+    for p in ("r", "l"):
+        n = 0
+        while mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{p}_joint{n + 1}") >= 0:
+            n += 1
+        dofs = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{p}_joint{k}")] for k in range(1, n + 1)]
+        site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{p}_pad")
+        jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mujoco.mj_jacSite(m, d, jp, jr, site)
+        J = np.concatenate([jp, jr])[:, dofs]
+        inv = J @ np.linalg.solve(M[np.ix_(dofs, dofs)], J.T)
+        R = d.site_xmat[site].reshape(3, 3)
+        out.append(np.concatenate([1 / np.diag(R.T @ inv[:3, :3] @ R), 1 / np.diag(R.T @ inv[3:, 3:] @ R)]))
+    return np.stack(out)

@@ -1,0 +1,241 @@
+"""A robot file: a dual-arm robot described in terms of its own MJCF.
+
+A robot file is YAML (schema version 1, docs/robots.md)::
+
+    version: 1
+    name: my_robot
+    model: robot.xml              # one MJCF holding both arms (paths relative to this file)
+    arms:
+      right: {joints: [j1, j2, j3, j4, j5, j6, j7], flange: right_flange_site}
+      left:  {joints: [...], flange: left_flange_site}
+    object: {position: [x, y, z], radius: 0.1, mass: 0.5}
+
+or, one single-arm MJCF used twice, each arm with its own ``model`` and
+``base`` ({pos: [x, y, z], quat: [w, x, y, z]}, in the robot's frame). Per
+arm, optionally: ``torque_limits`` (N m per joint, for models that carry
+none) and ``actuators`` (the model's torque motors to take the limits from,
+one per joint). ``flange`` names a site or a body whose +z axis points out of
+the flange. Optional at the top: ``clamp_axis`` ([x, y, z], horizontal: the
+line the pads close along, from the right pad towards the left; default:
+the horizontal direction from the right arm's base to the left arm's) and
+``stand`` (true: a stand under the object, the default).
+
+:func:`load_robot` validates everything it can without compiling the MJCF
+(the composer, ``jaxsync.physics.compose``, checks the rest against the
+model) and names the key and what is allowed in every message.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import numpy as np
+import yaml
+
+from jaxsync._errors import ConfigError
+
+SCHEMA_VERSION = 1
+ARM_NAMES = ("right", "left")
+_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand"}
+_ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators"}
+_OBJECT_KEYS = {"position", "radius", "mass"}
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmSpec:
+    """One arm: its joints (6 or 7 hinges, base to flange), flange, limits."""
+
+    joints: tuple[str, ...]
+    flange: str
+    model: str | None = None  # absolute path of its own MJCF (single-arm form)
+    base_pos: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    base_quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    torque_limits: tuple[float, ...] | None = None
+    actuators: tuple[str, ...] | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A validated robot file (:func:`load_robot`)."""
+
+    name: str
+    path: str  # the robot file
+    right: ArmSpec
+    left: ArmSpec
+    object_position: tuple[float, float, float]
+    object_radius: float = 0.1
+    object_mass: float = 0.5
+    model: str | None = None  # absolute path of the bimanual MJCF
+    clamp_axis: tuple[float, float, float] | None = None
+    stand: bool = True
+
+    @property
+    def arms(self) -> tuple[ArmSpec, ArmSpec]:
+        return (self.right, self.left)
+
+
+def _where(path: str, key: str) -> str:
+    return f"{path}: {key}"
+
+
+def _numbers(value, n: int | None, path: str, key: str, what: str) -> tuple[float, ...]:
+    if not isinstance(value, list | tuple) or (n is not None and len(value) != n):
+        size = f"{n} numbers" if n is not None else "a list of numbers"
+        raise ConfigError(f"{_where(path, key)} must be {size} ({what}), got {value!r}")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not np.isfinite(v):
+            raise ConfigError(f"{_where(path, key)} must hold finite numbers ({what}), got {value!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def _names(value, path: str, key: str) -> tuple[str, ...]:
+    if not isinstance(value, list | tuple) or not all(isinstance(v, str) and v for v in value):
+        raise ConfigError(f"{_where(path, key)} must be a list of names, got {value!r}")
+    if len(set(value)) != len(value):
+        raise ConfigError(f"{_where(path, key)} names a joint twice: {list(value)}")
+    return tuple(value)
+
+
+def _file(value, root: str, path: str, key: str) -> str:
+    if not isinstance(value, str) or not value:
+        raise ConfigError(f"{_where(path, key)} must be an MJCF file name, got {value!r}")
+    full = value if os.path.isabs(value) else os.path.join(root, value)
+    if not os.path.isfile(full):
+        raise ConfigError(f"{_where(path, key)}: no such MJCF file {full!r} (paths are relative to the robot file)")
+    return os.path.abspath(full)
+
+
+def _unknown(keys, allowed, path: str, where: str) -> None:
+    extra = sorted(set(keys) - allowed)
+    if extra:
+        raise ConfigError(f"{_where(path, where)}: unknown key(s) {extra}; allowed: {sorted(allowed)}")
+
+
+def _arm(doc, name: str, root: str, path: str, bimanual: bool) -> ArmSpec:
+    key = f"arms.{name}"
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{_where(path, key)} must be a mapping with joints and flange, got {doc!r}")
+    _unknown(doc, _ARM_KEYS, path, key)
+    for need in ("joints", "flange"):
+        if need not in doc:
+            raise ConfigError(f"{_where(path, key)}: missing '{need}'")
+    joints = _names(doc["joints"], path, f"{key}.joints")
+    if len(joints) not in (6, 7):
+        raise ConfigError(
+            f"{_where(path, key + '.joints')} must name 6 or 7 hinge joints (base to flange), got {len(joints)}"
+        )
+    if not isinstance(doc["flange"], str) or not doc["flange"]:
+        raise ConfigError(f"{_where(path, key + '.flange')} must name a site or a body, got {doc['flange']!r}")
+    model = None
+    if "model" in doc:
+        if bimanual:
+            raise ConfigError(
+                f"{_where(path, key + '.model')}: the file's top-level 'model' holds both arms; give either one "
+                "'model' at the top or one per arm"
+            )
+        model = _file(doc["model"], root, path, f"{key}.model")
+    elif not bimanual:
+        raise ConfigError(f"{_where(path, key)}: missing 'model' (no top-level 'model' holds both arms)")
+    pos, quat = (0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)
+    if "base" in doc:
+        base = doc["base"]
+        if not isinstance(base, dict):
+            raise ConfigError(f"{_where(path, key + '.base')} must be {{pos: [x, y, z], quat: [w, x, y, z]}}")
+        _unknown(base, {"pos", "quat"}, path, f"{key}.base")
+        if "pos" in base:
+            pos = _numbers(base["pos"], 3, path, f"{key}.base.pos", "m, in the robot's frame")
+        if "quat" in base:
+            quat = _numbers(base["quat"], 4, path, f"{key}.base.quat", "w, x, y, z")
+            norm = float(np.linalg.norm(quat))
+            if norm < 1e-9:
+                raise ConfigError(f"{_where(path, key + '.base.quat')} must not be zero")
+            quat = tuple(float(q) / norm for q in quat)
+    limits = None
+    if "torque_limits" in doc:
+        limits = _numbers(doc["torque_limits"], len(joints), path, f"{key}.torque_limits", "N m, one per joint")
+        if min(limits) <= 0:
+            raise ConfigError(f"{_where(path, key + '.torque_limits')} must be positive, got {list(limits)}")
+    actuators = None
+    if "actuators" in doc:
+        actuators = _names(doc["actuators"], path, f"{key}.actuators")
+        if len(actuators) != len(joints):
+            raise ConfigError(
+                f"{_where(path, key + '.actuators')} must name one torque motor per joint "
+                f"({len(joints)}), got {len(actuators)}"
+            )
+    return ArmSpec(joints, doc["flange"], model, pos, quat, limits, actuators)
+
+
+def load_robot(path: str | os.PathLike) -> Robot:
+    """Read and validate a robot file (schema in the module docstring).
+
+    Raises:
+      ConfigError: a missing, unknown or malformed key, named with what is
+        allowed; a model file that does not exist.
+
+    Example:
+      >>> robot = jaxsync.load_robot("mjcf/robots/iiwa14_twice.yaml")
+      >>> len(robot.right.joints)
+      7
+    """
+    path = str(path)
+    if not os.path.isfile(path):
+        raise ConfigError(f"{path}: no such robot file")
+    try:
+        with open(path) as f:
+            doc = yaml.safe_load(f)
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: a robot file is a YAML mapping (docs/robots.md), got {type(doc).__name__}")
+    _unknown(doc, _TOP_KEYS, path, "top level")
+    version = doc.get("version", SCHEMA_VERSION)
+    if version != SCHEMA_VERSION:
+        raise ConfigError(f"{_where(path, 'version')}: this jaxsync reads robot files of version 1, got {version!r}")
+    for need in ("arms", "object"):
+        if need not in doc:
+            raise ConfigError(f"{path}: missing '{need}'")
+    root = os.path.dirname(os.path.abspath(path))
+    name = doc.get("name", os.path.splitext(os.path.basename(path))[0])
+    if not isinstance(name, str) or not name:
+        raise ConfigError(f"{_where(path, 'name')} must be a non-empty string, got {name!r}")
+    model = _file(doc["model"], root, path, "model") if "model" in doc else None
+    arms = doc["arms"]
+    if not isinstance(arms, dict) or set(arms) != set(ARM_NAMES):
+        got = sorted(arms) if isinstance(arms, dict) else arms
+        raise ConfigError(f"{_where(path, 'arms')} must have exactly the keys right and left, got {got!r}")
+    right, left = (_arm(arms[a], a, root, path, model is not None) for a in ARM_NAMES)
+    obj = doc["object"]
+    if not isinstance(obj, dict):
+        raise ConfigError(f"{_where(path, 'object')} must be {{position: [x, y, z], radius: r, mass: m}}")
+    _unknown(obj, _OBJECT_KEYS, path, "object")
+    if "position" not in obj:
+        raise ConfigError(f"{_where(path, 'object')}: missing 'position' (m, the ball's centre in the robot's frame)")
+    position = _numbers(obj["position"], 3, path, "object.position", "m, in the robot's frame")
+    values = {}
+    for key, default, lo, hi in (("radius", 0.1, 0.01, 0.5), ("mass", 0.5, 0.01, 20.0)):
+        v = obj.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
+            unit = "m" if key == "radius" else "kg"
+            raise ConfigError(f"{_where(path, 'object.' + key)} must be a number in [{lo}, {hi}] {unit}, got {v!r}")
+        values[key] = float(v)
+    axis = None
+    if "clamp_axis" in doc:
+        axis = np.array(_numbers(doc["clamp_axis"], 3, path, "clamp_axis", "a horizontal direction"))
+        if np.linalg.norm(axis[:2]) < 1e-9 or abs(axis[2]) > 1e-6 * np.linalg.norm(axis):
+            raise ConfigError(f"{_where(path, 'clamp_axis')} must be horizontal (z = 0) and non-zero, got {axis}")
+        axis = tuple(float(a) for a in axis / np.linalg.norm(axis))
+    stand = doc.get("stand", True)
+    if not isinstance(stand, bool):
+        raise ConfigError(f"{_where(path, 'stand')} must be true or false, got {stand!r}")
+    return Robot(
+        name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand
+    )
+
+
+def is_robot_file(path) -> bool:
+    """A path that names a robot file (YAML) rather than an MJCF model."""
+    return str(path).lower().endswith((".yaml", ".yml"))
