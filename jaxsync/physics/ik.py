@@ -7,8 +7,10 @@ the two pads' frames agree up to the half-turn about x that faces them at
 each other (a roll mismatch between the pads is a wrist torque on the
 clamped ball). Damped least squares on MuJoCo C (``mj_jacSite``), the joints
 kept a margin inside their ranges, from several starts (the file's zero pose,
-mid-range and seeded random ones); the solution with the lowest pose error,
-then the best manipulability, is kept. Checked: manipulability and the
+mid-range and seeded random ones); among the solutions that reach the pose,
+one that keeps every link of the arm at least 5 cm above the robot's floor
+is preferred (collisions are off in the task scene, so nothing else would
+keep an elbow out of the floor), then the best manipulability. Checked: manipulability and the
 static torque at the grasp (gravity, half the ball's weight and the grip
 force) against each joint's limit.
 """
@@ -99,7 +101,16 @@ def _ranges(m, jids):
     return np.array(lo), np.array(hi)
 
 
-def solve_pad_pose(m: mujoco.MjModel, side: str, target_p, target_R, q_start=None, label: str = "") -> Pose:
+FLOOR_CLEARANCE = 0.05  # m
+
+
+def _lowest_link(m, d, jids) -> float:
+    return float(min(d.xpos[m.jnt_bodyid[j]][2] for j in jids[1:]))
+
+
+def solve_pad_pose(
+    m: mujoco.MjModel, side: str, target_p, target_R, q_start=None, label: str = "", floor_z: float | None = None
+) -> Pose:
     """The arm's joint angles that put its pad site at (target_p, target_R)."""
     names = []
     k = 1
@@ -119,7 +130,9 @@ def solve_pad_pose(m: mujoco.MjModel, side: str, target_p, target_R, q_start=Non
     best = None
     for q0 in starts:
         q, ep, er, w = _solve(m, d, qadr, dadr, site, np.asarray(target_p), np.asarray(target_R), q0, lo, hi)
-        key = (round(ep + er, 7), -w)
+        reached = ep + er < 2 * TOLERANCE
+        low = floor_z is not None and _lowest_link(m, d, jids) < floor_z + FLOOR_CLEARANCE
+        key = (0.0 if reached else round(ep + er, 7), bool(low), -w)
         if best is None or key < best[0]:
             best = (key, q, ep, er, w)
         if q_start is not None and ep + er < 2 * TOLERANCE:
@@ -168,7 +181,7 @@ def static_torque_share(m: mujoco.MjModel, qpos, limits: dict[str, tuple[float, 
 
 
 def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float, limits, grip_force: float,
-                  object_mass: float, label: str) -> dict:  # fmt: skip
+                  object_mass: float, label: str, floor_z: float | None = None) -> dict:  # fmt: skip
     """Solve both poses for both arms, check them, add the keyframes to ``spec``; a report."""
     report = {}
     qpos = {"grasp": m.qpos0.copy(), "approach": m.qpos0.copy()}
@@ -177,7 +190,7 @@ def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float,
     for key in qpos:
         qpos[key][oadr : oadr + 7] = [*centre, 1, 0, 0, 0]
     for side, arm in (("r", "right"), ("l", "left")):
-        pose = solve_pad_pose(m, side, *grasp_targets(centre, radius)[side], label=label)
+        pose = solve_pad_pose(m, side, *grasp_targets(centre, radius)[side], label=label, floor_z=floor_z)
         if pose.position_error > 1e-4 or pose.rotation_error > 1e-3:
             limits_text = ", ".join(pose.binding) if pose.binding else "none"
             raise ConfigError(

@@ -299,7 +299,7 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, dict]
     centre = m.body_pos[_id(m, "body", "object")].copy()
     poses = _ik.add_keyframes(
         m, composed.spec, centre, robot.object_radius, composed.torque_limits, _ik.CHECK_GRIP_FORCE,
-        robot.object_mass, path,
+        robot.object_mass, path, floor_z=float(composed.to_task[1][2]),
     )  # fmt: skip
     m = composed.spec.compile()
     report = {

@@ -6,6 +6,8 @@ same task (``jaxsync.sim.closed_loop``) and controller, and a baseline for speed
 
 from __future__ import annotations
 
+import copy
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -94,7 +96,7 @@ def rollout_mujoco(
     """
     options = ControllerOptions(kind=controller, cross_term=cross_term)
     consts = _closed_loop.consts(model)
-    m = mujoco.MjModel.from_xml_path(model.path)  # a private copy we can change
+    m = copy.deepcopy(model.mj_model)  # a private copy we can change (a robot file's composed scene too)
     m.opt.iterations, m.opt.ls_iterations = model.mj_model.opt.iterations, model.mj_model.opt.ls_iterations
     m.opt.solver, m.opt.cone = model.mj_model.opt.solver, model.mj_model.opt.cone
     idx = model.index
