@@ -64,7 +64,7 @@ def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
     doc = yaml.safe_load((tmp_path / "admittance_left.yaml").read_text())
     params = doc["admittance_controller_left"]["ros__parameters"]
     adm = params["admittance"]
-    assert params["control"]["frame"]["id"] == "l_pad" and params["ft_sensor"]["frame"]["id"] == "l_ft"
+    assert params["control"]["frame"]["id"] == "l_ee" and params["ft_sensor"]["frame"]["id"] == "l_ee"
     assert adm["selected_axes"] == [True] * 6
     m, k, zeta = (np.array(adm[key]) for key in ("mass", "stiffness", "damping_ratio"))
     np.testing.assert_allclose(m, np.asarray(g.imp_mass)[1], rtol=0)

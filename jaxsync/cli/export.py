@@ -2,20 +2,34 @@
 
 from __future__ import annotations
 
+from jaxsync.cli._common import add_model_argument, model_options, model_source
 from jaxsync.control import gains as _gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
-from jaxsync.io.export import FORMATS
+from jaxsync.io.export import COMMAND_INTERFACES, DISTROS, FORMATS
 
 
 def run(args) -> int:
     # the input is checked before anything is written
-    gains = gains_file.load(args.gains)
-    paths = _export.export(gains, args.format, args.out)
+    source = model_source(args)
+    target, model = None, None
+    if source is not None or args.format == "ros2-admittance" or args.gains is None:
+        # the library is imported here, not at the top: `jaxsync --help` stays fast
+        from jaxsync.physics.model import load_model
+
+        model = load_model(source, **model_options(args))
+        if args.format == "ros2-admittance":
+            interfaces = tuple(x.strip() for x in args.command_interfaces.split(",") if x.strip())
+            target = _export.ros2_target(
+                model.mj_model, model.robot, distro=args.ros_distro, command_interfaces=interfaces
+            )
+    gains = gains_file.load(args.gains) if args.gains is not None else _gains.default_gains_for(model)
+    paths = _export.export(gains, args.format, args.out, target)
     back = gains_file.load(paths[0] if args.format != "ros2-admittance" else args.out)
     same = gains_file.same_gains(back, gains)
     kind = "a gain schedule" if not isinstance(gains, _gains.Gains) else "constant gains"
-    print(f"exported {kind} from {args.gains} as {args.format}: " + ", ".join(paths))
+    what = args.gains if args.gains is not None else f"the default gains of {source or 'the paper model'}"
+    print(f"exported {kind} from {what} as {args.format}: " + ", ".join(paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if same else "DIFFERENT gains"))
     if args.format == "ros2-admittance":
         for line in _export.notes(gains):
@@ -32,8 +46,27 @@ def add_parser(subparsers):
         "parameter files (one per arm) plus the synchronisation gains; each export reads back "
         "(jaxsync compare --gains takes it). See docs/export.md.",
     )
-    p.add_argument("gains", help="gains file (JSON, or an export: gains.yaml, a ros2-admittance folder)")
+    p.add_argument(
+        "gains",
+        nargs="?",
+        default=None,
+        help="gains file (JSON, or an export: gains.yaml, a ros2-admittance folder); without it, the default "
+        "gains of --robot's robot (or of the paper model)",
+    )
     p.add_argument("--format", required=True, choices=list(FORMATS), help="output format")
+    add_model_argument(p)
+    p.add_argument(
+        "--ros-distro",
+        default="jazzy",
+        choices=list(DISTROS),
+        help="ros2-admittance: the ROS 2 release the files are for (jazzy: also Kilted and Rolling) (jazzy)",
+    )
+    p.add_argument(
+        "--command-interfaces",
+        default="position",
+        help=f"ros2-admittance: the joint command interfaces, comma-separated, of {list(COMMAND_INTERFACES)} "
+        "(position)",
+    )
     p.add_argument("--out", default="results/export", help="output folder (results/export)")
     p.set_defaults(func=run)
     return p

@@ -26,6 +26,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import jax.numpy as jnp
@@ -57,8 +58,6 @@ MEANING = {
 }
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null")
 HEADER = "jaxsync_gains"
-# the MJCF's frames (mjcf/dual_arm.xml): the pad site the impedance acts in, the wrist sensor site
-FRAMES = {"right": ("r_pad", "r_ft"), "left": ("l_pad", "l_ft")}
 ADMITTANCE_SOURCE = (
     "ros2_controllers admittance_controller, src/admittance_controller_parameters.yaml "
     "(https://github.com/ros-controls/ros2_controllers/tree/master/admittance_controller)"
@@ -185,47 +184,175 @@ def notes(gains) -> list[str]:
     ]
 
 
-def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None) -> str:
+DISTROS = ("jazzy", "humble")
+COMMAND_INTERFACES = ("position", "velocity")
+KDL_PLUGIN = ("kinematics_interface_kdl/KinematicsInterfaceKDL", "kinematics_interface")  # name, package
+CONTROLLER_TYPE = "admittance_controller/AdmittanceController"
+
+
+@dataclasses.dataclass(frozen=True)
+class ArmTarget:
+    """What one arm's admittance controller needs from the robot (``ros2_target``)."""
+
+    joints: tuple[str, ...]
+    base: str  # kinematics.base and the fixed world frame: the link the arm is mounted on
+    tip: str  # kinematics.tip, the control, sensor and gravity-compensation frame: the flange's link
+    axes: tuple[int, ...]  # for each of the tip frame's 6 axes, the pad-frame axis it carries
+    cog: tuple[float, float, float]  # the end effector's centre of mass in the tip frame, m
+    weight: float  # the end effector's weight, N (what jaxsync's wrist sensor compensates)
+    normal: tuple[float, float, float]  # the pad normal (into the object) in the tip frame
+    ft_sensor: str
+
+
+@dataclasses.dataclass(frozen=True)
+class Ros2Target:
+    arms: tuple[ArmTarget, ArmTarget]
+    distro: str = "jazzy"
+    command_interfaces: tuple[str, ...] = ("position",)
+    update_rate: int = 500  # Hz: the control rate the gains were tuned at
+
+
+def _signed_permutation(R: np.ndarray, what: str) -> tuple[int, ...]:
+    """Row i (a tip-frame axis) carries pad axis argmax |R[i]|; refused unless R is a signed permutation."""
+    idx = np.argmax(np.abs(R), axis=1)
+    if not (np.allclose(np.abs(R[np.arange(3), idx]), 1.0, atol=1e-6) and len(set(idx.tolist())) == 3):
+        raise ConfigError(
+            f"ros2-admittance: the {what}'s pad frame is not aligned with its flange link's axes (up to a "
+            "signed permutation), so its per-axis gains have no per-axis form in that link's frame: give the "
+            "robot file a flange body whose axes match the flange site"
+        )
+    return tuple(int(i) for i in idx)
+
+
+def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_interfaces=("position",),
+                ft_sensors=None) -> Ros2Target:  # fmt: skip
+    """The robot facts the admittance controller's parameters take, from a
+    loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
+    paper model's MJCF names)."""
+    import mujoco  # noqa: PLC0415 -- the export of yaml/json gains needs no MuJoCo
+
+    if distro not in DISTROS:
+        raise ConfigError(f"--ros-distro must be one of {list(DISTROS)}, got {distro!r}")
+    bad = [c for c in command_interfaces if c not in COMMAND_INTERFACES]
+    if bad or not command_interfaces:
+        raise ConfigError(
+            f"--command-interfaces must name position and/or velocity (the joint commands the admittance "
+            f"controller writes), got {list(command_interfaces)}"
+        )
+    d = mujoco.MjData(m)
+    mujoco.mj_kinematics(m, d)
+    ident = lambda kind, name: mujoco.mj_name2id(m, kind, name)  # noqa: E731
+    arms = []
+    for side, name in (("r", "right"), ("l", "left")):
+        ee = ident(mujoco.mjtObj.mjOBJ_BODY, f"{side}_ee")
+        pad = ident(mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
+        tip_id = int(m.body_parentid[ee]) if robot is not None else ee
+        R_tip = d.xmat[tip_id].reshape(3, 3)
+        R = R_tip.T @ d.site_xmat[pad].reshape(3, 3)  # pad axes (columns) in the tip frame
+        perm = _signed_permutation(R, f"{name} arm")
+        cog = R_tip.T @ (d.xipos[ee] - d.xpos[tip_id])
+        if robot is not None:
+            joints, links = tuple(robot["joint_names"][name]), robot["links"][name]
+            base, tip = links["base"], links["tip"]
+        else:
+            n = len([j for j in range(m.njnt) if (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or "")
+                     .startswith(f"{side}_joint")])  # fmt: skip
+            joints = tuple(f"{side}_joint{k}" for k in range(1, n + 1))
+            first = ident(mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint1")
+            base = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.body_parentid[m.jnt_bodyid[first]]))
+            tip = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, ee)
+        sensor = (ft_sensors or {}).get(name, f"{name}_ft_sensor")
+        arms.append(
+            ArmTarget(
+                joints,
+                base,
+                tip,
+                perm + tuple(3 + i for i in perm),
+                tuple(float(x) for x in cog),
+                float(m.body_mass[ee] * 9.81),
+                tuple(float(x) for x in R[:, 2]),
+                sensor,
+            )  # fmt: skip
+        )
+    return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
+
+
+def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, target: Ros2Target) -> str:
     name = ARMS[arm]
-    m = np.asarray(g.imp_mass, dtype=float)[arm]
-    b = np.asarray(g.imp_damping, dtype=float)[arm]
-    k = np.asarray(g.imp_stiffness, dtype=float)[arm]
+    t = target.arms[arm]
+    order = list(t.axes)  # the control (tip) frame's axes, each carrying a pad-frame axis
+    m = np.asarray(g.imp_mass, dtype=float)[arm][order]
+    b = np.asarray(g.imp_damping, dtype=float)[arm][order]
+    k = np.asarray(g.imp_stiffness, dtype=float)[arm][order]
     zeta = b / (2.0 * np.sqrt(m * k))  # check_admittance: K > 0 here
-    pad, ft = FRAMES[name]
     when = f", task phase '{phase}'" if phase else ""
-    return "\n".join(
-        [
-            f"# jaxsync gains for the {name} arm{when}, in the schema of {ADMITTANCE_SOURCE}.",
-            "# Axis order x, y, z, rx, ry, rz of the control frame (jaxsync's pad frame: z along the pad",
-            "# normal). damping_ratio = D / (2 sqrt(M K)), the admittance controller's convention.",
-            "# Not carried over (the admittance controller has no parameter for it): the paper's",
-            "# synchronisation (absolute and relative errors between the arms, eqs. 12-17, k_rk k_lk k_rl",
-            "# k_ll), the inner position loop and the null-space gains (eq. 18): synchronisation.yaml;",
-            "# the desired contact wrench f_d (a task input, not a gain: the admittance controller has no",
-            "# wrench set-point). It applies stiffness and damping in the control frame but the mass per",
-            "# axis of kinematics.base (docs/export.md). joint_damping is set to 0: jaxsync's law has none",
-            "# (the controller's default, 5, adds joint-space damping the tuned gains did not see).",
-            "# Fill in joints, interfaces, kinematics and robot_description for your robot.",
-            f"{controller}:",
-            "  ros__parameters:",
-            "    control:",
-            "      frame:",
-            f"        id: {pad}",
-            "    ft_sensor:",
-            "      frame:",
-            f"        id: {ft}",
-            "    admittance:",
-            f"      selected_axes: {_yaml_list([True] * 6)}",
-            f"      mass: {_yaml_list(m)}",
-            f"      damping_ratio: {_yaml_list(zeta)}",
-            f"      stiffness: {_yaml_list(k)}",
-            "      joint_damping: 0.0",
-            "",
-        ]
-    )
+    normal = ", ".join(f"{x:.6g}" for x in t.normal)
+    lines = [
+        f"# jaxsync gains for the {name} arm{when}, in the schema of {ADMITTANCE_SOURCE}",
+        f"# ({target.distro}; docs/export.md cites the definition's commit). Every parameter without a default",
+        f"# is set. Axis order x, y, z, rx, ry, rz of the control frame, the flange link '{t.tip}' (jaxsync's pad",
+        f"# frame is that link's axes {list(t.axes[:3])} reordered; the pad normal in it is [{normal}]).",
+        "# damping_ratio = D / (2 sqrt(M K)), the admittance controller's convention.",
+        "# Not carried over (the admittance controller has no parameter for it): the paper's",
+        "# synchronisation (absolute and relative errors between the arms, eqs. 12-17, k_rk k_lk k_rl",
+        "# k_ll), the inner position loop and the null-space gains (eq. 18): synchronisation.yaml.",
+        "# The grip force f_d is a task input, not a gain: "
+        + (
+            "publish it on ~/wrench_reference (geometry_msgs/WrenchStamped in the F/T sensor's frame:"
+            if target.distro != "humble"
+            else "Humble's admittance controller has no wrench set-point (Jazzy and later: ~/wrench_reference)."
+        ),
+        *([f"# force = f_d * [{normal}], docs/export.md)."] if target.distro != "humble" else []),
+        "# It applies stiffness and damping in the control frame but the mass per axis of kinematics.base",
+        "# (docs/export.md). joint_damping is 0: jaxsync's law has none (the default, 5, adds joint-space",
+        "# damping the tuned gains did not see). ft_sensor.filter_coefficient is 1.0: the simulation read the",
+        "# sensor unfiltered (the default, 0.05, is a low-pass filter it never modelled).",
+        "controller_manager:",
+        "  ros__parameters:",
+        f"    update_rate: {target.update_rate}  # Hz, the control rate the gains were tuned at",
+        f"    {controller}:",
+        f"      type: {CONTROLLER_TYPE}",
+        f"{controller}:",
+        "  ros__parameters:",
+        f"    joints: [{', '.join(t.joints)}]",
+        f"    command_interfaces: [{', '.join(target.command_interfaces)}]",
+        "    state_interfaces: [position, velocity]",
+        "    chainable_command_interfaces: [position, velocity]",
+        "    kinematics:",
+        f"      plugin_name: {KDL_PLUGIN[0]}",
+        f"      plugin_package: {KDL_PLUGIN[1]}",
+        f"      base: {t.base}",
+        f"      tip: {t.tip}",
+        "    ft_sensor:",
+        f"      name: {t.ft_sensor}  # the sensor's name in your ros2_control hardware description",
+        "      frame:",
+        f"        id: {t.tip}",
+        "      filter_coefficient: 1.0",
+        "    control:",
+        "      frame:",
+        f"        id: {t.tip}",
+        "    fixed_world_frame:",
+        "      frame:",
+        f"        id: {t.base}",
+        "    gravity_compensation:",
+        "      frame:",
+        f"        id: {t.tip}",
+        "      CoG:",
+        f"        pos: {_yaml_list(t.cog)}  # the simulated end effector's centre of mass, m",
+        f"        force: {t.weight!r}  # its weight, N",
+        "    admittance:",
+        f"      selected_axes: {_yaml_list([True] * 6)}",
+        f"      mass: {_yaml_list(m)}",
+        f"      damping_ratio: {_yaml_list(zeta)}",
+        f"      stiffness: {_yaml_list(k)}",
+        "      joint_damping: 0.0",
+    ]
+    if target.distro == "humble":
+        lines.append('    robot_description: ""  # Humble reads the URDF here: your launch file sets it')
+    return "\n".join(lines) + "\n"
 
 
-def _sync_yaml(g: Gains, phase: str | None) -> str:
+def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     lines = [
         "# jaxsync: what the paper's synchronous controller adds to two admittance controllers"
         + (f" (task phase '{phase}')" if phase else ""),
@@ -237,19 +364,22 @@ def _sync_yaml(g: Gains, phase: str | None) -> str:
     for name in SYNC_FIELDS:
         symbol, unit = MEANING[name]
         lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
+    lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
+    for arm, name in enumerate(ARMS):
+        lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
     return "\n".join(lines) + "\n"
 
 
-def _ros2(g: Gains, out: str, phase: str | None) -> list[str]:
+def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target) -> list[str]:
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
     for arm, name in enumerate(ARMS):
         path = os.path.join(out, f"admittance_{name}.yaml")
-        _results.atomic_write_text(path, _admittance_yaml(g, arm, f"admittance_controller_{name}", phase))
+        _results.atomic_write_text(path, _admittance_yaml(g, arm, f"admittance_controller_{name}", phase, target))
         paths.append(path)
     path = os.path.join(out, "synchronisation.yaml")
-    _results.atomic_write_text(path, _sync_yaml(g, phase))
+    _results.atomic_write_text(path, _sync_yaml(g, phase, target))
     return [*paths, path]
 
 
@@ -265,45 +395,58 @@ def _read_yaml(path: str):
 
 
 def _ros2_load(folder: str) -> Gains:
-    fields = {}
+    per_arm = []
     for name in ARMS:
         path = os.path.join(folder, f"admittance_{name}.yaml")
         doc = _read_yaml(path)
         try:
-            (params,) = doc.values()
+            (params,) = [v for k, v in doc.items() if k != "controller_manager"]
             adm = params["ros__parameters"]["admittance"]
             m, zeta, k = (np.asarray(adm[key], dtype=float) for key in ("mass", "damping_ratio", "stiffness"))
         except (AttributeError, KeyError, TypeError, ValueError) as err:
             raise ConfigError(f"{path}: not an admittance_controller parameter file ({err})") from None
         if not all(v.shape == (6,) for v in (m, zeta, k)):
             raise ConfigError(f"{path}: mass, damping_ratio and stiffness must have 6 entries")
-        fields.setdefault("imp_mass", []).append(m)
-        fields.setdefault("imp_stiffness", []).append(k)
-        fields.setdefault("imp_damping", []).append(2.0 * zeta * np.sqrt(m * k))
+        per_arm.append((m, zeta, k))
     path = os.path.join(folder, "synchronisation.yaml")
     doc = _read_yaml(path)
     try:
         sync = doc["dual_arm_synchronisation"]["ros__parameters"]
     except (KeyError, TypeError):
         raise ConfigError(f"{path}: expected dual_arm_synchronisation: ros__parameters:") from None
+    fields = {}
+    for name, (m, zeta, k) in zip(ARMS, per_arm, strict=True):
+        axes = sync.get(f"pad_axes_{name}", list(range(6)))
+        if sorted(axes) != list(range(6)):
+            raise ConfigError(f"{path}: pad_axes_{name} must order the 6 axes 0-5, got {axes}")
+        inv = np.argsort(axes)  # pad axis j sits at control-frame position inv[j]
+        m, zeta, k = m[inv], zeta[inv], k[inv]
+        fields.setdefault("imp_mass", []).append(m)
+        fields.setdefault("imp_stiffness", []).append(k)
+        fields.setdefault("imp_damping", []).append(2.0 * zeta * np.sqrt(m * k))
     d = {k: np.stack(v).tolist() for k, v in fields.items()}
     d.update({k: sync[k] for k in SYNC_FIELDS if k in sync})
     return _gains.from_dict(d)
 
 
-def export(gains, fmt: str, out: str) -> list[str]:
-    """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written."""
+def export(gains, fmt: str, out: str, target: Ros2Target | None = None) -> list[str]:
+    """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written.
+    ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default)."""
     if fmt not in FORMATS:
         raise ConfigError(f"--format must be one of {list(FORMATS)}, got {fmt!r}")
     if fmt == "ros2-admittance":
+        if target is None:
+            from jaxsync.physics.model import load_mj_model  # noqa: PLC0415 -- only this format needs a model
+
+            target = ros2_target(load_mj_model())
         if isinstance(gains, _schedule.Schedule):
             for i, p in enumerate(_schedule.PHASES):  # every phase checked before anything is written
                 check_admittance(_schedule.phase(gains, i), p)
             paths = []
             for i, p in enumerate(_schedule.PHASES):
-                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p)
+                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target)
             return paths
-        return _ros2(gains, out, None)
+        return _ros2(gains, out, None, target)
     _results.ensure_writable_dir(out)
     doc = document(gains)
     path = os.path.join(out, f"gains.{fmt}")

@@ -77,6 +77,7 @@ class Composed:
     spec: mujoco.MjSpec
     robot: Robot
     joint_names: dict[str, tuple[str, ...]]  # the robot's own joint names per arm ("right", "left")
+    links: dict[str, dict[str, str]]  # per arm, the robot's own body names: "base" (of the chain), "tip" (flange)
     torque_limits: dict[str, tuple[float, ...]]
     to_task: tuple[np.ndarray, np.ndarray]  # (R, t): p_task = R @ p_robot + t
     notes: list[str]
@@ -247,7 +248,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
             scene.delete(it)
     # names and limits, read on the robot as given (robot frame)
     m0 = _compile(scene, robot.path)
-    joint_names, limits, jids_all = {}, {}, set()
+    joint_names, limits, jids_all, links = {}, {}, set(), {}
     for a, arm in zip(ARM_NAMES, robot.arms, strict=True):
         prefix = frames[a][1]
         label = f"{robot.path}: arms.{a}"
@@ -271,6 +272,9 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
                                   f"'{arm.joints[k]}' is not below '{arm.joints[k - 1]}'")  # fmt: skip
         joint_names[a] = tuple(arm.joints)
         limits[a] = _limits(m0, arm, list(arm.joints), jids, label)
+        name = lambda b: mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_BODY, b) or "world"  # noqa: E731
+        base = name(int(m0.body_parentid[bodies[0]]))
+        links[a] = {"base": base.removeprefix(prefix) if base != "world" else "world"}
         jids_all.update(jids)
     # the bases (the body of each arm's first joint) and the flanges, in the robot's frame
     d0 = mujoco.MjData(m0)
@@ -326,6 +330,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
             raise ConfigError(f"{robot.path}: arms.{a}.flange '{arm.flange}' is not on or below the arm's last "
                               f"joint '{arm.joints[-1]}'")  # fmt: skip
         _add_end_effector(scene, body, pos, quat, p)
+        links[a]["tip"] = body.name.removeprefix(prefix)
     for g in scene.geoms:
         g.contype, g.conaffinity = 0, 0
     # the object, the stand, the floor (drawn only)
@@ -351,7 +356,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
     for p in ("r", "l"):
         scene.add_pair(name=f"{p}_pad_object", geomname1="object", geomname2=f"{p}_pad", **PAD_PAIR)
     scene.add_pair(name="stand_object", geomname1="object", geomname2="stand", **STAND_PAIR)
-    return Composed(scene, robot, joint_names, limits, (R, t), notes)
+    return Composed(scene, robot, joint_names, links, limits, (R, t), notes)
 
 
 def model_file(robot: Robot) -> str:

@@ -306,6 +306,7 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, dict]
         "robot": robot.name,
         "robot_file": robot.path,
         "joint_names": composed.joint_names,
+        "links": composed.links,
         "torque_limits": composed.torque_limits,
         "object_radius": robot.object_radius,
         "object_mass": robot.object_mass,
