@@ -226,3 +226,18 @@ def test_a_robots_composed_scene_runs_the_same_on_mujoco_c(ur5e):
     mx, mc = jaxsync.summarize(x, s), jaxsync.summarize(c, s)
     assert abs(float(mx.mean_grip_force_N) - float(mc.mean_grip_force_N)) < 0.05
     assert not bool(mc.dropped) and not bool(mc.chattering)
+
+
+@pytest.mark.parametrize("name", ["iiwa14_twice", "ur5e_twice"])
+def test_the_grasp_leaves_every_joint_room_to_move(composed, name):
+    """A grasp with a joint at its range's margin could not squeeze or lift
+    (found: an iiwa-like grasp with joint 2 at 1.994 of 2.094 rad dropped the ball)."""
+    m, report = composed[name]
+    for arm, side in (("right", "r"), ("left", "l")):
+        q = np.asarray(report["poses"][arm]["grasp_q"])
+        for k, qk in enumerate(q, start=1):
+            j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint{k}")
+            if m.jnt_limited[j]:
+                lo, hi = m.jnt_range[j]
+                margin = min(ik.MARGIN, 0.05 * (hi - lo))
+                assert lo + margin + 1e-4 < qk < hi - margin - 1e-4, (arm, k, qk)

@@ -8,8 +8,9 @@ each other (a roll mismatch between the pads is a wrist torque on the
 clamped ball). Damped least squares on MuJoCo C (``mj_jacSite``), the joints
 kept a margin inside their ranges, from several starts (the file's zero pose,
 mid-range and seeded random ones); among the solutions that reach the pose,
-one that keeps every link of the arm at least 5 cm above the robot's floor
-is preferred (collisions are off in the task scene, so nothing else would
+one with no joint at the edge of its margin is preferred (the squeeze and
+the lift move the joints from there), then one that keeps every link of the
+arm at least 5 cm above the robot's floor (collisions are off in the task scene, so nothing else would
 keep an elbow out of the floor), then the best manipulability. Checked: manipulability and the
 static torque at the grasp (gravity, half the ball's weight and the grip
 force) against each joint's limit.
@@ -132,7 +133,8 @@ def solve_pad_pose(
         q, ep, er, w = _solve(m, d, qadr, dadr, site, np.asarray(target_p), np.asarray(target_R), q0, lo, hi)
         reached = ep + er < 2 * TOLERANCE
         low = floor_z is not None and _lowest_link(m, d, jids) < floor_z + FLOOR_CLEARANCE
-        key = (0.0 if reached else round(ep + er, 7), bool(low), -w)
+        at_margin = int(np.sum((q <= lo + 1e-6) | (q >= hi - 1e-6)))  # a joint with no room left to move
+        key = (0.0 if reached else round(ep + er, 7), at_margin, bool(low), -w)
         if best is None or key < best[0]:
             best = (key, q, ep, er, w)
         if q_start is not None and ep + er < 2 * TOLERANCE:
