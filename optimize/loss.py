@@ -106,6 +106,8 @@ def traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
     (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
     with open(model.path, "rb") as f:
         model_hash = hashlib.sha256(f.read()).hexdigest()
+    if model.robot is not None:  # a robot file: what it composes (its arm files, jaxsync's additions) counts too
+        model_hash += hashlib.sha256(model.robot["spec"].to_xml().encode()).hexdigest()
     program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
     key = repr(
         (

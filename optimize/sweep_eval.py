@@ -35,9 +35,9 @@ GIB = 1024.0**3
 
 
 @functools.lru_cache(maxsize=4)  # a loaded model, not a program: clear() keeps it
-def _model(solver: str):
+def _model(solver: str, model: str | None = None, visual: bool = True):
 
-    return load_model(solver=solver)
+    return load_model(model, solver=solver, visual=visual)
 
 
 def _mesh():
@@ -46,14 +46,16 @@ def _mesh():
 
 
 @programs.memoize(maxsize=8)
-def evaluator(solver: str, controller: str, duration: float, n_devices: int):
+def evaluator(
+    solver: str, controller: str, duration: float, n_devices: int, model: str | None = None, visual: bool = True
+):
     """jit(shard_map(vmap(metrics of one rollout))) over the 'batch' mesh axis.
 
     Each device evaluates its slice of the chunk with a plain vmap: no
     communication, and the same per-environment arithmetic as one device.
     """
 
-    fn = make_rollout(_model(solver), controller, duration)
+    fn = make_rollout(_model(solver, model, visual), controller, duration)
     local = jax.vmap(lambda g, s: summarize(fn(g, s), s))
     if n_devices == 1:
         return jax.jit(local), fn.n_steps
@@ -65,9 +67,9 @@ def evaluator(solver: str, controller: str, duration: float, n_devices: int):
 
 
 @programs.memoize(maxsize=8)
-def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes):
+def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes, model=None, visual=True):
 
-    fn, _ = evaluator(solver, controller, duration, n_devices)
+    fn, _ = evaluator(solver, controller, duration, n_devices, model, visual)
     sharding = _sharding() if n_devices > 1 else None
     g = Gains(*(jax.ShapeDtypeStruct((chunk,) + sh, dt, sharding=sharding) for sh, dt in gdtypes))
     s = Scenario(*(jax.ShapeDtypeStruct((chunk,) + sh, dt, sharding=sharding) for sh, dt in sdtypes))
@@ -141,7 +143,9 @@ def choose_chunk(
     tried = set()
     while True:
         t0 = time.perf_counter()
-        compiled = _compiled(plan.solver, plan.controller, plan.duration, c * n_devices, n_devices, *sig)
+        compiled = _compiled(
+            plan.solver, plan.controller, plan.duration, c * n_devices, n_devices, *sig, plan.model, plan.visual
+        )
         log(f"compiled the chunk function for {c * n_devices} points in {time.perf_counter() - t0:.1f} s")
         used = memory_bytes(compiled)
         if used is None:

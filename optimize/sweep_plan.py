@@ -44,6 +44,8 @@ class Plan:
     base_gains: Gains
     base_scenario: Scenario
     x64: bool
+    model: str | None = None  # an MJCF or robot file; None: the paper model
+    visual: bool = True  # a robot's meshes loaded (False: --no-visual)
 
     @property
     def spec(self) -> dict:
@@ -56,6 +58,7 @@ class Plan:
             "duration_s": self.duration,
             "controller": self.controller,
             "solver": self.solver,
+            "model": self.model,
             "x64": self.x64,
             "base_gains": _gains.to_dict(self.base_gains),
             "n_points": len(self.points),
@@ -77,6 +80,8 @@ def make_plan(
     solver: str = "accurate",
     base_gains: Gains | None = None,
     base_scenario: Scenario | None = None,
+    model: str | None = None,
+    visual: bool = True,
 ) -> Plan:
     """Parse and check everything that can be checked without compiling.
 
@@ -126,4 +131,6 @@ def make_plan(
         base_gains,
         base_scenario,
         bool(jax.config.jax_enable_x64),
+        model,
+        visual,
     )

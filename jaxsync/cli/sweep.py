@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxsync.cli._common import add_distributed_arguments, positive
+from jaxsync.cli._common import add_distributed_arguments, add_model_argument, model_options, model_source, positive
 from jaxsync.control.controller import CONTROLLERS
 from jaxsync.optimize.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS
@@ -70,6 +70,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
+    add_model_argument(p)
     add_distributed_arguments(p)
     p.set_defaults(func=run, interrupted_hint="finished chunks are kept; run again with --resume to continue")
     return p
@@ -80,7 +81,14 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync.io import gains_file
     from jaxsync.optimize import sweep
 
+    source = model_source(args)
     gains = gains_file.load_constant(args.gains, "jaxsync sweep") if args.gains else None
+    if gains is None and source is not None:  # a robot's own default gains (docs/robots.md)
+        # imported here, not at the top: `jaxsync --help` stays fast
+        from jaxsync.control.gains import default_gains_for
+        from jaxsync.physics.model import load_model
+
+        gains = default_gains_for(load_model(source, **model_options(args)))
     plan = sweep.make_plan(
         args.param,
         samples=args.samples,
@@ -89,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
         controller=args.controller,
         solver=args.solver,
         base_gains=gains,
+        model=source,
+        visual=model_options(args)["visual"],
     )
     summary = sweep.run(
         plan,
@@ -106,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
     t = summary["timing"]
     print(
         f"{summary['n_points']} points ({summary['n_ok']} ok, {summary['n_dropped']} dropped, "
-        f"{summary['n_nonfinite']} non-finite) in {t['wall_s']:.1f} s "
+        f"{summary['n_nonfinite']} non-finite, {summary.get('n_chattering', 0)} chattering) in {t['wall_s']:.1f} s "
         f"(compile {t['compile_s']:.1f} s; {t['chunks_loaded']} chunk(s) read back)"
     )
     for k, best in summary["best_ok_point"].items():

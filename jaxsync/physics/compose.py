@@ -189,7 +189,7 @@ def _limits(m: mujoco.MjModel, arm, names: list[str], jids: list[int], label: st
         if lim is None or not lim > 0:
             raise ConfigError(
                 f"{label}: joint '{name}' has no torque limit (no actuatorfrcrange, no actuator forcerange on it): "
-                f"give {label}.torque_limits (N m, one per joint)"
+                f"give {label.rsplit(': ', 1)[-1]}.torque_limits (N m, one per joint)"
             )
         out.append(lim)
     return tuple(out)
