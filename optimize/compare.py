@@ -33,6 +33,8 @@ SUMMARY_KEYS = (
     "force_chatter_N",
     "dropped",
     "chattering",
+    "torque_limit_share_right",
+    "torque_limit_share_left",
 )
 
 
@@ -95,7 +97,7 @@ def table(summary: dict) -> list[str]:
     for k in SUMMARY_KEYS:
         cells = []
         for name in CONTROLLERS:
-            v, t = summary[name][k], drop_time(summary[name])
+            v, t = summary[name].get(k), drop_time(summary[name])
             if t is not None and k in SETTLED_KEYS:
                 cells.append(f"{f'dropped at t={t:.2f} s':>{w}}")
             elif isinstance(v, bool) or v is None:
@@ -169,8 +171,15 @@ def plot_forces(
     plt.close(fig)
 
 
-def write_results(out: str, results: dict, scenario, gains, options: dict, wall_time_s: float) -> dict:
-    """summary.json, series.csv and the two force plots; returns the summary."""
+def torque_limits(model) -> np.ndarray:
+    """(2, n) each arm's torque limits, N m (its motors' control ranges)."""
+    m = model.mj_model
+    return np.stack([np.abs(m.actuator_ctrlrange[list(a.actuator_ids)]).max(-1) for a in model.index.arms])
+
+
+def write_results(out: str, results: dict, scenario, gains, options: dict, wall_time_s: float, limits=None) -> dict:
+    """summary.json, series.csv and the two force plots; returns the summary. With
+    ``limits`` ((2, n), N m) each controller's share of steps at a torque limit, per arm."""
     _results.ensure_writable_dir(out)
     summary: dict = {}
     columns: dict = {}
@@ -181,8 +190,11 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
     # one resultant scale for both plots, so they can be compared by eye (a drop's peak is no scale)
     held = [float(np.asarray(m.settled_peak_resultant_N)) for _, m in results.values() if drop_time(m) is None]
     ylim = 1.5 * max(held) if held and max(held) > 0 else None
-    for name, (_, m) in results.items():
+    for name, (traj, m) in results.items():
         summary[name] = _metrics.to_dict(m)
+        if limits is not None:
+            share = _metrics.torque_limit_share(traj.torque, limits)
+            summary[name]["torque_limit_share_right"], summary[name]["torque_limit_share_left"] = map(float, share)
         se = all_series[name]
         if not columns:
             columns["time_s"] = se["time_s"].tolist()
@@ -396,7 +408,9 @@ def paper_comparison(
     _results.ensure_writable_dir(out)
     t0 = time.perf_counter()
     results = run(model, gains, scenario, duration=duration, backend=backend, log=log)
-    summary = write_results(out, results, scenario, gains, options or {}, time.perf_counter() - t0)
+    summary = write_results(
+        out, results, scenario, gains, options or {}, time.perf_counter() - t0, limits=torque_limits(model)
+    )
     files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"]
     if video_speed is not None:
         files.append(os.path.basename(compare_video(model, results, scenario, out, speed=video_speed, log=log)))

@@ -33,7 +33,9 @@ def _cli(*args, cwd):
 def test_compare_writes_a_well_formed_summary(tmp_path, rollouts):
     s = rollouts["scenario"]
     results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
-    summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0)
+    limits = np.full((2, 7), 1e9)
+    summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0, limits)
+    assert summary["classical"]["torque_limit_share_right"] == 0.0  # nothing near a 1e9 N m limit
     for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     on_disk = json.loads((tmp_path / "summary.json").read_text())

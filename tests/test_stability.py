@@ -66,3 +66,14 @@ def test_compare_and_sweep_name_chattering_points():
     s = summarize_sweep(Plan(), m)
     assert s["n_ok"] == 2 and s["n_chattering"] == 1
     assert s["best_ok_point"]["settled_peak_resultant_N"]["point"] == 0  # the chattering point's low peak is not "best"
+
+
+def test_torque_limit_share_counts_the_steps_an_arm_saturates():
+    T, n = 10, 6
+    torque = np.zeros((T, 2 * n))
+    torque[:3, 2] = 150.0  # right arm, joint 3, at its limit for 3 of 10 steps
+    torque[5, 2] = -149.9  # 99.93 % of it: at the limit
+    torque[6, 2] = 149.0  # 99.3 %: not
+    torque[:, n + 5] = 40.0  # left arm's joint 6 beyond its 28 N m on every step
+    limits = np.array([[150, 150, 150, 28, 28, 28]] * 2, dtype=float)
+    np.testing.assert_allclose(metrics.torque_limit_share(torque, limits), [0.4, 1.0])

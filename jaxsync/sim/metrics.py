@@ -110,6 +110,19 @@ class Metrics(NamedTuple):
     chattering: jax.Array  # bool: force_chatter_N > CHATTER_THRESHOLD_N
 
 
+TORQUE_LIMIT_FRACTION = 0.999  # a joint whose commanded torque reaches this share of its limit is at it
+
+
+def torque_limit_share(torque, limits) -> np.ndarray:
+    """(2,) per arm (right, left): the share of control steps at which some
+    joint's commanded torque is at its limit (``TORQUE_LIMIT_FRACTION`` of
+    it or beyond: the motor saturates). ``torque`` (T, 2 n) as a Trajectory
+    records it; ``limits`` (2, n), N m."""
+    limits = np.asarray(limits, dtype=float)
+    tau = np.asarray(torque, dtype=float).reshape(len(torque), 2, limits.shape[1])
+    return (np.abs(tau) >= TORQUE_LIMIT_FRACTION * limits[None]).any(-1).mean(0)
+
+
 def force_chatter(pad_forces: jax.Array, pad_normal: jax.Array, mask: jax.Array) -> jax.Array:
     """() the RMS over the masked window of each pad's step-to-step change in
     normal force, the larger of the two pads' (N)."""
