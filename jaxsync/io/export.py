@@ -229,7 +229,10 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
     """The robot facts the admittance controller's parameters take, from a
     loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
     paper model's MJCF names)."""
-    import mujoco  # noqa: PLC0415 -- the export of yaml/json gains needs no MuJoCo
+    # imported here, not at the top: the export of yaml/json gains needs no MuJoCo
+    import mujoco  # noqa: PLC0415
+
+    from jaxsync.physics.inertia import arm_joint_ids  # noqa: PLC0415
 
     if distro not in DISTROS:
         raise ConfigError(f"--ros-distro must be one of {list(DISTROS)}, got {distro!r}")
@@ -255,11 +258,9 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
             joints, links = tuple(robot["joint_names"][name]), robot["links"][name]
             base, tip = links["base"], links["tip"]
         else:
-            n = len([j for j in range(m.njnt) if (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) or "")
-                     .startswith(f"{side}_joint")])  # fmt: skip
-            joints = tuple(f"{side}_joint{k}" for k in range(1, n + 1))
-            first = ident(mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint1")
-            base = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.body_parentid[m.jnt_bodyid[first]]))
+            jids = arm_joint_ids(m, side)
+            joints = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in jids)
+            base = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.body_parentid[m.jnt_bodyid[jids[0]]]))
             tip = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, ee)
         sensor = (ft_sensors or {}).get(name, f"{name}_ft_sensor")
         arms.append(

@@ -24,6 +24,7 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.physics.inertia import arm_joint_ids
 
 APPROACH_GAP = 0.03  # m between pad face and ball in the approach pose (the paper model's)
 MARGIN = 0.1  # rad inside each joint's range (or 5 % of the range if that is less)
@@ -113,12 +114,7 @@ def solve_pad_pose(
     m: mujoco.MjModel, side: str, target_p, target_R, q_start=None, label: str = "", floor_z: float | None = None
 ) -> Pose:
     """The arm's joint angles that put its pad site at (target_p, target_R)."""
-    names = []
-    k = 1
-    while mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint{k}") >= 0:
-        names.append(f"{side}_joint{k}")
-        k += 1
-    jids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in names]
+    jids = arm_joint_ids(m, side)
     qadr = np.array([m.jnt_qposadr[j] for j in jids])
     dadr = np.array([m.jnt_dofadr[j] for j in jids])
     site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
@@ -169,9 +165,7 @@ def static_torque_share(m: mujoco.MjModel, qpos, limits: dict[str, tuple[float, 
     jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
     for side, lim in limits.items():
         p = "r" if side == "right" else "l"
-        n = len(lim)
-        jids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{p}_joint{k}") for k in range(1, n + 1)]
-        dadr = [m.jnt_dofadr[j] for j in jids]
+        dadr = [m.jnt_dofadr[j] for j in arm_joint_ids(m, p)]
         site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{p}_pad")
         mujoco.mj_jacSite(m, d, jp, jr, site)
         normal = d.site_xmat[site].reshape(3, 3)[:, 2]
@@ -211,9 +205,7 @@ def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float,
                 f"{label}: arms.{arm}: the approach pose ({APPROACH_GAP * 1000:.0f} mm off the ball) is out of "
                 f"reach by {approach.position_error * 1000:.1f} mm"
             )
-        n = len(pose.q)
-        jids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint{k}") for k in range(1, n + 1)]
-        adr = [m.jnt_qposadr[j] for j in jids]
+        adr = [m.jnt_qposadr[j] for j in arm_joint_ids(m, side)]
         qpos["grasp"][adr] = pose.q
         qpos["approach"][adr] = approach.q
         report[arm] = {

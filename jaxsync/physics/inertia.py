@@ -14,6 +14,15 @@ import mujoco
 import numpy as np
 
 
+def arm_joint_ids(m: mujoco.MjModel, side: str) -> list[int]:
+    """The ids of an arm's joints ``{side}_joint1``, ``{side}_joint2``, ... in
+    jaxsync's convention, as many as the model has (``side``: "r" or "l")."""
+    ids = []
+    while (j := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint{len(ids) + 1}")) >= 0:
+        ids.append(j)
+    return ids
+
+
 def pad_apparent_inertia(m: mujoco.MjModel, key: str = "grasp") -> np.ndarray:
     """(2, 6) per arm (right, left), pad-frame axes x, y, z then rotations about them."""
     d = mujoco.MjData(m)
@@ -25,10 +34,7 @@ def pad_apparent_inertia(m: mujoco.MjModel, key: str = "grasp") -> np.ndarray:
     mujoco.mj_fullM(m, d, M)
     out = []
     for p in ("r", "l"):
-        n = 0
-        while mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{p}_joint{n + 1}") >= 0:
-            n += 1
-        dofs = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{p}_joint{k}")] for k in range(1, n + 1)]
+        dofs = [m.jnt_dofadr[j] for j in arm_joint_ids(m, p)]
         site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{p}_pad")
         jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
         mujoco.mj_jacSite(m, d, jp, jr, site)

@@ -19,6 +19,7 @@ from jaxsync._errors import ConfigError, ModelFileError, ModelStructureError
 from jaxsync.physics import compose as _compose
 from jaxsync.physics import ik as _ik
 from jaxsync.physics import step as _physics
+from jaxsync.physics.inertia import arm_joint_ids
 from jaxsync.physics.robot import is_robot_file, load_robot
 from jaxsync.runtime import patches
 
@@ -92,10 +93,7 @@ class ModelIndex:
 
 def joints_per_arm(m: mujoco.MjModel) -> int:
     """How many joints ``r_joint1``, ``r_joint2``, ... the model has (0 if none)."""
-    n = 0
-    while _id(m, "joint", f"r_joint{n + 1}") >= 0:
-        n += 1
-    return n
+    return len(arm_joint_ids(m, "r"))
 
 
 def required_names(n: int = JOINTS_PER_ARM) -> dict[str, list[str]]:
