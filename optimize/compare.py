@@ -1,4 +1,4 @@
-"""The paper's comparison (section 5): classical vs synchronous on one scenario."""
+"""The paper's comparison (section 5): classical vs synchronous (or any controllers) on one scenario."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import compliance as _compliance
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import default_gains
@@ -25,12 +26,17 @@ from jaxsync.sim.metrics import drop_time
 from jaxsync.sim.rollout import rollout
 from jaxsync.sim.scenario import min_duration
 
+PAPER = ("classical", "synchronous")  # the paper's pair: compare's default
+
 SUMMARY_KEYS = (
     "settled_peak_resultant_N",
     "mean_grip_force_N",
     "grip_force_error_rel",
     "sync_error_rms_m",
     "force_chatter_N",
+    "first_impact_peak_N",
+    "apparent_stiffness_normal_N_per_m",
+    "apparent_stiffness_tangential_N_per_m",
     "dropped",
     "chattering",
     "torque_limit_share_right",
@@ -55,21 +61,24 @@ def run(
     *,
     duration: float,
     backend: str = "mjx",
+    controllers: tuple[str, ...] = PAPER,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
 ):
-    """Roll out both controllers; return ``{name: (trajectory, metrics)}``."""
+    """Roll out each controller; return ``{name: (trajectory, metrics)}``."""
     check_duration(scenario, duration)
+    controllers = check_controllers(controllers)
     results = {}
-    for i, name in enumerate(CONTROLLERS):
-        compiles = " (compiled first, unless the compilation cache holds it)" if backend == "mjx" else ""
-        log(f"[{i + 1}/2] {name}: rolling out {duration:g} s on {backend}{compiles}...")
+    for i, name in enumerate(controllers):
+        compiles = " (compiled first, unless the compilation cache holds it)" if backend == "mjx" and i == 0 else ""
+        log(f"[{i + 1}/{len(controllers)}] {name}: rolling out {duration:g} s on {backend}{compiles}...")
         t0 = time.perf_counter()
         with compile_watch() as watch:
             traj = jax.block_until_ready(
                 rollout(model, gains, scenario, controller=name, duration=duration, backend=backend)
             )
             m = _metrics.summarize(traj, scenario)
-        log(f"[{i + 1}/2] {name}: done in {time.perf_counter() - t0:.1f} s{watch.describe()}, {outcome(m)}")
+        took = f"{time.perf_counter() - t0:.1f} s{watch.describe()}"
+        log(f"[{i + 1}/{len(controllers)}] {name}: done in {took}, {outcome(m)}")
         results[name] = (traj, m)
     return results
 
@@ -88,15 +97,32 @@ def outcome(m) -> str:
 SETTLED_KEYS = ("settled_peak_resultant_N", "mean_grip_force_N", "grip_force_error_rel", "sync_error_rms_m")
 
 
+def controllers_of(summary: dict) -> list[str]:
+    """The controllers a comparison's summary holds, in its order."""
+    return list(summary.get("controllers") or [n for n in CONTROLLERS if n in summary])
+
+
+def check_controllers(controllers) -> tuple[str, ...]:
+    """At least two distinct known controller names, as a tuple (else ConfigError naming them)."""
+    names = tuple(controllers)
+    unknown = [n for n in names if n not in CONTROLLERS]
+    if unknown:
+        raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(CONTROLLERS)}")
+    if len(names) < 2 or len(set(names)) != len(names):
+        raise ConfigError(f"--controllers must name at least two different controllers, got {', '.join(names)}")
+    return names
+
+
 def table(summary: dict) -> list[str]:
     """The lines jaxsync compare prints: the summary's metrics per controller
     (a dropped controller's settled metrics as 'dropped at t=... s') and the
-    resultant ratio (n/a when either dropped the object)."""
+    resultant ratios (n/a when either dropped the object)."""
     w = 22
-    lines = [f"{'':28}" + "".join(f"{name:>{w}}" for name in CONTROLLERS)]
+    names = controllers_of(summary)
+    lines = [f"{'':38}" + "".join(f"{name:>{w}}" for name in names)]
     for k in SUMMARY_KEYS:
         cells = []
-        for name in CONTROLLERS:
+        for name in names:
             v, t = summary[name].get(k), drop_time(summary[name])
             if t is not None and k in SETTLED_KEYS:
                 cells.append(f"{f'dropped at t={t:.2f} s':>{w}}")
@@ -104,20 +130,23 @@ def table(summary: dict) -> list[str]:
                 cells.append(f"{str(v):>{w}}")
             else:
                 cells.append(f"{v:>{w}.5g}")
-        lines.append(f"{k:<28}" + "".join(cells))
-    ratio = summary["resultant_ratio"]
-    dropped = [n for n in CONTROLLERS if drop_time(summary[n]) is not None]
-    if dropped:
-        who = "both controllers" if len(dropped) == len(CONTROLLERS) else f"the {dropped[0]} controller"
-        lines.append(f"resultant_ratio: n/a ({who} dropped the object)")
-    else:
-        lines.append(f"resultant_ratio (classical / synchronous): {ratio:.3f}" if ratio else "resultant_ratio: n/a")
+        lines.append(f"{k:<38}" + "".join(cells))
+    first = names[0]
+    for name in names[1:]:
+        ratio = summary["resultant_ratios"].get(name)
+        dropped = [n for n in (first, name) if drop_time(summary[n]) is not None]
+        label = f"resultant_ratio ({first} / {name})"
+        if dropped:
+            who = "both controllers" if len(dropped) == 2 else f"the {dropped[0]} controller"
+            lines.append(f"{label}: n/a ({who} dropped the object)")
+        else:
+            lines.append(f"{label}: {ratio:.3f}" if ratio else f"{label}: n/a")
     return lines
 
 
 def chattering(summary: dict) -> list[str]:
     """The controllers whose pad forces chattered in the settled window (``jaxsync.sim.metrics.chattering``)."""
-    return [n for n in CONTROLLERS if summary[n].get("chattering")]
+    return [n for n in controllers_of(summary) if summary[n].get("chattering")]
 
 
 def plot_forces(
@@ -177,9 +206,12 @@ def torque_limits(model) -> np.ndarray:
     return np.stack([np.abs(m.actuator_ctrlrange[list(a.actuator_ids)]).max(-1) for a in model.index.arms])
 
 
-def write_results(out: str, results: dict, scenario, gains, options: dict, wall_time_s: float, limits=None) -> dict:
-    """summary.json, series.csv and the two force plots; returns the summary. With
-    ``limits`` ((2, n), N m) each controller's share of steps at a torque limit, per arm."""
+def write_results(
+    out: str, results: dict, scenario, gains, options: dict, wall_time_s: float, limits=None, stiffness=None
+) -> dict:
+    """summary.json, series.csv and each controller's force plot; returns the summary. With
+    ``limits`` ((2, n), N m) each controller's share of steps at a torque limit, per arm;
+    with ``stiffness`` ({name: {"normal", "tangential"}}) each one's apparent stiffness at the pad."""
     _results.ensure_writable_dir(out)
     summary: dict = {}
     columns: dict = {}
@@ -195,6 +227,8 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
         if limits is not None:
             share = _metrics.torque_limit_share(traj.torque, limits)
             summary[name]["torque_limit_share_right"], summary[name]["torque_limit_share_left"] = map(float, share)
+        for axis, value in ((stiffness or {}).get(name) or {}).items():
+            summary[name][f"apparent_stiffness_{axis}_N_per_m"] = float(value)
         se = all_series[name]
         if not columns:
             columns["time_s"] = se["time_s"].tolist()
@@ -204,10 +238,15 @@ def write_results(out: str, results: dict, scenario, gains, options: dict, wall_
                 columns[f"{name}_{k}"] = v.astype(float).tolist()
         path = os.path.join(out, f"forces_{name}.png")
         plot_forces(se, scenario, f"{name} controller", path, ylim, drop_time(m))
-    c, s = summary["classical"]["settled_peak_resultant_N"], summary["synchronous"]["settled_peak_resultant_N"]
-    # no ratio of settled peaks when either controller dropped the object: there was no settled grasp
-    held = not any(drop_time(summary[name]) is not None for name in results)
-    summary["resultant_ratio"] = (c / s) if held and s and s > 0 else None
+    names = list(results)
+    summary["controllers"] = names
+    summary["resultant_ratios"] = {}
+    for name in names[1:]:
+        c, s = summary[names[0]]["settled_peak_resultant_N"], summary[name]["settled_peak_resultant_N"]
+        # no ratio of settled peaks when either controller dropped the object: there was no settled grasp
+        held = not any(drop_time(summary[n]) is not None for n in (names[0], name))
+        summary["resultant_ratios"][name] = (c / s) if held and s and s > 0 else None
+    summary["resultant_ratio"] = summary["resultant_ratios"][names[1]]  # the first two's (the paper's pair)
     summary["scenario"] = {k: np.asarray(v).tolist() for k, v in scenario._asdict().items()}
     summary["gains"] = _schedule.to_file_dict(gains)  # constant gains by name, or {"schedule": ...}
     summary["options"] = options
@@ -236,9 +275,10 @@ def sim_to_sim(
     tolerance: float = SIM_TOLERANCE,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
     mjx_rows: dict | None = None,
+    controller: str = "synchronous",
 ) -> dict:
     """``gains`` against ``baseline`` (e.g. tuned against default gains) on MJX and on
-    MuJoCo C, with the same jitted synchronous control law (``rollout(backend=...)``),
+    MuJoCo C, with the same jitted control law of ``controller`` (``rollout(backend=...)``),
     on the first ``n`` of ``scenarios`` (a batched :class:`~jaxsync.Scenario`, e.g.
     ``optimize.scenarios.heldout_scenarios``), one rollout at a time.
 
@@ -280,7 +320,7 @@ def sim_to_sim(
                 s = jax.tree_util.tree_map(lambda x, i=i: x[i], scenarios)
                 m = _metrics.summarize(
                     jax.block_until_ready(
-                        rollout(model, g, s, controller="synchronous", duration=duration, backend=backend)
+                        rollout(model, g, s, controller=controller, duration=duration, backend=backend)
                     ),
                     s,
                 )
@@ -391,34 +431,56 @@ def paper_comparison(
     options: dict | None = None,
     video_speed: float | None = None,
     mujoco_check: int = 0,
+    controllers: tuple[str, ...] = PAPER,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
 ) -> tuple[dict, list[str]]:
-    """``jaxsync compare``'s job: both controllers on ``scenario``, written to ``out``.
+    """``jaxsync compare``'s job: the controllers on ``scenario``, written to ``out``.
 
     Writes ``summary.json``, ``series.csv`` and each controller's force plot
     (:func:`write_results`); with ``video_speed``, ``compare.mp4`` (or a GIF)
     at that speed; with ``mujoco_check`` = N, ``gains`` and the default gains
-    on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C
-    (:func:`sim_to_sim`, recorded as ``summary["sim_to_sim"]``). Every input
-    is checked before ``out`` is created. Returns the summary and the files.
+    on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C with
+    the last controller (:func:`sim_to_sim`, recorded as
+    ``summary["sim_to_sim"]``). Every input is checked before ``out`` is
+    created. Returns the summary and the files.
     """
     check_duration(scenario, duration)
+    controllers = check_controllers(controllers)
     if video_speed is not None:  # say now, not after the rollouts, when no OpenGL backend can render it
         select_gl_backend()
     _results.ensure_writable_dir(out)
     t0 = time.perf_counter()
-    results = run(model, gains, scenario, duration=duration, backend=backend, log=log)
+    results = run(model, gains, scenario, duration=duration, backend=backend, controllers=controllers, log=log)
+    stiffness = {n: stiffness_of(model, n, gains) for n in controllers}
     summary = write_results(
-        out, results, scenario, gains, options or {}, time.perf_counter() - t0, limits=torque_limits(model)
+        out,
+        results,
+        scenario,
+        gains,
+        options or {},
+        time.perf_counter() - t0,
+        limits=torque_limits(model),
+        stiffness=stiffness,
     )
-    files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"]
+    files = ["summary.json", "series.csv"] + [f"forces_{n}.png" for n in controllers]
     if video_speed is not None:
         files.append(os.path.basename(compare_video(model, results, scenario, out, speed=video_speed, log=log)))
     if mujoco_check:
         cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
         held = _scenarios.heldout_scenarios(cfg)
         summary["sim_to_sim"] = sim_to_sim(
-            model, gains, default_gains(), held, cfg.eval_duration, n=mujoco_check, log=log
+            model, gains, default_gains(), held, cfg.eval_duration, n=mujoco_check, log=log, controller=controllers[-1]
         )
         _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary, files
+
+
+def stiffness_of(model, controller: str, gains) -> dict | None:
+    """The apparent stiffness at the right pad (``jaxsync.control.compliance``)
+    of constant ``gains``, N/m by axis; None for a schedule (it has one per phase)."""
+    if isinstance(gains, _schedule.Schedule):
+        return None
+    pos, rot = _compliance.probe_geometry(model)
+    dt = float(model.mj_model.opt.timestep)
+    k = jax.jit(lambda g: _compliance.apparent_stiffness(controller, g, pos, rot, dt))(gains)
+    return {axis: float(v) for axis, v in k.items()}

@@ -25,11 +25,12 @@ def compare_video(
     height: int = 360,
     log: Callable[[str], None] = print,
 ) -> str:
-    """Both controllers' rollouts side by side, from the states that were
+    """The controllers' rollouts side by side, from the states that were
     computed (MJX states drawn by MuJoCo's renderer), with each pad's contact
     force on the object as an arrow; ``speed`` < 1 is slow motion."""
     _render.select_gl_backend()
-    dt = float(np.asarray(results["classical"][0].time[1] - results["classical"][0].time[0]))
+    first = next(iter(results.values()))[0]
+    dt = float(np.asarray(first.time[1] - first.time[0]))
     frames = {}
     for k, (name, (traj, _)) in enumerate(results.items()):
         m = summarize(traj, scenario)
@@ -55,7 +56,10 @@ def compare_video(
             overlay,
             progress=FrameCounter(f"[video {k + 1}/{len(results)}] rendering {name}"),
         )
-    combined = _render.side_by_side(frames["classical"], frames["synchronous"])
+    names = list(frames)
+    combined = _render.side_by_side(frames[names[0]], frames[names[1]], labels=(names[0], names[1]))
+    for name in names[2:]:  # each further controller to the right (its caption names it)
+        combined = _render.side_by_side(combined, frames[name], labels=None)
     path = _render.write_video(combined, os.path.join(out, "compare.mp4"), VIDEO_FPS)
     log(f"video: {path} ({len(combined)} frames at {VIDEO_FPS} fps, {speed:g}x speed)")
     return path

@@ -8,6 +8,7 @@ import math
 import optax
 
 from jaxsync._errors import ConfigError
+from jaxsync.control.names import CONTROLLERS
 from jaxsync.optimize import methods as _methods
 from jaxsync.optimize.loop import first_order_problem, make_optimizer
 
@@ -43,6 +44,11 @@ class TuneConfig:
     method: str = "lbfgs"  # optimize.methods.METHODS (docs/tuning.md: measured best); "adam" is the optax loop
     popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
     sampling: str = "stratified"  # training batches: the ranges' ends (optimize.scenarios) or "iid"
+    controller: str = "synchronous"  # jaxsync.control.controller.CONTROLLERS
+    # compliance bounds (docs/metrics.md; None: unbounded): the mean first-impact peak pad force
+    # over a batch, N, and the apparent stiffness along the pad normal, N/m
+    max_impact_N: float | None = None
+    max_stiffness_N_per_m: float | None = None
 
     def validate(self) -> TuneConfig:
         if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
@@ -83,6 +89,12 @@ class TuneConfig:
             raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
         if self.sampling not in ("stratified", "iid"):
             raise ConfigError(f"sampling must be 'stratified' or 'iid', got {self.sampling!r}")
+        if self.controller not in CONTROLLERS:
+            raise ConfigError(f"controller must be one of {list(CONTROLLERS)}, got {self.controller!r}")
+        for name in ("max_impact_N", "max_stiffness_N_per_m"):
+            v = getattr(self, name)
+            if v is not None and not (v > 0 and math.isfinite(v)):
+                raise ConfigError(f"{name.replace('_', ' ')} must be a positive number (or none: unbounded), got {v}")
         if self.schedule not in ("cosine", "constant"):
             raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
         return self

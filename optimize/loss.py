@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxsync.control import compliance as _compliance
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.optimize.compare import metric_rows
@@ -37,7 +38,12 @@ _PROGRAM_FIELDS = (
     "train_scenario",
     "task",
     "batch",
+    "controller",
+    "max_impact_N",
+    "max_stiffness_N_per_m",
 )
+BOUND_WEIGHT = 100.0  # the cost of exceeding a compliance bound by 10 %: 1 (a squared hinge)
+IMPACT_TEMPERATURE = 0.1  # N, of the smooth first-impact peak
 
 
 def make_loss(
@@ -58,7 +64,7 @@ def make_loss(
     """
     fn = make_rollout(
         model,
-        "synchronous",
+        cfg.controller,
         training_base(cfg)[1],
         remat=differentiated,
         passes="tree" if differentiated else "mjx",
@@ -66,21 +72,62 @@ def make_loss(
         start=cfg.train_start,
     )
 
+    stiffness = compliance_fn(model, cfg.controller) if cfg.max_stiffness_N_per_m else None
+
     def one(gains, s):
         traj = fn(gains, s)
-        return cost(traj, s, weights), cost_terms(traj, s, weights)
+        terms = cost_terms(traj, s, weights)
+        if cfg.max_impact_N:
+            terms["impact"] = smooth_impact(traj)
+        return cost(traj, s, weights), terms
 
     def loss(theta, scenarios):
         gains = spec.to_gains(theta, base)
         c, terms = jax.vmap(one, in_axes=(None, 0))(gains, scenarios)
-        return c.mean(), jax.tree_util.tree_map(jnp.mean, terms)
+        c, terms = c.mean(), jax.tree_util.tree_map(jnp.mean, terms)
+        if cfg.max_impact_N:  # the batch's mean first impact, bounded
+            terms["impact_bound"] = bound_penalty(terms.pop("impact"), cfg.max_impact_N)
+            c = c + terms["impact_bound"]
+        if stiffness is not None:
+            terms["stiffness_bound"] = bound_penalty(stiffness(gains), cfg.max_stiffness_N_per_m)
+            c = c + terms["stiffness_bound"]
+        return c, terms
 
     return loss
 
 
-def make_evaluator(model, duration: float):
+def bound_penalty(value, bound):
+    """BOUND_WEIGHT (value / bound - 1)^2 above the bound, 0 below."""
+    return BOUND_WEIGHT * jax.nn.relu(value / bound - 1.0) ** 2
+
+
+def smooth_impact(traj):
+    """The first-impact peak (``jaxsync.sim.metrics.first_impact_peak``), log-sum-exp smooth."""
+    fn = _metrics.normal_forces(traj.pad_forces, traj.pad_normal)
+    mask = _metrics.impact_mask(traj.time, fn)
+    return _metrics.smooth_max(fn.reshape(-1), mask.reshape(-1), IMPACT_TEMPERATURE)
+
+
+def compliance_fn(model, controller: str):
+    """gains -> the apparent stiffness along the pad normal, N/m (``jaxsync.control.compliance``);
+    a schedule's is the largest over its phases."""
+    pos, rot = _compliance.probe_geometry(model)
+    dt = float(model.mj_model.opt.timestep)
+
+    def normal(g):
+        return _compliance.apparent_stiffness(controller, g, pos, rot, dt)["normal"]
+
+    def fn(gains):
+        if isinstance(gains, _schedule.Schedule):
+            return jnp.max(jax.vmap(normal)(gains.phases))
+        return normal(gains)
+
+    return fn
+
+
+def make_evaluator(model, duration: float, controller: str = "synchronous"):
     """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver)."""
-    fn = make_rollout(model, "synchronous", duration)
+    fn = make_rollout(model, controller, duration)
     return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
 
 
@@ -96,6 +143,7 @@ def eval_summary(m) -> dict:
         "dropped": int(m["dropped"].sum()),
         "nonfinite": int(m["nonfinite"].sum()),
         "chattering": int(m["chattering"].sum()),
+        "first_impact_peak_N": mean(m["first_impact_peak_N"]),
         "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
         "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
     }

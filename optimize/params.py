@@ -12,6 +12,11 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
 Impedance parameters are shared by both arms or per arm (``per_arm``), and
 per axis (6 values: the pad frame's x, y, z and rotations about them) or
 isotropic (``isotropic``: one value for translations, one for rotations).
+The baselines' object-level impedance (obj_mass, obj_stiffness and
+obj_damping_ratio, the damping as above) and internal-force loop gains
+(force_p, force_i = exp(theta)) are (6,) vectors (``isotropic``: two).
+Every controller's impedance goes through the same map and the same bands
+(``jaxsync.control.gains.USED`` says which gains each controller reads).
 With ``schedule`` every tuned parameter has one value per task phase (close,
 squeeze, carry, hold; ``jaxsync.control.schedule``) and the gains are a
 :class:`~jaxsync.control.schedule.Schedule`: per arm and per axis that is
@@ -33,12 +38,39 @@ from jaxsync.control.gains import Gains
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
 SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
 IMPEDANCE = ("imp_mass", "imp_stiffness", "imp_damping_ratio")
-TUNABLE = SYNC + IMPEDANCE
+OBJECT = ("obj_mass", "obj_stiffness", "obj_damping_ratio")
+FORCE = ("force_p", "force_i")
+VECTORS = OBJECT + FORCE  # (6,) gains: one value per axis, not per arm
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
+# what `jaxsync tune --controller NAME` tunes unless told
+DEFAULT_TUNED_FOR = {
+    "classical": IMPEDANCE,
+    "synchronous": DEFAULT_TUNED,
+    "object_impedance": IMPEDANCE + OBJECT,
+    "task_space": FORCE,
+}
+# the gain each tuned name sets
+GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
+
+
+def check_tuned(tuned, controller: str) -> None:
+    """ConfigError when a tuned parameter is one ``controller`` never reads
+    (its gradient would be zero and the search would wander in it)."""
+    from jaxsync.control.gains import USED  # here: params is imported by the CLI's parsers
+
+    unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller]]
+    if unused:
+        usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller]]
+        raise ConfigError(f"the {controller} controller does not use {', '.join(unused)}; it tunes {', '.join(usable)}")
 
 
 def damping_ratio(g: Gains) -> jax.Array:
     return g.imp_damping / (2.0 * jnp.sqrt(g.imp_mass * g.imp_stiffness))
+
+
+def object_damping_ratio(g: Gains) -> jax.Array:
+    return g.obj_damping / (2.0 * jnp.sqrt(g.obj_mass * g.obj_stiffness))
 
 
 def _logit(p):
@@ -84,6 +116,15 @@ class TuneSpec:
             v = jnp.concatenate([jnp.repeat(v[:, :1], 3, axis=1), jnp.repeat(v[:, 1:], 3, axis=1)], axis=1)
         return jnp.broadcast_to(v, (2, 6))
 
+    def _reduce_vector(self, v: np.ndarray) -> np.ndarray:
+        """(6,) -> the tuned shape."""
+        v = np.asarray(v, dtype=float)
+        return np.array([v[:3].mean(), v[3:].mean()]) if self.isotropic else v
+
+    def _expand_vector(self, v: jax.Array) -> jax.Array:
+        """The tuned shape -> (6,)."""
+        return jnp.concatenate([jnp.repeat(v[:1], 3), jnp.repeat(v[1:], 3)]) if self.isotropic else v
+
     def init(self, base) -> dict:
         """theta such that ``to_gains(theta, base)`` reproduces ``base`` (up to sharing).
 
@@ -111,9 +152,22 @@ class TuneSpec:
                     f"{', '.join(logs)} needs every {name} > 0 (the impedance is tuned in log space and through its "
                     f"damping ratio); start from a positive {name}, or --freeze {','.join(logs)}"
                 )
+        for name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
+            if (name in self.tuned or (name.startswith("obj") and "obj_damping_ratio" in self.tuned)) and not np.all(
+                np.asarray(getattr(base, name)) > 0
+            ):
+                raise ConfigError(
+                    f"the starting gains' {name} holds {np.asarray(getattr(base, name)).tolist()}: tuning it needs "
+                    f"every value > 0 (it is tuned in log space); start from a positive {name}, or --freeze it"
+                )
         theta = {}
         for name in self.tuned:
-            if name in SYNC:
+            if name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
+                theta[name] = jnp.asarray(np.log(self._reduce_vector(getattr(base, name))))
+            elif name == "obj_damping_ratio":
+                zeta = np.asarray(object_damping_ratio(base))
+                theta[name] = jnp.asarray(_logit((self._reduce_vector(zeta) - ZETA_MIN) / (ZETA_MAX - ZETA_MIN)))
+            elif name in SYNC:
                 theta[name] = jnp.asarray(np.arctanh(np.clip(float(getattr(base, name)), -0.999, 0.999)))
             elif name == "imp_mass":
                 theta[name] = jnp.asarray(np.log(self._reduce(base.imp_mass)))
@@ -150,7 +204,18 @@ class TuneSpec:
             g["imp_stiffness"] = self._expand(jnp.exp(theta["imp_stiffness"]))
         if "imp_damping_ratio" in theta:
             zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
-        g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
+        if any(n in theta for n in IMPEDANCE):
+            g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
+        for name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
+            if name in theta:
+                g[name] = self._expand_vector(jnp.exp(theta[name]))
+        if any(n in theta for n in OBJECT):
+            zeta = object_damping_ratio(base)
+            if "obj_damping_ratio" in theta:
+                zeta = self._expand_vector(
+                    ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["obj_damping_ratio"])
+                )
+            g["obj_damping"] = 2.0 * zeta * jnp.sqrt(g["obj_mass"] * g["obj_stiffness"])
         return Gains(**g)
 
     def moved(self, base, rtol: float = 1e-6) -> list[str]:
@@ -173,7 +238,7 @@ class TuneSpec:
         """How many scalars are tuned."""
         arms = 2 if self.per_arm else 1
         axes = 2 if self.isotropic else 6
-        n = sum(1 if name in SYNC else arms * axes for name in self.tuned)
+        n = sum(1 if name in SYNC else axes if name in VECTORS else arms * axes for name in self.tuned)
         return n * (len(_schedule.PHASES) if self.schedule else 1)
 
     def describe(self) -> dict:

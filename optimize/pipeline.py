@@ -16,6 +16,8 @@ import os
 import time
 from collections.abc import Callable
 
+import jax
+
 from jaxsync._errors import DroppedObjectError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
@@ -25,7 +27,7 @@ from jaxsync.optimize import loss as _loss
 from jaxsync.optimize import scenarios as _scenarios
 from jaxsync.optimize import tune as _tune
 from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.params import TuneSpec, check_tuned
 from jaxsync.optimize.tune_report import plot_loss
 from jaxsync.optimize.tune_state import CHECKPOINT, prepare_out
 from jaxsync.physics.model import DualArmModel
@@ -45,6 +47,15 @@ def history_columns(history: list[dict]) -> list[str]:
     """history.csv's header: HISTORY_COLUMNS, then any other keys sorted."""
     keys = {k for r in history for k in r}
     return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
+
+
+def within_bounds(evaluation: dict, cfg) -> bool:
+    """Whether an evaluation's mean first-impact peak and apparent normal
+    stiffness are within ``cfg``'s compliance bounds (True when unbounded)."""
+    impact, stiff = evaluation.get("first_impact_peak_N"), evaluation.get("apparent_stiffness_normal_N_per_m")
+    if cfg.max_impact_N and (impact is None or impact > cfg.max_impact_N):
+        return False
+    return not (cfg.max_stiffness_N_per_m and (stiff is None or stiff > cfg.max_stiffness_N_per_m))
 
 
 def tune_and_evaluate(
@@ -78,6 +89,7 @@ def tune_and_evaluate(
     """
     weights = weights if weights is not None else CostWeights()
     cfg.validate()
+    check_tuned(spec.tuned, cfg.controller)
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
@@ -103,7 +115,9 @@ def tune_and_evaluate(
 
 def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main):
     t_start = time.perf_counter()
-    evaluate = _loss.make_evaluator(model, cfg.eval_duration)  # one physics: training, validation and held out
+    evaluate = _loss.make_evaluator(
+        model, cfg.eval_duration, cfg.controller
+    )  # one physics: training, validation and held out
     held = _scenarios.heldout_scenarios(cfg)
     before_path = os.path.join(out, HELDOUT_BEFORE)
     before = None
@@ -139,8 +153,13 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     )
     valid = _scenarios.validation_scenarios(cfg)
 
+    stiffness = jax.jit(_loss.compliance_fn(model, cfg.controller))
+
     def validate(g):
-        return _loss.eval_summary(evaluate(g, valid))
+        out = _loss.eval_summary(evaluate(g, valid))
+        out["apparent_stiffness_normal_N_per_m"] = float(stiffness(g))
+        out["within_bounds"] = within_bounds(out, cfg)
+        return out
 
     if cfg.validate_every:
         say(
@@ -168,11 +187,13 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
 
     say("held-out evaluation after tuning...")
     after = _loss.eval_summary(evaluate(gains, held))
+    for which, g in ((before, base), (after, gains)):
+        which["apparent_stiffness_normal_N_per_m"] = float(stiffness(g))
+        which["within_bounds"] = within_bounds(which, cfg)
     described = spec.describe()
-    _results.write_json(os.path.join(out, "gains.json"), {"gains": _schedule.to_file_dict(gains), "tune": described})
-    _results.write_json(
-        os.path.join(out, "gains_last.json"), {"gains": _schedule.to_file_dict(result.last_gains), "tune": described}
-    )
+    for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):
+        doc = {"gains": _schedule.to_file_dict(g), "controller": cfg.controller, "tune": described}
+        _results.write_json(os.path.join(out, name), doc)
     check = None
     if mujoco_check:
         n = MUJOCO_CHECK_SCENARIOS
@@ -180,13 +201,23 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
         mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
         check = _compare.sim_to_sim(
-            model, gains, base, held, cfg.eval_duration, n=n, mjx_rows=mjx_rows, log=lambda m: None
+            model,
+            gains,
+            base,
+            held,
+            cfg.eval_duration,
+            n=n,
+            mjx_rows=mjx_rows,
+            log=lambda m: None,
+            controller=cfg.controller,
         )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
         _results.write_csv(os.path.join(out, "history.csv"), cols)
         plot_loss(history, os.path.join(out, "loss.png"), result.validation, selected)
     summary = {
+        "controller": cfg.controller,
+        "bounds": {"max_impact_N": cfg.max_impact_N, "max_stiffness_N_per_m": cfg.max_stiffness_N_per_m},
         "initial_cost": history[0]["cost"] if history else None,
         "final_cost": history[-1]["cost"] if history else None,
         "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],

@@ -54,15 +54,17 @@ def entry_names() -> list[str]:
             names.append(field)
         elif shape == (2, 6):
             names += [f"{field}[{a},{x}]" for a in _ARMS for x in _AXES]
+        elif shape == (6,):
+            names += [f"{field}[{x}]" for x in _AXES]
         else:  # pragma: no cover - a new gains shape
             names += [f"{field}[{i}]" for i in range(int(np.prod(shape)))]
     return names
 
 
-def metrics_function(model, duration: float, start: str | None = None):
+def metrics_function(model, duration: float, start: str | None = None, controller: str = "synchronous"):
     """``f(gains, scenarios) -> (3,)``: each smooth metric's mean over the batch."""
     kw = {} if start is None else {"start": start}
-    fn = make_rollout(model, "synchronous", duration, remat=True, passes="tree", **kw)
+    fn = make_rollout(model, controller, duration, remat=True, passes="tree", **kw)
 
     def one(g, s):
         m = smooth_metrics(fn(g, s), s)
@@ -87,10 +89,10 @@ def derivatives_function(f):
 
 
 @programs.memoize(maxsize=8)
-def program(model, duration: float, start: str | None = None):
+def program(model, duration: float, start: str | None = None, controller: str = "synchronous"):
     """The jitted derivatives of one configuration, built once per process
     (the command line and the library share it)."""
-    return derivatives_function(metrics_function(model, duration, start))
+    return derivatives_function(metrics_function(model, duration, start, controller))
 
 
 class Sensitivity(NamedTuple):
@@ -121,16 +123,23 @@ def elasticities(names, gains_flat, values, derivative) -> np.ndarray:
     return derivative * scale / values[:, None]
 
 
-def sensitivity(model, gains, scenarios, duration: float, start: str | None = None) -> Sensitivity:
-    """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading axis)."""
+def sensitivity(
+    model, gains, scenarios, duration: float, start: str | None = None, controller: str = "synchronous"
+) -> Sensitivity:
+    """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading
+    axis), of the gains ``controller`` reads (``jaxsync.control.gains.USED``)
+    and the joint-space law's."""
 
-    values, grads = jax.block_until_ready(program(model, float(duration), start)(gains, scenarios))
+    values, grads = jax.block_until_ready(program(model, float(duration), start, controller)(gains, scenarios))
     flat, _ = ravel_pytree(gains)
     deriv = np.stack(
         [np.asarray(ravel_pytree(jax.tree_util.tree_map(lambda x, i=i: x[i], grads))[0]) for i in range(3)]
     )
     names = entry_names()
     values, flat = np.asarray(values), np.asarray(flat)
+    read = set(_gains.USED[controller]) | {"kp_pos", "kd_pos", "kp_null", "kd_null"}
+    keep = np.array([n.split("[")[0] in read for n in names])
+    names, flat, deriv = [n for n, k in zip(names, keep, strict=True) if k], flat[keep], deriv[:, keep]
     return Sensitivity(names, flat, values, deriv, elasticities(names, flat, values, deriv))
 
 
@@ -218,7 +227,17 @@ def check_duration(base, duration: float, name: str = "duration", task: str = "t
 
 
 def study(
-    model, gains, base, *, batch: int, seed: int, duration: float, out: str, at: str = "the given gains", log=print
+    model,
+    gains,
+    base,
+    *,
+    batch: int,
+    seed: int,
+    duration: float,
+    out: str,
+    at: str = "the given gains",
+    log=print,
+    controller: str = "synchronous",
 ) -> Sensitivity:
     """``jaxsync sensitivity``'s job: the sensitivities of the smooth metrics
     to every gain entry over ``batch`` randomised scenarios around ``base``
@@ -227,10 +246,11 @@ def study(
     _results.ensure_writable_dir(out)
     scen = sample_scenarios(jax.random.key(seed), batch, base)
     log(
-        f"sensitivities at {at}: {batch} randomised scenarios (seed {seed}), {duration:g} s; one forward pass and one "
-        "reverse pass per metric (the first run compiles the gradient: minutes on a small CPU)"
+        f"sensitivities of the {controller} controller at {at}: {batch} randomised scenarios (seed {seed}), "
+        f"{duration:g} s; one forward pass and one reverse pass per metric (the first run compiles the "
+        "gradient: minutes on a small CPU)"
     )
     t0 = time.perf_counter()
-    s = sensitivity(model, gains, scen, duration)
+    s = sensitivity(model, gains, scen, duration, controller=controller)
     write_results(out, s, gains, batch=batch, seed=seed, duration=duration, seconds=time.perf_counter() - t0)
     return s

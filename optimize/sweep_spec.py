@@ -26,7 +26,8 @@ AXES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5}
 ARMS = {"r": 0, "right": 0, "l": 1, "left": 1}
 VEC_AXES = {"x": 0, "y": 1, "z": 2}
 PER_ARM_GAINS = ("imp_mass", "imp_damping", "imp_stiffness")
-SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS)
+AXIS_GAINS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")  # (6,): one per axis
+SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS + AXIS_GAINS)
 VECTOR_FIELDS = ("object_offset", "lift")
 SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",))
 PHASE_FIELDS = ("t_close", "t_squeeze", "t_carry", "settle_time")
@@ -71,6 +72,7 @@ def known_names() -> str:
     return (
         f"gains {', '.join(SCALAR_GAINS)}; per-arm gains {', '.join(PER_ARM_GAINS)} "
         f"(all entries, or NAME.AXIS / NAME.ARM.AXIS with AXIS in {'/'.join(AXES)} and ARM r/l); "
+        f"per-axis gains {', '.join(AXIS_GAINS)} (all entries, or NAME.AXIS); "
         f"scenario {', '.join(SCALAR_FIELDS)}; {', '.join(f + '.x/.y/.z' for f in VECTOR_FIELDS)}; noise_seed"
     )
 
@@ -91,6 +93,12 @@ def resolve_name(name: str) -> Target:
             return Target("gain", head, (slice(None), AXES[parts[1]]))
         if len(parts) == 3 and parts[1] in ARMS and parts[2] in AXES:
             return Target("gain", head, (ARMS[parts[1]], AXES[parts[2]]))
+        raise bad
+    if head in AXIS_GAINS:
+        if len(parts) == 1:
+            return Target("gain", head, (slice(None),))
+        if len(parts) == 2 and parts[1] in AXES:
+            return Target("gain", head, (AXES[parts[1]],))
         raise bad
     if head in SCALAR_FIELDS and len(parts) == 1:
         return Target("scenario", head)

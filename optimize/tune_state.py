@@ -22,7 +22,8 @@ def select_iterate(validation: list[dict]) -> dict | None:
     """The validated iterate with the lowest settled peak resultant whose grip
     error is not worse than the start's (the first entry, which therefore always
     qualifies), that dropped nothing and chattered in no scenario more than the
-    start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``). Entries:
+    start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``) and, where the
+    tuning bounds compliance, is within the bounds (``within_bounds``). Entries:
     {"iteration", "settled_peak_resultant_N", "grip_force_error_rel",
     "dropped", "nonfinite", "chattering", ...}."""
     if not validation:
@@ -35,7 +36,14 @@ def select_iterate(validation: list[dict]) -> dict | None:
         if v["settled_peak_resultant_N"] is not None
         and not v["dropped"]
         and not v["nonfinite"]
-        and (v is validation[0] or (v["grip_force_error_rel"] <= grip0 and v.get("chattering", 0) <= chatter0))
+        and (
+            v is validation[0]
+            or (
+                v["grip_force_error_rel"] <= grip0
+                and v.get("chattering", 0) <= chatter0
+                and v.get("within_bounds", True)
+            )
+        )
     ]
     return min(ok, key=lambda v: v["settled_peak_resultant_N"]) if ok else validation[0]
 

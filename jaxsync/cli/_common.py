@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from jaxsync.control.names import CONTROLLERS as CONTROLLER_NAMES
+
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
 EXIT_DROPPED = 4  # the object was dropped: compare (files written) or tune (by the start, nothing tuned)
 EXIT_SIM_TO_SIM = 5  # compare --mujoco-check: MuJoCo C and MJX disagree (files written)
@@ -25,6 +27,34 @@ def positive(kind):
         return v
 
     return parse
+
+
+def controller_list(minimum: int = 1):
+    """An argparse type: comma-separated controller names, each known, none twice, at least ``minimum``."""
+
+    def parse(text):
+        names = [n.strip() for n in text.split(",") if n.strip()]
+        unknown = [n for n in names if n not in CONTROLLER_NAMES]
+        if unknown:
+            raise argparse.ArgumentTypeError(
+                f"unknown controller(s) {', '.join(unknown)}; known: {', '.join(CONTROLLER_NAMES)}"
+            )
+        if len(set(names)) != len(names):
+            raise argparse.ArgumentTypeError(f"a controller is named twice in {text!r}")
+        if len(names) < minimum:
+            raise argparse.ArgumentTypeError(f"name at least {minimum} controllers, got {text!r}")
+        return names
+
+    return parse
+
+
+def add_controller_argument(p: argparse.ArgumentParser, default: str = "synchronous") -> None:
+    p.add_argument(
+        "--controller",
+        default=default,
+        choices=list(CONTROLLER_NAMES),
+        help=f"the controller ({default}; docs/controller.md)",
+    )
 
 
 def add_model_argument(p: argparse.ArgumentParser) -> None:

@@ -6,10 +6,12 @@ import argparse
 import sys
 
 from jaxsync.cli._common import (
+    CONTROLLER_NAMES,
     EXIT_DROPPED,
     EXIT_SIM_TO_SIM,
     EXIT_UNSTABLE,
     add_model_argument,
+    controller_list,
     model_options,
     model_source,
     positive,
@@ -69,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
         options={k: v for k, v in vars(args).items() if k not in ("func",)},
         video_speed=args.video_speed if args.video else None,
         mujoco_check=args.mujoco_check,
+        controllers=tuple(args.controllers),
     )
     for line in _compare.table(summary):
         print(line)
@@ -77,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         for line in _compare.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
             print(line)
     print(f"results in {args.out}: {', '.join(files)}")
-    dropped = {n: t for n in _compare.CONTROLLERS if (t := _compare.drop_time(summary[n])) is not None}
+    dropped = {n: t for n in _compare.controllers_of(summary) if (t := _compare.drop_time(summary[n])) is not None}
     if dropped:
         print(
             "jaxsync compare: "
@@ -121,6 +124,13 @@ def add_parser(sub) -> None:
         "written, the drop marked in the table and plots, resultant_ratio null in summary.json); 3 internal error; "
         f"{EXIT_SIM_TO_SIM} --mujoco-check: MuJoCo C disagrees with MJX (files written); {EXIT_UNSTABLE} a "
         "controller's pad forces chattered (files written); 130 interrupted.",
+    )
+    p.add_argument(
+        "--controllers",
+        type=controller_list(minimum=2),
+        default=["classical", "synchronous"],
+        help="comma-separated controllers to roll out, the first the reference of the ratios "
+        f"(default classical,synchronous; any of {', '.join(CONTROLLER_NAMES)})",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     p.add_argument("--grip-force", type=positive(float), default=None, help="desired grip force f_d, N (10)")

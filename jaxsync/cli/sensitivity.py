@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from jaxsync.cli._common import add_model_argument, model_options, model_source, positive
+from jaxsync.cli._common import add_controller_argument, add_model_argument, model_options, model_source, positive
 
 
 def run(args) -> int:
@@ -33,6 +33,7 @@ def run(args) -> int:
         out=args.out,
         at=where,
         log=lambda m: print(m, flush=True),
+        controller=args.controller,
     )
     print(sens.table(s))
     dt = time.perf_counter() - t0
@@ -50,6 +51,7 @@ def add_parser(subparsers):
         "chart. See docs/tuning.md.",
     )
     add_model_argument(p)
+    add_controller_argument(p)
     p.add_argument("--gains", default=None, help="gains JSON (default: the built-in gains)")
     p.add_argument("--batch", type=positive(int), default=8, help="randomised scenarios (8)")
     p.add_argument("--seed", type=int, default=0, help="scenario seed (0)")

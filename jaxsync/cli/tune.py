@@ -5,10 +5,17 @@ from __future__ import annotations
 import math
 
 from jaxsync._errors import ConfigError
-from jaxsync.cli._common import add_distributed_arguments, add_model_argument, model_options, model_source
+from jaxsync.cli._common import (
+    add_controller_argument,
+    add_distributed_arguments,
+    add_model_argument,
+    model_options,
+    model_source,
+    positive,
+)
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.methods import METHODS
-from jaxsync.optimize.params import TUNABLE, TuneSpec
+from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TUNABLE, TuneSpec
 
 
 def _weights(items: list[str] | None) -> CostWeights:
@@ -41,7 +48,7 @@ def run(args) -> int:
     from jaxsync.optimize import tune as tuning
     from jaxsync.physics.model import load_model
 
-    tuned = _names(args.tune) or list(TuneSpec().tuned)
+    tuned = _names(args.tune) or list(DEFAULT_TUNED_FOR[args.controller])
     frozen = _names(args.freeze)
     unknown = sorted(set(frozen) - set(TUNABLE))
     if unknown:
@@ -71,6 +78,9 @@ def run(args) -> int:
         method=args.method,
         popsize=args.popsize,
         sampling=args.sampling,
+        controller=args.controller,
+        max_impact_N=args.max_impact,
+        max_stiffness_N_per_m=args.max_stiffness,
     ).validate()
     weights = _weights(args.weight)
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
@@ -145,6 +155,21 @@ def add_parser(sub) -> None:
         description="Gradient-based gain tuning (optax) on batches of randomised scenarios, "
         "evaluated on held-out scenarios before and after.",
     )
+    add_controller_argument(p)
+    p.add_argument(
+        "--max-impact",
+        type=positive(float),
+        default=None,
+        metavar="N",
+        help="bound the mean first-impact peak pad force, N (docs/metrics.md; default unbounded)",
+    )
+    p.add_argument(
+        "--max-stiffness",
+        type=positive(float),
+        default=None,
+        metavar="N_PER_M",
+        help="bound the apparent stiffness along the pad normal, N/m (docs/metrics.md; default unbounded)",
+    )
     p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
     p.add_argument(
         "--batch",
@@ -157,7 +182,10 @@ def add_parser(sub) -> None:
     p.add_argument("--schedule", default="cosine", choices=["cosine", "constant"])
     p.add_argument("--clip", type=float, default=1.0, help="global-norm gradient clipping (1.0)")
     p.add_argument(
-        "--tune", default=None, help=f"comma-separated parameters to tune (default all: {','.join(TUNABLE)})"
+        "--tune",
+        default=None,
+        help="comma-separated parameters to tune (default: the controller's own; synchronous "
+        f"{','.join(DEFAULT_TUNED_FOR['synchronous'])}; any of {','.join(TUNABLE)})",
     )
     p.add_argument("--freeze", default=None, help="comma-separated parameters to keep fixed")
     p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")

@@ -1,9 +1,17 @@
-"""The two controllers of the paper, as pure functions over explicit state.
+"""The controllers, as pure functions over explicit state.
 
+The paper's two:
 ``classical``: impedance only (eqs. 8-11, 15): x_ic = x_id + e_i.
 ``synchronous``: impedance plus absolute/relative errors (eqs. 12-17):
 x_ik = x_id + delta_ik + k_il (e_i + T_ij e_j).
-Both end in the same joint-space law (eqs. 18, 19).
+Two baselines of the dual-arm literature (``jaxsync.control.baselines``):
+``object_impedance``: an external impedance of the object and an internal
+impedance per pad (Caccavale, Chiacchio, Marino, Villani 2008).
+``task_space``: the absolute variable tracked, the relative one corrected
+by an internal-force PI loop (Chiacchio, Chiaverini, Siciliano 1996;
+Caccavale, Chiacchio, Chiaverini 2000).
+Every one computes the offset of the planned pad poses from the same
+sensing and ends in the same joint-space law (eqs. 18, 19).
 """
 
 from __future__ import annotations
@@ -15,14 +23,14 @@ import jax
 import jax.numpy as jnp
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import baselines as _baselines
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import Gains
+from jaxsync.control.names import CONTROLLERS  # re-exported: jaxsync.CONTROLLERS
 from jaxsync.physics.sensing import ArmState
-
-CONTROLLERS = ("classical", "synchronous")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,7 +42,7 @@ class ControllerOptions:
       ControllerOptions(kind='classical', cross_term='squeeze')
     """
 
-    kind: str = "synchronous"  # "classical" or "synchronous"
+    kind: str = "synchronous"  # one of CONTROLLERS
     cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync.control.sync.CROSS_TERMS
 
     def __post_init__(self):
@@ -47,22 +55,22 @@ class ControllerOptions:
 
 class ControllerSwitch(NamedTuple):
     """The controller choice as arrays, traced: one compiled program serves
-    both controllers and every cross term (``jaxsync.rollout``'s program; a
+    every controller and every cross term (``jaxsync.rollout``'s program; a
     static :class:`ControllerOptions` compiles one per choice). Each choice
     computes exactly what its static counterpart computes.
 
     Example:
-      >>> ControllerSwitch.of(ControllerOptions(kind="classical")).synchronous
-      Array(False, dtype=bool)
+      >>> int(ControllerSwitch.of(ControllerOptions(kind="classical")).kind)
+      0
     """
 
-    synchronous: jax.Array  # bool: the synchronous controller, else the classical one
+    kind: jax.Array  # int: index into CONTROLLERS
     cross_term: jax.Array  # int: index into jaxsync.control.sync.CROSS_TERMS
 
     @classmethod
     def of(cls, options: ControllerOptions) -> ControllerSwitch:
         return cls(
-            synchronous=jnp.asarray(options.kind == "synchronous"),
+            kind=jnp.asarray(CONTROLLERS.index(options.kind)),
             cross_term=jnp.asarray(_sync.CROSS_TERMS.index(options.cross_term)),
         )
 
@@ -88,7 +96,11 @@ class Reference(NamedTuple):
 
 
 class ControllerState(NamedTuple):
-    impedance: _impedance.ImpedanceState
+    """Every controller's state (a controller leaves the others' parts as they are)."""
+
+    impedance: _impedance.ImpedanceState  # the per-pad admittance filters (object_impedance: the internal ones)
+    object: _baselines.ObjectState  # object_impedance's compliant object frame
+    force_integral: jax.Array  # (2, 6) task_space's integral of the internal wrench
 
 
 class ControlInfo(NamedTuple):
@@ -107,7 +119,55 @@ def init() -> ControllerState:
       >>> state.impedance.offset.shape
       (2, 6)
     """
-    return ControllerState(impedance=_impedance.init())
+    return ControllerState(
+        impedance=_impedance.init(), object=_baselines.init_object(), force_integral=jnp.zeros((2, 6))
+    )
+
+
+class Pads(NamedTuple):
+    """What a controller's offsets read of the arms: each pad's pose and the
+    wrench the object exerts on it (world frame, about the pad)."""
+
+    pos: jax.Array  # (2, 3)
+    rot: jax.Array  # (2, 3, 3)
+    wrench: jax.Array  # (2, 6)
+
+    @classmethod
+    def of(cls, arms) -> Pads:
+        return cls(
+            pos=jnp.stack([a.pad_pos for a in arms]),
+            rot=jnp.stack([a.pad_rot for a in arms]),
+            wrench=jnp.stack([a.wrench for a in arms]),
+        )
+
+
+def offsets(options, gains: Gains, state: ControllerState, pads: Pads, ref: Reference, dt: float):
+    """Each pad's compliant offset from its plan (the part of a controller
+    before the joint-space law).
+
+    Returns ((off, off_vel, off_acc), the new state, delta, force_error):
+    offsets x_ic - x_id, their rates and accelerations (2, 6) world frame,
+    the absolute errors delta_i = x_id - x_i (eq. 12) and f_i - f_id (2, 6).
+    """
+    force_error = pads.wrench - ref.wrench
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
+    )
+    args = (gains, state, ref, force_error, delta, dt)
+    if isinstance(options, ControllerSwitch):  # every law, the choice traced
+
+        def cross(v):
+            return jnp.stack([_sync.cross_mapped(v, ref.pad_pos, t) for t in _sync.CROSS_TERMS])[options.cross_term]
+
+        laws = [lambda a, k=k: _LAWS[k](*a, cross) for k in CONTROLLERS]
+        out, state = jax.lax.switch(options.kind, laws, args)
+    else:
+
+        def cross(v):
+            return _sync.cross_mapped(v, ref.pad_pos, options.cross_term)
+
+        out, state = _LAWS[options.kind](*args, cross)
+    return out, state, delta, force_error
 
 
 def step(
@@ -118,17 +178,17 @@ def step(
     ref: Reference,
     dt: float,
 ) -> tuple[jax.Array, ControllerState, ControlInfo]:
-    """One control period of either controller.
+    """One control period of any controller.
 
     Args:
       options: static controller choice (or a traced :class:`ControllerSwitch`).
       gains: the gain pytree.
-      state: the admittance filters.
+      state: the controllers' filters.
       arms: sensed (right, left) arm states; ``wrench`` is the wrist reading.
       ref: planned poses and desired wrenches.
       dt: control period, s.
     Returns:
-      (14,) joint torques (right arm's 7, then left's), the new state, info.
+      (2 n,) joint torques (right arm's n, then left's), the new state, info.
 
     Example (one period, from a sensed state ``sensed = jaxsync.sense(...)``):
       >>> state = init()
@@ -137,27 +197,7 @@ def step(
       >>> tau.shape  # doctest: +SKIP
       (14,)
     """
-    wrench = jnp.stack([a.wrench for a in arms])
-    force_error = wrench - ref.wrench
-    imp, dde = _impedance.step(
-        state.impedance, gains.imp_mass, gains.imp_damping, gains.imp_stiffness, ref.pad_rot, force_error, dt
-    )
-    e, de = imp.offset, imp.rate
-    delta = jnp.stack(
-        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
-    )
-    if isinstance(options, ControllerSwitch):  # both, the choice traced
-        terms = _sync.CROSS_TERMS
-        cross = lambda v: jnp.stack([_sync.cross_mapped(v, ref.pad_pos, t) for t in terms])[options.cross_term]  # noqa: E731
-        synchronous = _synchronous_offsets(gains, delta, e, de, dde, cross)
-        pick = lambda a, b: jnp.where(options.synchronous, a, b)  # noqa: E731
-        off, off_vel, off_acc = (pick(a, b) for a, b in zip(synchronous, (e, de, dde), strict=True))
-    elif options.kind == "classical":
-        off, off_vel, off_acc = e, de, dde  # x_ic = x_id + e_i (eq. 11)
-    else:
-        cross = lambda v: _sync.cross_mapped(v, ref.pad_pos, options.cross_term)  # noqa: E731
-        off, off_vel, off_acc = _synchronous_offsets(gains, delta, e, de, dde, cross)
-
+    (off, off_vel, off_acc), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
     taus = []
     for i in range(2):
         pos_ref = ref.pad_pos[i] + off[i, :3]
@@ -173,13 +213,55 @@ def step(
         )
         taus.append(_joint_space.torques(arms[i], ddx, ref.q_rest[i], gains.kp_null, gains.kd_null, ref.wrench[i]))
     info = ControlInfo(offset=off, delta=delta, force_error=force_error)
-    return jnp.concatenate(taus), ControllerState(impedance=imp), info
+    return jnp.concatenate(taus), state, info
 
 
-def _synchronous_offsets(gains: Gains, delta, e, de, dde, cross):
-    """x_ik - x_id and its rate and acceleration (eqs. 13-17); ``cross`` maps
-    (2, 6) offsets through eq. 16's cross term."""
+def _impedance_filters(gains, state, ref, force_error, dt):
+    return _impedance.step(
+        state.impedance, gains.imp_mass, gains.imp_damping, gains.imp_stiffness, ref.pad_rot, force_error, dt
+    )
+
+
+def _classical(gains, state, ref, force_error, delta, dt, cross):
+    """x_ic = x_id + e_i (eq. 11)."""
+    imp, dde = _impedance_filters(gains, state, ref, force_error, dt)
+    return (imp.offset, imp.rate, dde), state._replace(impedance=imp)
+
+
+def _synchronous(gains, state, ref, force_error, delta, dt, cross):
+    """x_ik - x_id = delta_ik + k_il x_ild, with its rate and acceleration (eqs. 13-17)."""
+    imp, dde = _impedance_filters(gains, state, ref, force_error, dt)
     k_il = jnp.stack([gains.k_rl, gains.k_ll])
     delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
-    off = _sync.synchronous_offset(delta_k, k_il, cross(e))
-    return off, k_il[:, None] * cross(de), k_il[:, None] * cross(dde)
+    off = _sync.synchronous_offset(delta_k, k_il, cross(imp.offset))
+    return (off, k_il[:, None] * cross(imp.rate), k_il[:, None] * cross(dde)), state._replace(impedance=imp)
+
+
+def _object_impedance(gains, state, ref, force_error, delta, dt, cross):
+    """x_ic - x_id = T_i dx_o + dx_i (``jaxsync.control.baselines``)."""
+    h_e, h_i = _baselines.split_wrenches(force_error, ref.pad_pos)
+    obj, dx, ddx, dddx = _baselines.object_step(
+        state.object, gains.obj_mass, gains.obj_damping, gains.obj_stiffness, ref.pad_rot[0], h_e, dt
+    )
+    imp, dde = _impedance_filters(gains, state, ref, h_i, dt)
+    pads = ref.pad_pos
+    move = lambda v: _baselines.transport_to_pads(v, pads)  # noqa: E731
+    out = (move(dx) + imp.offset, move(ddx) + imp.rate, move(dddx) + dde)
+    return out, state._replace(impedance=imp, object=obj)
+
+
+def _task_space(gains, state, ref, force_error, delta, dt, cross):
+    """x_ic - x_id = K_P h_I,i + K_I int h_I,i dt (``jaxsync.control.baselines``)."""
+    _, h_i = _baselines.split_wrenches(force_error, ref.pad_pos)
+    off, rate, acc, integral = _baselines.task_space_offsets(
+        gains.force_p, gains.force_i, state.force_integral, h_i, ref.pad_rot, dt
+    )
+    return (off, rate, acc), state._replace(force_integral=integral)
+
+
+_LAWS = {
+    "classical": _classical,
+    "synchronous": _synchronous,
+    "object_impedance": _object_impedance,
+    "task_space": _task_space,
+}

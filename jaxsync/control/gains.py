@@ -24,6 +24,16 @@ class Gains(NamedTuple):
     kp_pos, kd_pos: inner position loop on x_ik - x_i (eq. 18), 1/s^2 and 1/s,
       translation and rotation.
     kp_null, kd_null: null-space posture term of eq. 18.
+
+    The baselines' own gains ((6,) arrays in the planned pad frame of the
+    right arm, which is the object frame: x, y tangential, z the clamp
+    normal, then rotations; ``jaxsync.control.baselines``):
+    obj_mass, obj_damping, obj_stiffness: the object-level (external)
+      impedance M_E, D_E, K_E of Caccavale et al. 2008 ("object_impedance";
+      its internal impedance is imp_mass, imp_damping, imp_stiffness).
+    force_p, force_i: the proportional (m/N, rad/(N m)) and integral
+      (m/(N s), rad/(N m s)) gains of the internal-force loop on the relative
+      variable ("task_space", Chiacchio, Chiaverini and Siciliano 1996).
     """
 
     imp_mass: jax.Array
@@ -37,6 +47,21 @@ class Gains(NamedTuple):
     kd_pos: jax.Array
     kp_null: jax.Array
     kd_null: jax.Array
+    obj_mass: jax.Array
+    obj_damping: jax.Array
+    obj_stiffness: jax.Array
+    force_p: jax.Array
+    force_i: jax.Array
+
+
+# the gains each controller reads besides the shared joint-space law's (kp_pos, kd_pos, kp_null, kd_null)
+IMPEDANCE_FIELDS = ("imp_mass", "imp_damping", "imp_stiffness")
+USED = {
+    "classical": IMPEDANCE_FIELDS,
+    "synchronous": IMPEDANCE_FIELDS + ("k_rk", "k_lk", "k_rl", "k_ll"),
+    "object_impedance": IMPEDANCE_FIELDS + ("obj_mass", "obj_damping", "obj_stiffness"),
+    "task_space": ("force_p", "force_i"),
+}
 
 
 def default_gains() -> Gains:
@@ -62,6 +87,16 @@ def default_gains() -> Gains:
         kd_pos=80.0,
         kp_null=100.0,
         kd_null=20.0,
+        # the object-level impedance at twice one arm's: a force on the object
+        # moves it as the classical controller moves both pads (docs/controller.md)
+        obj_mass=2 * mass,
+        obj_damping=2 * damping,
+        obj_stiffness=2 * stiffness,
+        # the internal-force loop: along the normal, integral at the classical
+        # normal axis's 1/B_d with a small proportional part; tangentially and
+        # in rotation proportional at the classical 1/K_d
+        force_p=np.array([1 / 1500, 1 / 1500, 1e-4, 1 / 40, 1 / 40, 1 / 40]),
+        force_i=np.array([1e-4, 1e-4, 1 / 2000, 1e-3, 1e-3, 1e-3]),
     )
     return strongly_typed(g)
 
@@ -106,7 +141,10 @@ def stable_defaults(apparent_inertia, dt: float, base: Gains | None = None) -> G
     b, k = (np.asarray(x, dtype=float)[:, NORMAL] for x in (g.imp_damping, g.imp_stiffness))
     need = STABILITY_MARGIN * lam - b * dt - k * dt**2
     mass[:, NORMAL] = np.maximum(mass[:, NORMAL], need)
-    return strongly_typed(g._replace(imp_mass=mass))
+    # the object-level impedance answers with both pads: per pad, half its mass
+    obj_mass = np.array(g.obj_mass, dtype=float)
+    obj_mass[NORMAL] = max(obj_mass[NORMAL], 2 * float(mass[:, NORMAL].max()))
+    return strongly_typed(g._replace(imp_mass=mass, obj_mass=obj_mass))
 
 
 def default_gains_for(model) -> Gains:
@@ -164,6 +202,11 @@ _BOUNDS = {
     "kd_pos": (0.0, math.inf, False),
     "kp_null": (0.0, math.inf, True),
     "kd_null": (0.0, math.inf, True),
+    "obj_mass": (0.0, math.inf, False),
+    "obj_damping": (0.0, math.inf, False),
+    "obj_stiffness": (0.0, math.inf, True),
+    "force_p": (0.0, math.inf, True),
+    "force_i": (0.0, math.inf, True),
 }
 
 

@@ -26,6 +26,11 @@ DROP_DISTANCE = 0.03
 # flips the force by 10 N and more every step (docs/metrics.md).
 CHATTER_THRESHOLD_N = 1.0
 
+# The first impact: the window after a pad first touches the object (its
+# normal force above IMPACT_CONTACT_N) over which its peak counts.
+IMPACT_CONTACT_N = 0.05
+IMPACT_WINDOW_S = 0.1
+
 
 def normal_forces(pad_forces: jax.Array, pad_normal: jax.Array) -> jax.Array:
     """(T, 2) each pad's force on the object along the pad normal (pushing: positive).
@@ -108,6 +113,7 @@ class Metrics(NamedTuple):
     nonfinite_time_s: jax.Array
     force_chatter_N: jax.Array  # RMS step-to-step change of a pad's normal force, settled window (worse pad)
     chattering: jax.Array  # bool: force_chatter_N > CHATTER_THRESHOLD_N
+    first_impact_peak_N: jax.Array  # largest normal pad force in the first IMPACT_WINDOW_S of contact
 
 
 TORQUE_LIMIT_FRACTION = 0.999  # a joint whose commanded torque reaches this share of its limit is at it
@@ -130,6 +136,22 @@ def force_chatter(pad_forces: jax.Array, pad_normal: jax.Array, mask: jax.Array)
     d = fn[1:] - fn[:-1]
     m = (mask[1:] * mask[:-1])[:, None]
     return jnp.sqrt(jnp.max(jnp.sum(m * d**2, 0) / jnp.maximum(jnp.sum(m), 1.0)))
+
+
+def impact_mask(time: jax.Array, normal: jax.Array) -> jax.Array:
+    """(T, 2) 1.0 inside each pad's first-impact window: from its first step
+    with a normal force above ``IMPACT_CONTACT_N`` for ``IMPACT_WINDOW_S``
+    (zero for a pad that never touches). ``normal`` (T, 2) from :func:`normal_forces`."""
+    touch = normal > IMPACT_CONTACT_N
+    t0 = jnp.where(touch.any(0), time[jnp.argmax(touch, axis=0)], jnp.inf)
+    inside = (time[:, None] >= t0[None]) & (time[:, None] < t0[None] + IMPACT_WINDOW_S)
+    return inside.astype(normal.dtype)
+
+
+def first_impact_peak(pad_forces: jax.Array, pad_normal: jax.Array, time: jax.Array) -> jax.Array:
+    """() the largest normal pad force inside either pad's first-impact window (N)."""
+    fn = normal_forces(pad_forces, pad_normal)
+    return jnp.max(jnp.where(impact_mask(time, fn) > 0, fn, 0.0))
 
 
 def _masked_mean(x, mask):
@@ -171,6 +193,7 @@ def summarize(traj, s: Scenario) -> Metrics:
         nonfinite_time_s=_first_time(~finite, traj.time),
         force_chatter_N=(chatter := force_chatter(traj.pad_forces, traj.pad_normal, mask)),
         chattering=chatter > CHATTER_THRESHOLD_N,
+        first_impact_peak_N=first_impact_peak(traj.pad_forces, traj.pad_normal, traj.time),
     )
 
 
