@@ -25,6 +25,7 @@ from jaxsync.optimize.cost import CostWeights, cost, cost_terms
 from jaxsync.optimize.params import TuneSpec
 from jaxsync.optimize.scenarios import training_base
 from jaxsync.physics import step as _physics
+from jaxsync.runtime import programs
 from jaxsync.runtime.cache import traced_on_disk
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.rollout import make_rollout
@@ -108,25 +109,29 @@ def smooth_impact(traj):
     return _metrics.smooth_max(fn.reshape(-1), mask.reshape(-1), IMPACT_TEMPERATURE)
 
 
-def compliance_fn(model, controller: str):
-    """gains -> the apparent stiffness along the pad normal, N/m (``jaxsync.control.compliance``);
+def compliance_fn(model, controller: str, axis: str | None = "normal"):
+    """gains -> the apparent stiffness at the pad, N/m (``jaxsync.control.compliance``):
+    along ``axis`` ("normal" or "tangential"), or both as a dict (``axis=None``);
     a schedule's is the largest over its phases."""
     pos, rot = _compliance.probe_geometry(model)
     dt = float(model.mj_model.opt.timestep)
 
-    def normal(g):
-        return _compliance.apparent_stiffness(controller, g, pos, rot, dt)["normal"]
+    def figures(g):
+        k = _compliance.apparent_stiffness(controller, g, pos, rot, dt)
+        return k if axis is None else k[axis]
 
     def fn(gains):
         if isinstance(gains, _schedule.Schedule):
-            return jnp.max(jax.vmap(normal)(gains.phases))
-        return normal(gains)
+            return jax.tree_util.tree_map(jnp.max, jax.vmap(figures)(gains.phases))
+        return figures(gains)
 
     return fn
 
 
+@programs.memoize(maxsize=8)
 def make_evaluator(model, duration: float, controller: str = "synchronous"):
-    """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver)."""
+    """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver);
+    one per configuration and process (a study's runs share it)."""
     fn = make_rollout(model, controller, duration)
     return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
 
@@ -146,6 +151,8 @@ def eval_summary(m) -> dict:
         "first_impact_peak_N": mean(m["first_impact_peak_N"]),
         "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
         "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
+        # every metric of every scenario (NaN, e.g. the drop time of a held object: None)
+        "metrics": {k: [None if x != x else x for x in v.tolist()] for k, v in m.items()},
     }
 
 

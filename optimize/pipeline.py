@@ -49,6 +49,11 @@ def history_columns(history: list[dict]) -> list[str]:
     return [k for k in HISTORY_COLUMNS if k in keys] + sorted(keys - set(HISTORY_COLUMNS))
 
 
+def stiffness_figures(k: dict) -> dict:
+    """{"apparent_stiffness_normal_N_per_m": .., "apparent_stiffness_tangential_N_per_m": ..} as floats."""
+    return {f"apparent_stiffness_{axis}_N_per_m": float(v) for axis, v in k.items()}
+
+
 def within_bounds(evaluation: dict, cfg) -> bool:
     """Whether an evaluation's mean first-impact peak and apparent normal
     stiffness are within ``cfg``'s compliance bounds (True when unbounded)."""
@@ -72,6 +77,7 @@ def tune_and_evaluate(
     options: dict | None = None,
     fingerprint: dict | None = None,
     log: Callable[[str], None] = print,
+    before: dict | None = None,
 ) -> dict | None:
     """Tune ``base`` and score it before and after; returns ``summary.json``'s dict.
 
@@ -80,7 +86,9 @@ def tune_and_evaluate(
     ``options`` (recorded in the summary) and ``fingerprint`` (the options a
     resumed run must share) describe the caller's settings. In a multi-process
     run every process tunes (data-parallel); process 0 alone scores, writes
-    and gets the summary, the others get None.
+    and gets the summary, the others get None. ``before``: the held-out
+    evaluation of ``base`` (``optimize.loss.eval_summary`` of the same
+    held-out scenarios), when the caller already has it.
 
     Example:
       >>> summary = tune_and_evaluate(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(),
@@ -93,9 +101,10 @@ def tune_and_evaluate(
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
+    run_args = (model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
     if not main:
         _distributed.barrier("tune: output folder ready")
-        return _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
+        return _run(*run_args, before)
     _results.ensure_writable_dir(out)
     with _results.run_lock(out, "tune", log=say):
         prepare_out(out, resume=resume, restart=restart)
@@ -103,7 +112,7 @@ def tune_and_evaluate(
         before_path = os.path.join(out, HELDOUT_BEFORE)
         wrote_before = not (resume and os.path.exists(before_path))
         try:
-            return _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
+            return _run(*run_args, before)
         except Exception:
             # a run that failed before its first checkpoint leaves nothing of value: not even the
             # held-out scores it wrote, which would make the corrected command ask for --restart
@@ -113,14 +122,14 @@ def tune_and_evaluate(
             raise
 
 
-def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main):
+def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main, given=None):
     t_start = time.perf_counter()
     evaluate = _loss.make_evaluator(
         model, cfg.eval_duration, cfg.controller
     )  # one physics: training, validation and held out
     held = _scenarios.heldout_scenarios(cfg)
     before_path = os.path.join(out, HELDOUT_BEFORE)
-    before = None
+    before = dict(given) if given is not None else None
     if not main:
         before = {}
     elif resume and os.path.exists(before_path):
@@ -153,11 +162,11 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     )
     valid = _scenarios.validation_scenarios(cfg)
 
-    stiffness = jax.jit(_loss.compliance_fn(model, cfg.controller))
+    stiffness = jax.jit(_loss.compliance_fn(model, cfg.controller, axis=None))
 
     def validate(g):
         out = _loss.eval_summary(evaluate(g, valid))
-        out["apparent_stiffness_normal_N_per_m"] = float(stiffness(g))
+        out.update(stiffness_figures(stiffness(g)))
         out["within_bounds"] = within_bounds(out, cfg)
         return out
 
@@ -188,7 +197,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     say("held-out evaluation after tuning...")
     after = _loss.eval_summary(evaluate(gains, held))
     for which, g in ((before, base), (after, gains)):
-        which["apparent_stiffness_normal_N_per_m"] = float(stiffness(g))
+        which.update(stiffness_figures(stiffness(g)))
         which["within_bounds"] = within_bounds(which, cfg)
     described = spec.describe()
     for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):

@@ -1,6 +1,6 @@
 """The ``jaxsync`` command line: the root parser and the entry point.
 
-One module per command (``info``, ``compare``, ``tune``, ``sensitivity``, ``export``, ``sweep``, ``bench``,
+One module per command (``info``, ``compare``, ``tune``, ``study``, ``sensitivity``, ``export``, ``sweep``, ``bench``,
 ``render``), each with ``add_parser(subparsers)`` and ``run(args) -> int``.
 Imports run one way: the command line imports the library and
 ``jaxsync.optimize``; nothing in them imports the command line.
@@ -23,7 +23,7 @@ from jaxsync.runtime import distributed as _distributed
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
 
-COMMANDS = ("info", "compare", "tune", "sensitivity", "export", "sweep", "bench", "render")
+COMMANDS = ("info", "compare", "tune", "study", "sensitivity", "export", "sweep", "bench", "render")
 
 
 def _setup_jax(args: argparse.Namespace) -> None:

@@ -79,6 +79,16 @@ def resultant_force(pad_forces: jax.Array, plan_obj_acc: jax.Array, object_mass:
     return pad_forces.sum(axis=1) - object_mass * (plan_obj_acc - jnp.asarray(GRAVITY))
 
 
+def internal_force_error(pad_forces: jax.Array, pad_pos: jax.Array, grip_force_d) -> jax.Array:
+    """(T,) |(f_r - f_l)/2 - f_d u|, N: the internal force (the part of the
+    pad forces that cancels in their sum) against the desired squeeze f_d
+    along u = (p_l - p_r)/|p_l - p_r|. Beside the grip error's squeeze it
+    counts the tangential forces the pads fight each other with."""
+    u = _unit(pad_pos[:, 1] - pad_pos[:, 0])
+    internal = 0.5 * (pad_forces[:, 0] - pad_forces[:, 1])
+    return safe_norm(internal - grip_force_d * u)
+
+
 def sync_error(delta: jax.Array) -> jax.Array:
     """(T,) |delta_r - delta_l| of the position part (eq. 13), m. delta (T, 2, 6)."""
     return safe_norm(delta[:, 0, :3] - delta[:, 1, :3])
@@ -105,6 +115,7 @@ class Metrics(NamedTuple):
     grip_force_error_rel: jax.Array  # |mean grip - f_d| / f_d, settled window
     grip_force_error_rel_max: jax.Array  # max |grip - f_d| / f_d, settled window
     sync_error_rms_m: jax.Array
+    internal_force_error_rms_N: jax.Array  # RMS of internal_force_error, settled window
     object_error_rms_m: jax.Array
     torque_effort: jax.Array  # mean |tau|^2 over the rollout, N^2 m^2
     dropped: jax.Array  # bool
@@ -185,6 +196,9 @@ def summarize(traj, s: Scenario) -> Metrics:
         grip_force_error_rel=jnp.abs(mean_grip - s.grip_force) / s.grip_force,
         grip_force_error_rel_max=jnp.max(jnp.where(mask > 0, grip_err, 0.0)),
         sync_error_rms_m=jnp.sqrt(_masked_mean(sync_error(traj.delta) ** 2, mask)),
+        internal_force_error_rms_N=jnp.sqrt(
+            _masked_mean(internal_force_error(traj.pad_forces, traj.pad_pos, s.grip_force) ** 2, mask)
+        ),
         object_error_rms_m=jnp.sqrt(_masked_mean(obj_err**2, mask)),
         torque_effort=jnp.mean(jnp.sum(traj.torque**2, -1)),
         dropped=lost.any(),

@@ -1,0 +1,283 @@
+"""The fair study: every controller at its own optimum, compliance held equal (docs/study.md).
+
+Each controller is tuned with the same method, budget, training seeds and
+cost, under each compliance bound (a factor of the default classical
+controller's mean first-impact peak and apparent normal stiffness), and all
+are scored on one held-out set. A run per (controller, bound, seed), each a
+``jaxsync tune`` folder under ``runs/``: a lost study costs only the run it
+was computing (that run resumes from its last checkpoint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import sys
+import time
+
+import jax
+import numpy as np
+
+from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
+from jaxsync.control.names import CONTROLLERS
+from jaxsync.io import results as _results
+from jaxsync.optimize import loss as _loss
+from jaxsync.optimize import methods as _methods
+from jaxsync.optimize import pipeline as _pipeline
+from jaxsync.optimize import scenarios as _scenarios
+from jaxsync.optimize import study_report as _report
+from jaxsync.optimize.config import TuneConfig
+from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TuneSpec
+from jaxsync.optimize.tune_state import CHECKPOINT
+
+STUDY_FILE = "study.json"
+# what a study writes into its folder (--restart removes these, nothing else)
+STUDY_PARTS = ("runs", "defaults", "reference.json", STUDY_FILE, *_report.FILES)
+REFERENCE_CONTROLLER = "classical"  # the bounds are factors of its default compliance
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    """How the study runs (defaults: ``jaxsync study``'s).
+
+    Example:
+      >>> cfg = StudyConfig(controllers=("classical", "synchronous"), seeds=(0,), iterations=2).validate()
+    """
+
+    controllers: tuple[str, ...] = CONTROLLERS
+    bounds: tuple[float, ...] = (0.7, 1.0, 1.5)  # x the default classical controller's compliance figures
+    seeds: tuple[int, ...] = (0, 1, 2)  # training seeds, one run each
+    iterations: int = 15
+    batch: int = 2
+    method: str = "lbfgs"
+    task: str = "full"  # the training task ("short": jaxsync.short_task(), for smoke runs)
+    heldout: int = 32
+    heldout_seed: int = 1000
+    validation_batch: int = 8
+    validation_seed: int = 500
+    validate_every: int = 5
+    eval_duration: float = 4.0
+    bootstrap: int = 2000  # resamples of the ratios' 95 % intervals
+
+    def validate(self) -> StudyConfig:
+        unknown = [c for c in self.controllers if c not in CONTROLLERS]
+        if unknown:
+            raise ConfigError(f"--controllers: unknown {', '.join(unknown)}; known: {', '.join(CONTROLLERS)}")
+        if len(self.controllers) < 2 or len(set(self.controllers)) != len(self.controllers):
+            raise ConfigError(f"--controllers must name at least two different controllers, got {self.controllers}")
+        if not self.bounds or any(not (b > 0 and np.isfinite(b)) for b in self.bounds):
+            raise ConfigError(f"--bounds must be positive factors, e.g. 0.7,1,1.5, got {self.bounds}")
+        if len(set(self.bounds)) != len(self.bounds):
+            raise ConfigError(f"--bounds names a factor twice: {self.bounds}")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError(f"--seeds must be distinct training seeds, got {self.seeds}")
+        clash = sorted(set(self.seeds) & {self.heldout_seed, self.validation_seed})
+        if clash:
+            raise ConfigError(
+                f"--seeds {clash} equal the held-out ({self.heldout_seed}) or validation ({self.validation_seed}) "
+                "seed: held-out scenarios are never trained on"
+            )
+        if self.bootstrap < 100:
+            raise ConfigError(f"--bootstrap must be at least 100 resamples, got {self.bootstrap}")
+        if self.method not in _methods.METHODS:
+            raise ConfigError(f"--method must be one of {list(_methods.METHODS)}, got {self.method!r}")
+        for c in self.controllers:
+            self.tune_config(c, self.seeds[0], None).validate()  # the tuner's own checks, named as its
+        return self
+
+    def tune_config(self, controller: str, seed: int, bounds: dict | None) -> TuneConfig:
+        """One run's TuneConfig: the same for every controller but its name and bounds."""
+        return TuneConfig(
+            iterations=self.iterations,
+            batch=self.batch,
+            method=self.method,
+            task=self.task,
+            seed=seed,
+            heldout_seed=self.heldout_seed,
+            heldout_batch=self.heldout,
+            validation_seed=self.validation_seed,
+            validation_batch=self.validation_batch,
+            validate_every=self.validate_every,
+            eval_duration=self.eval_duration,
+            controller=controller,
+            max_impact_N=(bounds or {}).get("max_impact_N"),
+            max_stiffness_N_per_m=(bounds or {}).get("max_stiffness_N_per_m"),
+        )
+
+    def describe(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+
+def bound_name(factor: float) -> str:
+    return f"bound_{factor:g}"
+
+
+def run_dir(out: str, controller: str, factor: float, seed: int) -> str:
+    return os.path.join(out, "runs", controller, bound_name(factor), f"seed_{seed}")
+
+
+def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart: bool) -> None:
+    path = os.path.join(out, STUDY_FILE)
+    if resume and restart:
+        raise ConfigError("--resume continues the study in --out and --restart discards it: give one of them")
+    want = {"config": cfg.describe(), "model": model_name}
+    if os.path.exists(path):
+        with open(path) as f:
+            saved = json.load(f)
+        if restart:
+            for name in STUDY_PARTS:
+                target = os.path.join(out, name)
+                if os.path.isdir(target):
+                    shutil.rmtree(target)
+                elif os.path.exists(target):
+                    os.unlink(target)
+        elif not resume:
+            raise ConfigError(
+                f"output folder {out!r} holds a study: pass --resume to continue it, or --restart to discard it"
+            )
+        elif {k: saved.get(k) for k in want} != want:
+            diff = [k for k in cfg.describe() if saved.get("config", {}).get(k) != cfg.describe()[k]]
+            if saved.get("model") != model_name:
+                diff.append("model")
+            raise ConfigError(
+                f"--resume: the study in {out!r} was run with other settings ({', '.join(diff)} differ); "
+                "run it with those, or --restart"
+            )
+    elif resume:
+        raise ConfigError(f"--resume: no study in {out!r}")
+    _results.write_json(path, want)
+
+
+def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
+    """The default classical controller's compliance figures: its mean
+    first-impact peak over the validation scenarios (the set that selects
+    each run's iterate; the held-out set only scores) and its apparent
+    normal stiffness. Kept on disk."""
+    path = os.path.join(out, "reference.json")
+    if os.path.exists(path):
+        with open(path) as f:
+            return json.load(f)
+    tcfg = cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None)
+    base = _gains.default_gains_for(model)
+    evaluate = _loss.make_evaluator(model, cfg.eval_duration, REFERENCE_CONTROLLER)
+    log(f"compliance reference: default {REFERENCE_CONTROLLER} on {cfg.validation_batch} validation scenarios...")
+    ev = _loss.eval_summary(evaluate(base, _scenarios.validation_scenarios(tcfg)))
+    k = jax.jit(_loss.compliance_fn(model, REFERENCE_CONTROLLER))(base)
+    ref = {
+        "controller": REFERENCE_CONTROLLER,
+        "scenarios": f"{cfg.validation_batch} validation scenarios (seed {cfg.validation_seed})",
+        "first_impact_peak_N": ev["first_impact_peak_N"],
+        "apparent_stiffness_normal_N_per_m": float(k),
+    }
+    _results.write_json(path, ref)
+    return ref
+
+
+def bounds_for(reference: dict, factor: float) -> dict:
+    return {
+        "max_impact_N": factor * reference["first_impact_peak_N"],
+        "max_stiffness_N_per_m": factor * reference["apparent_stiffness_normal_N_per_m"],
+    }
+
+
+def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
+    """Every controller (and the reference) at its default gains on the held-out set, kept on disk."""
+    held = _scenarios.heldout_scenarios(cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None))
+    base = _gains.default_gains_for(model)
+    out_dir = os.path.join(out, "defaults")
+    os.makedirs(out_dir, exist_ok=True)
+    found = {}
+    for name in dict.fromkeys((REFERENCE_CONTROLLER, *cfg.controllers)):
+        path = os.path.join(out_dir, f"{name}.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                found[name] = json.load(f)
+            continue
+        t0 = time.perf_counter()
+        log(f"defaults: {name} on {cfg.heldout} held-out scenarios ({cfg.eval_duration:g} s; compiles first)...")
+        evaluate = _loss.make_evaluator(model, cfg.eval_duration, name)
+        ev = _loss.eval_summary(evaluate(base, held))
+        ev.update(_pipeline.stiffness_figures(jax.jit(_loss.compliance_fn(model, name, axis=None))(base)))
+        _results.write_json(path, ev)
+        found[name] = ev
+        log(f"defaults: {name} done in {time.perf_counter() - t0:.0f} s")
+    return found
+
+
+def run_study(
+    model,
+    cfg: StudyConfig,
+    out: str,
+    *,
+    resume: bool = False,
+    restart: bool = False,
+    log=lambda m: print(m, file=sys.stderr, flush=True),
+) -> dict:
+    """``jaxsync study``'s job; returns the report (``report.json``)."""
+    cfg.validate()
+    _results.ensure_writable_dir(out)
+    model_name = model.path if model.robot is None else f"{model.path} (robot file)"
+    t_start = time.perf_counter()
+    with _results.run_lock(out, "study", log=log):
+        _prepare(out, cfg, model_name, resume, restart)
+        defaults = _evaluate_defaults(model, cfg, out, log)
+        reference = reference_compliance(model, cfg, out, log)
+        log(
+            f"compliance reference (default {REFERENCE_CONTROLLER}): first-impact peak "
+            f"{reference['first_impact_peak_N']:.3g} N, apparent normal stiffness "
+            f"{reference['apparent_stiffness_normal_N_per_m']:.4g} N/m; bounds x {', '.join(map(str, cfg.bounds))}"
+        )
+        base = _gains.default_gains_for(model)
+        jobs = [(c, b, s) for b in cfg.bounds for c in cfg.controllers for s in cfg.seeds]
+        runs, took = {}, []
+        for k, (controller, factor, seed) in enumerate(jobs):
+            where = run_dir(out, controller, factor, seed)
+            label = f"[{k + 1}/{len(jobs)}] {controller}, bound x{factor:g}, seed {seed}"
+            summary_path = os.path.join(where, "summary.json")
+            if os.path.exists(summary_path):
+                with open(summary_path) as f:
+                    runs[(controller, factor, seed)] = json.load(f)
+                log(f"{label}: done earlier")
+                continue
+            eta = f", about {np.median(took) * (len(jobs) - k) / 60:.0f} min left" if took else ""
+            log(f"{label}: tuning{eta}")
+            t0 = time.perf_counter()
+            tcfg = cfg.tune_config(controller, seed, bounds_for(reference, factor))
+            resuming = os.path.exists(os.path.join(where, CHECKPOINT))
+            runs[(controller, factor, seed)] = _pipeline.tune_and_evaluate(
+                model,
+                TuneSpec(tuned=DEFAULT_TUNED_FOR[controller]),
+                base,
+                tcfg,
+                out=where,
+                resume=resuming,
+                restart=not resuming,
+                mujoco_check=False,
+                options={"study": out, "controller": controller, "bound": factor, "seed": seed},
+                log=lambda m: None,
+                before=_before(defaults[controller], tcfg),
+            )
+            took.append(time.perf_counter() - t0)
+            after = runs[(controller, factor, seed)]["heldout_after"]
+            log(
+                f"{label}: {took[-1]:.0f} s, held-out settled peak {_num(after['settled_peak_resultant_N'])} N, "
+                f"within bounds: {after['within_bounds']}"
+            )
+        report = _report.build(cfg, reference, defaults, runs)
+        report["wall_time_s"] = time.perf_counter() - t_start
+        _report.write(out, report)
+    return report
+
+
+def _before(default_eval: dict, tcfg: TuneConfig) -> dict:
+    """The default gains' held-out evaluation as the tuner records it (with its bounds' verdict)."""
+    ev = dict(default_eval)
+    ev["within_bounds"] = _pipeline.within_bounds(ev, tcfg)
+    return ev
+
+
+def _num(v) -> str:
+    return "n/a" if v is None else f"{v:.5f}"
