@@ -147,10 +147,12 @@ def table(report: dict) -> list[str]:
         bound = "default" if r["bound"] is None else f"x{r['bound']:g}"
         inb = f"{r['within_bounds']}/{r['runs']}" if "runs" in r else "-"
         stiff = r["apparent_stiffness_normal_N_per_m"]["median"]
+        stiff = f"{stiff:.4g}" if stiff is not None else "n/a"
+        dropped = f"{r['dropped']}/{r['scenarios']}"
         lines.append(
             f"{r['controller']:<18}{bound:>8}{_fmt(r['settled_peak_resultant_N']):>30}"
             f"{_fmt(r['internal_force_error_rms_N']):>28}{_fmt(r['first_impact_peak_N']):>26}"
-            f"{(f'{stiff:.4g}' if stiff is not None else 'n/a'):>16}{f'{r['dropped']}/{r['scenarios']}':>10}{inb:>11}"
+            f"{stiff:>16}{dropped:>10}{inb:>11}"
         )
     for q in report["ratios"]:
         bound = "default gains" if q["bound"] is None else f"bound x{q['bound']:g}"
