@@ -137,6 +137,8 @@ def rollouts(model):
         "classical": run(g, controller="classical"),
         "synchronous": run(g, controller="synchronous"),
         "neutral": run(classical_equivalent(g), controller="synchronous", cross_term="none"),
+        "object_impedance": run(g, controller="object_impedance"),
+        "task_space": run(g, controller="task_space"),
     }
 
 

@@ -2,16 +2,26 @@
 
 from __future__ import annotations
 
+from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_model_argument, model_options, model_source
 from jaxsync.control import gains as _gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
 from jaxsync.io.export import COMMAND_INTERFACES, DISTROS, FORMATS
 
+ROS2_CONTROLLERS = ("classical", "synchronous")  # the laws a ros2-admittance export runs
+
 
 def run(args) -> int:
     # the input is checked before anything is written
     source = model_source(args)
+    tuned_for = gains_file.controller_of(args.gains) if args.gains is not None else None
+    if args.format == "ros2-admittance" and tuned_for not in (None, *ROS2_CONTROLLERS):
+        raise ConfigError(
+            f"--gains {args.gains} was tuned for the {tuned_for} controller, which ros2_controllers' admittance "
+            f"controller cannot run (it is a per-arm admittance: the {' and '.join(ROS2_CONTROLLERS)} laws, the "
+            "latter with synchronisation.yaml); export it as yaml or json"
+        )
     target, model = None, None
     if source is not None or args.format == "ros2-admittance" or args.gains is None:
         # the library is imported here, not at the top: `jaxsync --help` stays fast

@@ -55,6 +55,11 @@ MEANING = {
     "kd_pos": ("K_d of eq. 18 (velocity), inner position loop", "1/s"),
     "kp_null": ("null-space posture stiffness (eq. 18)", "1/s^2"),
     "kd_null": ("null-space posture damping (eq. 18)", "1/s"),
+    "obj_mass": ("M_E, object-level impedance (object_impedance)", "kg for x, y, z; kg m^2 for rx, ry, rz"),
+    "obj_damping": ("D_E, object-level impedance (object_impedance)", "N s/m for x, y, z; N m s/rad for rx, ry, rz"),
+    "obj_stiffness": ("K_E, object-level impedance (object_impedance)", "N/m for x, y, z; N m/rad for rx, ry, rz"),
+    "force_p": ("K_P, internal-force loop (task_space)", "m/N for x, y, z; rad/(N m) for rx, ry, rz"),
+    "force_i": ("K_I, internal-force loop (task_space)", "m/(N s) for x, y, z; rad/(N m s) for rx, ry, rz"),
 }
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null")
 HEADER = "jaxsync_gains"

@@ -50,6 +50,19 @@ def load(path: str | os.PathLike):
         raise ConfigError(f"gains file {path}: {err}") from None
 
 
+def controller_of(path: str | os.PathLike) -> str | None:
+    """The controller a gains file was tuned for (``jaxsync tune`` records it
+    beside the gains), None when the file does not say."""
+    if os.path.isdir(path) or not str(path).endswith(".json"):
+        return None
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, json.JSONDecodeError):
+        return None
+    return data.get("controller") if isinstance(data, dict) else None
+
+
 def load_constant(path: str | os.PathLike, command: str) -> Gains:
     """:func:`load`, for a command that takes constant gains only (a schedule is a ConfigError naming it)."""
     g = load(path)
