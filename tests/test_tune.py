@@ -5,6 +5,7 @@ plumbing and errors."""
 
 from __future__ import annotations
 
+import argparse
 import collections
 import dataclasses
 import json
@@ -27,7 +28,7 @@ from jaxsync.optimize import tune as tune_mod
 from jaxsync.optimize.cost import CostWeights
 from jaxsync.optimize.loss import make_loss
 from jaxsync.optimize.methods import LBFGS, Oracle
-from jaxsync.optimize.params import ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
+from jaxsync.optimize.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
 from jaxsync.optimize.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
 from jaxsync.optimize.tune_state import select_iterate
@@ -239,12 +240,24 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         (["--validation-seed", "1000"], "seeds must differ"),
         (["--popsize", "1", "--method", "cmaes"], "popsize must be at least 2"),
         (["--gains", str(schedule_file)], "--per-phase"),
+        (["--controller", "classical", "--tune", "k_rk"], "does not use k_rk"),
+        (["--controller", "task_space", "--tune", "imp_mass"], "it tunes force_p, force_i"),
     ]
     for args, msg in cases:  # in this process (the console script itself: tests/test_model.py)
         rc = main(["tune", "--out", str(tmp_path / "o"), *args])
         err = capsys.readouterr().err
         assert rc == 2 and msg in err and "Traceback" not in err, (args, err[-500:])
         assert not (tmp_path / "o").exists() and not (tmp_path / "empty").exists(), args  # no folder left
+    parser = build_parser()
+    for args, msg in [
+        (["--controller", "bogus"], "invalid choice"),
+        (["--max-impact", "0"], "must be positive"),
+        (["--max-stiffness", "-5"], "must be positive"),
+    ]:  # argparse's own: usage and exit status 2 (the console script: tests/test_model.py)
+        with pytest.raises((SystemExit, argparse.ArgumentError)) as err:
+            parser.parse_args(["tune", *args])
+        text = str(err.value) + capsys.readouterr().err
+        assert (err.type is argparse.ArgumentError or err.value.code == 2) and msg in text, (args, text)
 
 
 @pytest.fixture
@@ -252,16 +265,29 @@ def fake_tuning(monkeypatch):
     """The optimisation loop and the held-out rollouts replaced by stand-ins
     (both are tested above; compiling them for a CLI test would cost minutes).
     Returns the dict the fake loop records its arguments in."""
-    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "chattering")
+    fields = (
+        "settled_peak_resultant_N",
+        "grip_force_error_rel",
+        "dropped",
+        "nonfinite",
+        "chattering",
+        "first_impact_peak_N",
+    )
     fake_metrics = collections.namedtuple("FakeMetrics", fields)(
         settled_peak_resultant_N=np.array([0.01, 0.02]),
         grip_force_error_rel=np.array([0.004, 0.006]),
         dropped=np.array([False, False]),
         nonfinite=np.array([False, False]),
         chattering=np.array([False, False]),
+        first_impact_peak_N=np.array([6.0, 7.0]),
     )
-    monkeypatch.setattr(loss_mod, "make_evaluator", lambda model, duration: lambda g, s: fake_metrics)
     calls = {}
+
+    def fake_evaluator(model, duration, controller="synchronous"):
+        calls["evaluator_controller"] = controller
+        return lambda g, s: fake_metrics
+
+    monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
 
     def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, **kw):
         calls["weights"], calls["cfg"], calls["kw"] = weights, cfg, kw
@@ -330,6 +356,44 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
         assert (out / f).stat().st_size > 0
     header = (out / "history.csv").read_text().splitlines()[0]
     assert header == "iteration,cost,grad_norm,skipped,seconds,term_grip"
+
+
+def test_tune_cli_tunes_the_named_controller_under_bounds(tmp_path, fake_tuning):
+    """--controller reaches the loop, the evaluator and every file; --max-* the bounds."""
+    calls = fake_tuning
+    out = tmp_path / "run"
+    parser = build_parser()
+    args = parser.parse_args(
+        ["tune", "--out", str(out), "--iterations", "1", "--controller", "object_impedance", "--max-impact", "6.5"]
+    )
+    assert args.func(args) == 0
+    cfg = calls["cfg"]
+    assert cfg.controller == "object_impedance" and cfg.max_impact_N == 6.5 and cfg.max_stiffness_N_per_m is None
+    assert calls["evaluator_controller"] == "object_impedance"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["controller"] == "object_impedance"
+    assert summary["tune"]["tuned"] == ["imp_mass", "imp_stiffness", "imp_damping_ratio", *OBJECT]
+    for name in ("gains.json", "gains_last.json"):
+        assert json.loads((out / name).read_text())["controller"] == "object_impedance"
+    # the fake held-out scenarios' mean first impact is 6.5 N: at the bound, within it
+    assert summary["heldout_before"]["first_impact_peak_N"] == pytest.approx(6.5)
+    assert summary["heldout_before"]["within_bounds"] is True
+    assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] > 1e3
+
+
+def test_vector_gains_round_trip_through_the_parametrisation():
+    g = _gains.default_gains()
+    for spec in (TuneSpec(tuned=OBJECT + FORCE), TuneSpec(tuned=OBJECT + FORCE, isotropic=True)):
+        back = spec.to_gains(spec.init(g), g)
+        if not spec.isotropic:
+            for f in ("obj_mass", "obj_stiffness", "obj_damping", "force_p", "force_i"):
+                np.testing.assert_allclose(getattr(back, f), getattr(g, f), rtol=1e-9, err_msg=f)
+        assert spec.size() == (2 if spec.isotropic else 6) * 5
+        moved = spec.to_gains(jax.tree_util.tree_map(lambda v: v + 0.3, spec.init(g)), g)
+        used = spec.to_gains(spec.init(g), g)  # shared over axes when isotropic
+        np.testing.assert_allclose(np.asarray(moved.force_p), np.exp(0.3) * np.asarray(used.force_p), rtol=1e-9)
+        zeta = np.asarray(moved.obj_damping) / (2 * np.sqrt(np.asarray(moved.obj_mass * moved.obj_stiffness)))
+        assert np.all((zeta > ZETA_MIN) & (zeta < ZETA_MAX))
 
 
 def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_tuning):
