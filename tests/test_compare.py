@@ -30,22 +30,35 @@ def _cli(*args, cwd):
     return subprocess.run([exe, *args], capture_output=True, text=True, cwd=cwd, timeout=600)
 
 
-def test_compare_writes_a_well_formed_summary(tmp_path, rollouts):
+def test_compare_writes_a_well_formed_summary(tmp_path, rollouts, model):
     s = rollouts["scenario"]
-    results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
+    names = ("classical", "synchronous", "object_impedance", "task_space")
+    results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in names}
     limits = np.full((2, 7), 1e9)
-    summary = _compare.write_results(str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0, limits)
+    stiffness = {n: _compare.stiffness_of(model, n, rollouts["gains"]) for n in names}
+    summary = _compare.write_results(
+        str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0, limits, stiffness
+    )
     assert summary["classical"]["torque_limit_share_right"] == 0.0  # nothing near a 1e9 N m limit
     for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     on_disk = json.loads((tmp_path / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(summary))
-    for name in ("classical", "synchronous"):
+    assert on_disk["controllers"] == list(names)
+    for name in names:
         for key in _compare.SUMMARY_KEYS:
             assert key in on_disk[name]
         assert isinstance(on_disk[name]["dropped"], bool)
+        ratio = on_disk["classical"]["settled_peak_resultant_N"] / on_disk[name]["settled_peak_resultant_N"]
+        if name != "classical":
+            assert on_disk["resultant_ratios"][name] == pytest.approx(ratio)
     ratio = on_disk["classical"]["settled_peak_resultant_N"] / on_disk["synchronous"]["settled_peak_resultant_N"]
     assert on_disk["resultant_ratio"] == pytest.approx(ratio)
+    # the synchronous controller at the default gains: 4 times the classical one's stiffness at a pad
+    k = {n: on_disk[n]["apparent_stiffness_normal_N_per_m"] for n in names}
+    assert k["synchronous"] == pytest.approx(4 * k["classical"], rel=1e-6)
+    lines = _compare.table(on_disk)
+    assert sum("resultant_ratio (classical / " in line for line in lines) == 3
     with open(tmp_path / "series.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == len(rollouts["classical"].time)
@@ -168,7 +181,7 @@ def test_a_drop_is_marked_not_measured(tmp_path, rollouts, monkeypatch):
     lines = _compare.table(summary)
     peak_row = next(line for line in lines if line.startswith("settled_peak_resultant_N"))
     assert "dropped at t=1.25 s" in peak_row and peak_row.count("dropped") == 1
-    assert lines[-1] == "resultant_ratio: n/a (the classical controller dropped the object)"
+    assert lines[-1] == "resultant_ratio (classical / synchronous): n/a (the classical controller dropped the object)"
 
     def marks(fig):
         return [
@@ -206,7 +219,7 @@ def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, m
     progress = [line for line in captured.err.splitlines() if line.startswith("[1/2] classical: done")]
     assert progress and "dropped the object at t=1.250 s" in progress[0] and "settled peak" not in progress[0]
     assert "(the first run compiles)" not in captured.err
-    assert "resultant_ratio: n/a" in captured.out and "dropped at t=1.25 s" in captured.out
+    assert "resultant_ratio (classical / synchronous): n/a" in captured.out and "dropped at t=1.25 s" in captured.out
     assert captured.out.strip().splitlines()[-1].endswith("forces_synchronous.png, compare.mp4")
     assert "exit status 4" in captured.err.strip().splitlines()[-1]
     assert json.loads((out / "summary.json").read_text())["resultant_ratio"] is None

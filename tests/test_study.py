@@ -1,0 +1,200 @@
+"""The fair study: its statistics, its resumable runs, its command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+import pytest
+
+from jaxsync.cli import build_parser, main
+from jaxsync.optimize import loss as loss_mod
+from jaxsync.optimize import pipeline as pipeline_mod
+from jaxsync.optimize import study as study_mod
+from jaxsync.optimize import study_report as report_mod
+from jaxsync.sim.metrics import Metrics
+
+
+def test_ratio_interval_finds_a_known_ratio_and_covers_it():
+    rng = np.random.default_rng(0)
+    den = rng.lognormal(np.log(0.01), 0.3, size=(3, 32))
+    num = 2.0 * den * rng.lognormal(0.0, 0.05, size=den.shape)
+    r = report_mod.ratio_interval(num, den, 500)
+    assert r["ratio"] == pytest.approx(2.0, rel=0.05)
+    lo, hi = r["ci95"]
+    assert lo < 2.0 < hi and hi - lo < 0.6
+    # a dropped scenario (NaN) is left out, not counted as zero
+    num[0, 0] = np.nan
+    assert report_mod.ratio_interval(num, den, 200)["ratio"] == pytest.approx(r["ratio"], rel=0.05)
+    # nothing held: no ratio
+    assert report_mod.ratio_interval(np.full((1, 4), np.nan), den[:1, :4], 100)["ratio"] is None
+
+
+def _evaluation(peaks, dropped=None, impact=6.0, stiffness=2e4):
+    n = len(peaks)
+    dropped = np.zeros(n, bool) if dropped is None else np.asarray(dropped)
+    metrics = {f: [0.01] * n for f in Metrics._fields}
+    metrics.update(
+        settled_peak_resultant_N=list(peaks),
+        dropped=dropped.tolist(),
+        nonfinite=[False] * n,
+        chattering=[False] * n,
+        first_impact_peak_N=[impact] * n,
+        drop_time_s=[None] * n,
+    )
+    return {
+        "metrics": metrics,
+        "settled_peak_resultant_N": float(np.mean(np.asarray(peaks)[~dropped])) if (~dropped).any() else None,
+        "apparent_stiffness_normal_N_per_m": stiffness,
+        "apparent_stiffness_tangential_N_per_m": 2e3,
+    }
+
+
+def test_summarise_pools_seeds_and_leaves_dropped_scenarios_out():
+    a = _evaluation([0.01, 0.02, 1.0], dropped=[False, False, True])
+    b = _evaluation([0.03, 0.04, 0.05])
+    row = report_mod.summarise([a, b], [True, False])
+    assert row["dropped"] == 1 and row["scenarios"] == 6
+    assert row["settled_peak_resultant_N"]["n"] == 5
+    assert row["settled_peak_resultant_N"]["median"] == pytest.approx(0.03)
+    assert row["within_bounds"] == 1 and row["runs"] == 2
+    assert row["first_impact_peak_N"]["n"] == 6  # the first impact happened before the drop
+
+
+@pytest.fixture
+def fake_study(monkeypatch, model):
+    """The tuning runs and the held-out rollouts replaced by stand-ins: each
+    controller's settled peaks are a fixed multiple of the classical one's."""
+    scale = {"classical": 1.0, "synchronous": 0.25, "object_impedance": 0.9, "task_space": 0.5}
+    calls = []
+    n = 4
+
+    def fake_evaluator(model, duration, controller="synchronous"):
+        def evaluate(g, scenarios):
+            peaks = np.linspace(0.05, 0.08, n) * scale[controller]
+            fields = {f: np.full(n, 0.01) for f in Metrics._fields}
+            fields.update(
+                settled_peak_resultant_N=peaks,
+                dropped=np.zeros(n, bool),
+                nonfinite=np.zeros(n, bool),
+                chattering=np.zeros(n, bool),
+                first_impact_peak_N=np.full(n, 6.0),
+                drop_time_s=np.full(n, np.nan),
+            )
+            return Metrics(**fields)
+
+        return evaluate
+
+    def fake_tune(model, spec, base, cfg, weights=None, *, out, resume, restart, before, **kw):
+        calls.append((cfg.controller, cfg.max_impact_N, cfg.seed, resume))
+        if len(calls) == fake_study_interrupt.get("at"):
+            raise KeyboardInterrupt
+        after = dict(before)
+        after["metrics"] = dict(before["metrics"])
+        after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
+        after["within_bounds"] = True
+        summary = {"heldout_before": before, "heldout_after": after, "controller": cfg.controller, "bounds": {}}
+        os.makedirs(out, exist_ok=True)
+        with open(os.path.join(out, "summary.json"), "w") as f:
+            json.dump(summary, f)
+        return summary
+
+    fake_study_interrupt = {}
+    monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
+    monkeypatch.setattr(pipeline_mod, "tune_and_evaluate", fake_tune)
+    return calls, fake_study_interrupt
+
+
+def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_study):
+    calls, interrupt = fake_study
+    cfg = study_mod.StudyConfig(
+        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
+    )
+    out = str(tmp_path / "study")
+    interrupt["at"] = 3
+    with pytest.raises(KeyboardInterrupt):
+        study_mod.run_study(model, cfg, out, log=lambda m: None)
+    assert len(calls) == 3  # two runs done, the third lost
+    with pytest.raises(Exception, match="--resume"):
+        study_mod.run_study(model, cfg, out, log=lambda m: None)
+    other = study_mod.StudyConfig(**{**cfg.__dict__, "iterations": 3})
+    with pytest.raises(Exception, match="iterations"):
+        study_mod.run_study(model, other, out, resume=True, log=lambda m: None)
+    interrupt.clear()
+    report = study_mod.run_study(model, cfg, out, resume=True, log=lambda m: None)
+    assert len(calls) == 3 + 6  # the lost run again, and the five not started
+    jobs = [(c, b, s) for c, b, s, _ in calls]
+    assert jobs[3] == jobs[2]  # the lost run, run again first
+    assert len(set(jobs[3:])) == 6 and set(jobs) == set(jobs[3:]) | set(jobs[:2])
+    # the bounds are factors of the default classical controller's first impact (6 N here)
+    assert {round(c[1], 6) for c in calls} == {round(0.7 * 6.0, 6), round(1.5 * 6.0, 6)}
+    for f in report_mod.FILES:
+        assert (tmp_path / "study" / f).stat().st_size > 0
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    assert set(rows) == {(c, b) for c in cfg.controllers for b in (None, 0.7, 1.5)}
+    np.testing.assert_allclose(rows[("synchronous", None)]["settled_peak_resultant_N"]["median"], 0.25 * 0.065)
+    np.testing.assert_allclose(rows[("synchronous", 0.7)]["settled_peak_resultant_N"]["median"], 0.125 * 0.065)
+    (ratio,) = [q for q in report["ratios"] if q["bound"] == 0.7]
+    assert ratio["controller"] == "classical" and ratio["over"] == "synchronous"
+    assert ratio["ratio"] == pytest.approx(4.0)
+    lines = report_mod.table(report)
+    assert any("classical / synchronous (bound x0.7): 4" in line for line in lines)
+
+
+def test_study_cli_rejects_bad_input(tmp_path, capsys):
+    out = tmp_path / "o"
+    for args, msg in [
+        (["--seeds", "1000"], "held-out"),
+        (["--bounds", "0"], "positive factors"),
+        (["--bounds", "1,1"], "twice"),
+        (["--iterations", "0"], "must be positive"),
+        (["--controllers", "classical"], "at least 2"),
+        (["--controllers", "classical,nope"], "unknown controller"),
+        (["--seeds", "a"], "comma-separated numbers"),
+    ]:
+        try:
+            rc = main(["study", "--out", str(out), *args])
+        except (SystemExit, argparse.ArgumentError) as err:  # argparse's own
+            rc = 2 if isinstance(err, argparse.ArgumentError) else err.code
+            msg_text = str(err)
+        else:
+            msg_text = ""
+        text = msg_text + capsys.readouterr().err
+        assert rc == 2 and msg in text and "Traceback" not in text, (args, text[-400:])
+        assert not out.exists(), args
+    p = build_parser().parse_args(["study"])
+    assert p.controllers == ["classical", "synchronous", "object_impedance", "task_space"]
+    assert p.bounds == (0.7, 1.0, 1.5) and p.seeds == (0, 1, 2) and p.heldout == 32
+
+
+@pytest.mark.slow
+def test_smoke_study_tunes_two_controllers(model, tmp_path):
+    """The whole study, small: two controllers, one seed, one bound, two
+    iterations on the short task, four held-out scenarios."""
+    cfg = study_mod.StudyConfig(
+        controllers=("classical", "task_space"),
+        bounds=(1.0,),
+        seeds=(0,),
+        iterations=2,
+        batch=1,
+        task="short",
+        heldout=4,
+        validation_batch=2,
+        validate_every=1,
+        bootstrap=200,
+    )
+    report = study_mod.run_study(model, cfg, str(tmp_path / "s"), log=lambda m: None)
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    for c in cfg.controllers:
+        for b in (None, 1.0):
+            r = rows[(c, b)]
+            assert r["dropped"] == 0 and r["scenarios"] == 4, (c, b)
+            assert r["settled_peak_resultant_N"]["median"] > 1e-4, (c, b)
+            assert r["first_impact_peak_N"]["median"] > 1.0, (c, b)
+    assert rows[("classical", 1.0)]["runs"] == 1
+    (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
+    assert q["ratio"] is not None and q["ci95"][0] <= q["ratio"] <= q["ci95"][1]
+    ref = json.loads((tmp_path / "s" / "reference.json").read_text())
+    assert ref["controller"] == "classical" and ref["first_impact_peak_N"] > 1.0
