@@ -214,13 +214,21 @@ def run_study(
     *,
     resume: bool = False,
     restart: bool = False,
+    report_only: bool = False,
     log=lambda m: print(m, file=sys.stderr, flush=True),
 ) -> dict:
-    """``jaxsync study``'s job; returns the report (``report.json``)."""
+    """``jaxsync study``'s job; returns the report (``report.json``). With
+    ``report_only``, the report of the runs finished so far (a bound whose
+    runs are not all done is left out; nothing is tuned): a study can be
+    looked at while another process runs it, or after it was stopped."""
     cfg.validate()
     _results.ensure_writable_dir(out)
     model_name = model.path if model.robot is None else f"{model.path} (robot file)"
     t_start = time.perf_counter()
+    if report_only:
+        if not os.path.exists(os.path.join(out, STUDY_FILE)):
+            raise ConfigError(f"--report-only: no study in {out!r}")
+        return _report_so_far(model, cfg, out, model_name, t_start, log)
     with _results.run_lock(out, "study", log=log):
         _prepare(out, cfg, model_name, resume, restart)
         defaults = _evaluate_defaults(model, cfg, out, log)
@@ -269,6 +277,40 @@ def run_study(
         report = _report.build(cfg, reference, defaults, runs)
         report["wall_time_s"] = time.perf_counter() - t_start
         _report.write(out, report)
+    return report
+
+
+def _report_so_far(model, cfg: StudyConfig, out: str, model_name: str, t_start: float, log) -> dict:
+    """The report of the finished runs, without taking the study's lock (its runs are only read)."""
+    with open(os.path.join(out, STUDY_FILE)) as f:
+        saved = json.load(f)
+    if saved.get("config") != cfg.describe() or saved.get("model") != model_name:
+        raise ConfigError(f"--report-only: the study in {out!r} was run with other settings; name those")
+    paths = {name: os.path.join(out, "defaults", f"{name}.json") for name in cfg.controllers}
+    missing = [n for n, p in paths.items() if not os.path.exists(p)] + (
+        [] if os.path.exists(os.path.join(out, "reference.json")) else ["reference"]
+    )
+    if missing:
+        raise ConfigError(f"--report-only: the study in {out!r} has not scored the defaults yet ({', '.join(missing)})")
+    defaults = {}
+    for name, p in paths.items():
+        with open(p) as f:
+            defaults[name] = json.load(f)
+    with open(os.path.join(out, "reference.json")) as f:
+        reference = json.load(f)
+    runs = {}
+    for c in cfg.controllers:
+        for b in cfg.bounds:
+            for seed in cfg.seeds:
+                p = os.path.join(run_dir(out, c, b, seed), "summary.json")
+                if os.path.exists(p):
+                    with open(p) as f:
+                        runs[(c, b, seed)] = json.load(f)
+    report = _report.build(cfg, reference, defaults, runs)
+    report["wall_time_s"] = time.perf_counter() - t_start
+    n = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)
+    log(f"report of {len(runs)} of {n} runs; bounds with every run done: {report['bounds_reported']}")
+    _report.write(out, report)
     return report
 
 

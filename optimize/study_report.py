@@ -110,7 +110,12 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
         row = {"controller": c, "bound": None, **summarise([defaults[c]])}
         report["rows"].append(row)
         peaks[(c, None)] = _arrays([defaults[c]])["settled_peak_resultant_N"]
-    for b in cfg.bounds:
+    # a bound is reported once every controller's every seed is done there
+    bounds = [b for b in cfg.bounds if all((c, b, s) in runs for c in cfg.controllers for s in cfg.seeds)]
+    report["bounds_reported"] = bounds
+    report["runs_done"] = len(runs)
+    report["runs"] = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)
+    for b in bounds:
         for c in cfg.controllers:
             done = [runs[(c, b, s)] for s in cfg.seeds]
             evals = [r["heldout_after"] for r in done]
@@ -119,7 +124,7 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
             report["rows"].append(row)
             peaks[(c, b)] = _arrays(evals)["settled_peak_resultant_N"]
     report["ratios"] = []
-    for b in (None, *cfg.bounds):
+    for b in (None, *bounds):
         for c in cfg.controllers:
             if c == ref:
                 continue

@@ -117,6 +117,9 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     with pytest.raises(KeyboardInterrupt):
         study_mod.run_study(model, cfg, out, log=lambda m: None)
     assert len(calls) == 3  # two runs done, the third lost
+    partial = study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)
+    assert partial["runs_done"] == 2 and partial["runs"] == 8 and partial["bounds_reported"] == []
+    assert {r["bound"] for r in partial["rows"]} == {None} and len(calls) == 3  # the defaults only; nothing tuned
     with pytest.raises(Exception, match="--resume"):
         study_mod.run_study(model, cfg, out, log=lambda m: None)
     other = study_mod.StudyConfig(**{**cfg.__dict__, "iterations": 3})
@@ -125,6 +128,7 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     interrupt.clear()
     report = study_mod.run_study(model, cfg, out, resume=True, log=lambda m: None)
     assert len(calls) == 3 + 6  # the lost run again, and the five not started
+    assert report["bounds_reported"] == [0.7, 1.5] and report["runs_done"] == 8
     jobs = [(c, b, s) for c, b, s, _ in calls]
     assert jobs[3] == jobs[2]  # the lost run, run again first
     assert len(set(jobs[3:])) == 6 and set(jobs) == set(jobs[3:]) | set(jobs[:2])

@@ -56,9 +56,13 @@ def run(args) -> int:
         f"scored on {cfg.heldout} held-out scenarios",
         flush=True,
     )
-    report = _study.run_study(model, cfg, args.out, resume=args.resume, restart=args.restart)
+    report = _study.run_study(
+        model, cfg, args.out, resume=args.resume, restart=args.restart, report_only=args.report_only
+    )
     for line in _report.table(report):
         print(line)
+    if report["runs_done"] < report["runs"]:
+        print(f"{report['runs_done']} of {report['runs']} tuning runs done: --resume continues the study")
     print(f"results in {args.out}: {', '.join(_report.FILES)}, runs/ ({report['wall_time_s'] / 60:.1f} min)")
     return 0
 
@@ -97,6 +101,11 @@ def add_parser(subparsers):
     p.add_argument("--out", default="results/study", help="output folder (results/study)")
     p.add_argument("--resume", action="store_true", help="continue the study in --out")
     p.add_argument("--restart", action="store_true", help="discard the study in --out and start over")
+    p.add_argument(
+        "--report-only",
+        action="store_true",
+        help="write the report of the runs finished so far and tune nothing (the same settings as the study's)",
+    )
     add_model_argument(p)
     p.set_defaults(func=run, interrupted_hint="finished tuning runs are kept; run again with --resume to continue")
     return p
