@@ -37,6 +37,7 @@ class TuneConfig:
     max_bad_steps: int = 3
     train_start: str = "approach"  # keyframe the training rollouts start from
     train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
+    scenario: tuple = ()  # (field, value) overrides of every scenario's base: a robot file's object
     task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500

@@ -37,6 +37,7 @@ _PROGRAM_FIELDS = (
     "truncate_every",
     "train_start",
     "train_scenario",
+    "scenario",
     "task",
     "batch",
     "controller",

@@ -33,7 +33,7 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.gains import Gains
+from jaxsync.control.gains import USED, Gains
 
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
 SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
@@ -57,8 +57,6 @@ GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping
 def check_tuned(tuned, controller: str) -> None:
     """ConfigError when a tuned parameter is one ``controller`` never reads
     (its gradient would be zero and the search would wander in it)."""
-    from jaxsync.control.gains import USED  # here: params is imported by the CLI's parsers
-
     unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller]]
     if unused:
         usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller]]

@@ -16,9 +16,10 @@ from jaxsync.sim import scenario as _scenario
 
 def training_base(cfg) -> tuple[_scenario.Scenario, float]:
     """The training scenario family's base and its rollout duration (``cfg``: a TuneConfig)."""
+    over = {**dict(cfg.scenario), **dict(cfg.train_scenario)}
     if cfg.task == "full":
-        return _scenario.default_scenario(**dict(cfg.train_scenario)), cfg.eval_duration
-    return _scenario.short_task(**dict(cfg.train_scenario)), cfg.train_duration
+        return _scenario.default_scenario(**over), cfg.eval_duration
+    return _scenario.short_task(**over), cfg.train_duration
 
 
 def sample_scenarios(
@@ -77,10 +78,22 @@ def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.S
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the held-out seed (never used for training or selection)."""
-    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, _scenario.default_scenario())
+    base = _scenario.default_scenario(**dict(cfg.scenario))
+    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, base)
 
 
 def validation_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the validation seed: they pick the iterate, the
     held-out ones only score it."""
-    return sample_scenarios(jax.random.key(cfg.validation_seed), cfg.validation_batch, _scenario.default_scenario())
+    base = _scenario.default_scenario(**dict(cfg.scenario))
+    return sample_scenarios(jax.random.key(cfg.validation_seed), cfg.validation_batch, base)
+
+
+def model_overrides(model) -> tuple:
+    """The scenario overrides a model brings: a robot file's object (its mass,
+    which the controller then also assumes, and its radius); none for the paper model."""
+    robot = getattr(model, "robot", None)
+    if robot is None:
+        return ()
+    m, r = float(robot["object_mass"]), float(robot["object_radius"])
+    return (("object_mass", m), ("mass_estimate", m), ("object_radius", r))

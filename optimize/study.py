@@ -61,6 +61,7 @@ class StudyConfig:
     validate_every: int = 5
     eval_duration: float = 4.0
     bootstrap: int = 2000  # resamples of the ratios' 95 % intervals
+    scenario: tuple = ()  # overrides of every scenario's base (run_study sets a robot file's object)
 
     def validate(self) -> StudyConfig:
         unknown = [c for c in self.controllers if c not in CONTROLLERS]
@@ -102,13 +103,15 @@ class StudyConfig:
             validation_batch=self.validation_batch,
             validate_every=self.validate_every,
             eval_duration=self.eval_duration,
+            scenario=self.scenario,
             controller=controller,
             max_impact_N=(bounds or {}).get("max_impact_N"),
             max_stiffness_N_per_m=(bounds or {}).get("max_stiffness_N_per_m"),
         )
 
     def describe(self) -> dict:
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+        """Plain JSON (tuples as lists, as they come back from a file)."""
+        return json.loads(json.dumps(dataclasses.asdict(self)))
 
 
 def bound_name(factor: float) -> str:
@@ -138,10 +141,8 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
             raise ConfigError(
                 f"output folder {out!r} holds a study: pass --resume to continue it, or --restart to discard it"
             )
-        elif {k: saved.get(k) for k in want} != want:
-            diff = [k for k in cfg.describe() if saved.get("config", {}).get(k) != cfg.describe()[k]]
-            if saved.get("model") != model_name:
-                diff.append("model")
+        elif _differences(saved, cfg, model_name):
+            diff = _differences(saved, cfg, model_name)
             raise ConfigError(
                 f"--resume: the study in {out!r} was run with other settings ({', '.join(diff)} differ); "
                 "run it with those, or --restart"
@@ -149,6 +150,14 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
     elif resume:
         raise ConfigError(f"--resume: no study in {out!r}")
     _results.write_json(path, want)
+
+
+def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
+    """The settings in which a saved study differs from ``cfg`` (a setting the
+    file does not hold counts at its default)."""
+    held = {**StudyConfig().describe(), **(saved.get("config") or {})}
+    diff = [k for k, v in cfg.describe().items() if held.get(k) != v]
+    return diff + (["model"] if saved.get("model") != model_name else [])
 
 
 def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
@@ -217,11 +226,12 @@ def run_study(
     report_only: bool = False,
     log=lambda m: print(m, file=sys.stderr, flush=True),
 ) -> dict:
-    """``jaxsync study``'s job; returns the report (``report.json``). With
+    """``jaxsync study``'s job on ``model`` (a robot file's object in every
+    scenario); returns the report (``report.json``). With
     ``report_only``, the report of the runs finished so far (a bound whose
     runs are not all done is left out; nothing is tuned): a study can be
     looked at while another process runs it, or after it was stopped."""
-    cfg.validate()
+    cfg = dataclasses.replace(cfg, scenario=tuple(cfg.scenario) or _scenarios.model_overrides(model)).validate()
     _results.ensure_writable_dir(out)
     model_name = model.path if model.robot is None else f"{model.path} (robot file)"
     t_start = time.perf_counter()
@@ -284,8 +294,11 @@ def _report_so_far(model, cfg: StudyConfig, out: str, model_name: str, t_start: 
     """The report of the finished runs, without taking the study's lock (its runs are only read)."""
     with open(os.path.join(out, STUDY_FILE)) as f:
         saved = json.load(f)
-    if saved.get("config") != cfg.describe() or saved.get("model") != model_name:
-        raise ConfigError(f"--report-only: the study in {out!r} was run with other settings; name those")
+    diff = _differences(saved, cfg, model_name)
+    if diff:
+        raise ConfigError(
+            f"--report-only: the study in {out!r} was run with other settings ({', '.join(diff)} differ); name those"
+        )
     paths = {name: os.path.join(out, "defaults", f"{name}.json") for name in cfg.controllers}
     missing = [n for n, p in paths.items() if not os.path.exists(p)] + (
         [] if os.path.exists(os.path.join(out, "reference.json")) else ["reference"]

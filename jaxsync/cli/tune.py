@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 from jaxsync._errors import ConfigError
@@ -46,6 +47,7 @@ def run(args) -> int:
     from jaxsync.io import gains_file
     from jaxsync.optimize import pipeline
     from jaxsync.optimize import tune as tuning
+    from jaxsync.optimize.scenarios import model_overrides
     from jaxsync.physics.model import load_model
 
     tuned = _names(args.tune) or list(DEFAULT_TUNED_FOR[args.controller])
@@ -86,6 +88,7 @@ def run(args) -> int:
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
     model = load_model(model_source(args), **model_options(args))
+    cfg = dataclasses.replace(cfg, scenario=model_overrides(model))  # a robot file's object
     base = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
     summary = pipeline.tune_and_evaluate(
         model,

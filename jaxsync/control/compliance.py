@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.control import controller as _controller
+from jaxsync.physics.inertia import pad_frames
 
 PROBE_TIME = 0.1  # s: of the order of a contact's first impact and of the task's phases
 NORMAL, TANGENTIAL = 2, (0, 1)  # pad-frame axes
@@ -31,19 +32,7 @@ NORMAL, TANGENTIAL = 2, (0, 1)  # pad-frame axes
 def probe_geometry(model) -> tuple[np.ndarray, np.ndarray]:
     """(pad positions (2, 3), pad frames (2, 3, 3)) at the grasp keyframe, the
     geometry the probe applies its force in."""
-    import mujoco  # here: the probe itself needs no MuJoCo
-
-    from jaxsync.sim.closed_loop import REST_KEY  # here: closed_loop imports the controller package
-
-    m = model.mj_model
-    d = mujoco.MjData(m)
-    d.qpos[:] = model.keyframe_qpos(REST_KEY)
-    mujoco.mj_kinematics(m, d)
-    arms = model.index.arms
-    return (
-        np.stack([d.site_xpos[a.pad_site] for a in arms]),
-        np.stack([d.site_xmat[a.pad_site].reshape(3, 3) for a in arms]),
-    )
+    return pad_frames(model.mj_model, "grasp")
 
 
 def displacement(kind: str, gains, pads_pos, pads_rot, dt: float, axis: int, cross_term: str = "squeeze"):

@@ -43,3 +43,14 @@ def pad_apparent_inertia(m: mujoco.MjModel, key: str = "grasp") -> np.ndarray:
         R = d.site_xmat[site].reshape(3, 3)
         out.append(np.concatenate([1 / np.diag(R.T @ inv[:3, :3] @ R), 1 / np.diag(R.T @ inv[3:, 3:] @ R)]))
     return np.stack(out)
+
+
+def pad_frames(m: mujoco.MjModel, key: str = "grasp") -> tuple[np.ndarray, np.ndarray]:
+    """(positions (2, 3), frames (2, 3, 3)) of the pads (right, left) at keyframe ``key``."""
+    d = mujoco.MjData(m)
+    k = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, key)
+    if k >= 0:
+        mujoco.mj_resetDataKeyframe(m, d, k)
+    mujoco.mj_kinematics(m, d)
+    sites = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{p}_pad") for p in ("r", "l")]
+    return np.stack([d.site_xpos[s].copy() for s in sites]), np.stack([d.site_xmat[s].reshape(3, 3) for s in sites])
