@@ -54,13 +54,25 @@ def stiffness_figures(k: dict) -> dict:
     return {f"apparent_stiffness_{axis}_N_per_m": float(v) for axis, v in k.items()}
 
 
+def bound_excess(evaluation: dict, cfg) -> float:
+    """How far an evaluation's compliance figures exceed ``cfg``'s bounds: the
+    largest of (mean first-impact peak / its bound, apparent normal
+    stiffness / its bound) less one; 0 or below when within (or unbounded)."""
+    ratios = [-1.0]
+    for bound, key in ((cfg.max_impact_N, "first_impact_peak_N"), (cfg.max_stiffness_N_per_m, STIFF)):
+        if bound:
+            value = evaluation.get(key)
+            ratios.append(float("inf") if value is None else value / bound - 1.0)
+    return max(ratios)
+
+
 def within_bounds(evaluation: dict, cfg) -> bool:
     """Whether an evaluation's mean first-impact peak and apparent normal
     stiffness are within ``cfg``'s compliance bounds (True when unbounded)."""
-    impact, stiff = evaluation.get("first_impact_peak_N"), evaluation.get("apparent_stiffness_normal_N_per_m")
-    if cfg.max_impact_N and (impact is None or impact > cfg.max_impact_N):
-        return False
-    return not (cfg.max_stiffness_N_per_m and (stiff is None or stiff > cfg.max_stiffness_N_per_m))
+    return bound_excess(evaluation, cfg) <= 0.0
+
+
+STIFF = "apparent_stiffness_normal_N_per_m"
 
 
 def tune_and_evaluate(
@@ -167,7 +179,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     def validate(g):
         out = _loss.eval_summary(evaluate(g, valid))
         out.update(stiffness_figures(stiffness(g)))
-        out["within_bounds"] = within_bounds(out, cfg)
+        out["within_bounds"], out["bound_excess"] = within_bounds(out, cfg), bound_excess(out, cfg)
         return out
 
     if cfg.validate_every:

@@ -50,7 +50,7 @@ class StudyConfig:
     controllers: tuple[str, ...] = CONTROLLERS
     bounds: tuple[float, ...] = (0.7, 1.0, 1.5)  # x the default classical controller's compliance figures
     seeds: tuple[int, ...] = (0, 1, 2)  # training seeds, one run each
-    iterations: int = 15
+    iterations: int = 10
     batch: int = 2
     method: str = "lbfgs"
     task: str = "full"  # the training task ("short": jaxsync.short_task(), for smoke runs)

@@ -22,8 +22,10 @@ def select_iterate(validation: list[dict]) -> dict | None:
     """The validated iterate with the lowest settled peak resultant whose grip
     error is not worse than the start's (the first entry, which therefore always
     qualifies), that dropped nothing and chattered in no scenario more than the
-    start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``) and, where the
-    tuning bounds compliance, is within the bounds (``within_bounds``). Entries:
+    start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``). Where the tuning
+    bounds compliance, only iterates within the bounds (``within_bounds``)
+    are chosen from; when none is (the start outside them too), the one that
+    exceeds them least (``bound_excess``), then the lowest peak. Entries:
     {"iteration", "settled_peak_resultant_N", "grip_force_error_rel",
     "dropped", "nonfinite", "chattering", ...}."""
     if not validation:
@@ -36,19 +38,14 @@ def select_iterate(validation: list[dict]) -> dict | None:
         if v["settled_peak_resultant_N"] is not None
         and not v["dropped"]
         and not v["nonfinite"]
-        and (
-            v is validation[0]
-            or (
-                v["grip_force_error_rel"] <= grip0
-                and v.get("chattering", 0) <= chatter0
-                and v.get("within_bounds", True)
-            )
-        )
+        and (v is validation[0] or (v["grip_force_error_rel"] <= grip0 and v.get("chattering", 0) <= chatter0))
     ]
-    return min(ok, key=lambda v: v["settled_peak_resultant_N"]) if ok else validation[0]
-
-
-# ------------------------------------------------------------------- the state
+    if not ok:
+        return validation[0]
+    within = [v for v in ok if v.get("within_bounds", True)]
+    if within:
+        return min(within, key=lambda v: v["settled_peak_resultant_N"])
+    return min(ok, key=lambda v: (v.get("bound_excess", 0.0), v["settled_peak_resultant_N"]))
 
 
 class TuneState(NamedTuple):

@@ -204,6 +204,28 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     assert passes == {True: ["tree"], False: ["mjx"]}
 
 
+def test_select_iterate_keeps_within_the_compliance_bounds():
+    start = {
+        "iteration": 0,
+        "settled_peak_resultant_N": 0.05,
+        "grip_force_error_rel": 0.01,
+        "dropped": 0,
+        "nonfinite": 0,
+        "within_bounds": False,
+        "bound_excess": 0.4,
+    }
+    near = dict(start, iteration=5, settled_peak_resultant_N=0.03, bound_excess=0.1)
+    nearer = dict(start, iteration=10, settled_peak_resultant_N=0.04, bound_excess=0.05)
+    inside = dict(start, iteration=15, settled_peak_resultant_N=0.045, within_bounds=True, bound_excess=-0.1)
+    # none within: the least excess, not the start
+    assert select_iterate([start, near, nearer])["iteration"] == 10
+    # one within: it, though others have lower peaks
+    assert select_iterate([start, near, nearer, inside])["iteration"] == 15
+    # unbounded runs (no such keys): the lowest peak
+    plain = [{k: v for k, v in r.items() if k not in ("within_bounds", "bound_excess")} for r in (start, near)]
+    assert select_iterate(plain)["iteration"] == 5
+
+
 def test_select_iterate_keeps_the_grip_error():
     def v(i, peak, grip, dropped=0):
         return {

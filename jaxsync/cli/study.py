@@ -90,7 +90,7 @@ def add_parser(subparsers):
         help="compliance bounds as factors of the default classical controller's (0.7,1,1.5)",
     )
     p.add_argument("--seeds", type=_numbers(int, "--seeds"), default=(0, 1, 2), help="training seeds (0,1,2)")
-    p.add_argument("--iterations", type=positive(int), default=15, help="iterations per tuning run (15)")
+    p.add_argument("--iterations", type=positive(int), default=10, help="iterations per tuning run (10)")
     p.add_argument("--batch", type=positive(int), default=2, help="training scenarios per iteration (2)")
     p.add_argument("--method", default="lbfgs", help="tuning method, as jaxsync tune's --method (lbfgs)")
     p.add_argument("--task", default="full", choices=["full", "short"], help="training task (full)")
