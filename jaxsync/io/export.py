@@ -62,6 +62,8 @@ MEANING = {
     "force_i": ("K_I, internal-force loop (task_space)", "m/(N s) for x, y, z; rad/(N m s) for rx, ry, rz"),
 }
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null")
+# the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
+BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")
 HEADER = "jaxsync_gains"
 ADMITTANCE_SOURCE = (
     "ros2_controllers admittance_controller, src/admittance_controller_parameters.yaml "
@@ -370,6 +372,10 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     for name in SYNC_FIELDS:
         symbol, unit = MEANING[name]
         lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
+    lines.append("    # the baselines' gains (docs/controller.md): no ros2 controller reads them, jaxsync reads them back")
+    for name in BASELINE_FIELDS:
+        values = [float(x) for x in np.asarray(getattr(g, name), dtype=float)]
+        lines.append(f"    {name}: {values!r}")
     lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
     for arm, name in enumerate(ARMS):
         lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
@@ -431,7 +437,7 @@ def _ros2_load(folder: str) -> Gains:
         fields.setdefault("imp_stiffness", []).append(k)
         fields.setdefault("imp_damping", []).append(2.0 * zeta * np.sqrt(m * k))
     d = {k: np.stack(v).tolist() for k, v in fields.items()}
-    d.update({k: sync[k] for k in SYNC_FIELDS if k in sync})
+    d.update({k: sync[k] for k in SYNC_FIELDS + BASELINE_FIELDS if k in sync})
     return _gains.from_dict(d)
 
 
