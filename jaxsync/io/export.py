@@ -372,7 +372,7 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     for name in SYNC_FIELDS:
         symbol, unit = MEANING[name]
         lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
-    lines.append("    # the baselines' gains (docs/controller.md): no ros2 controller reads them, jaxsync reads them back")
+    lines.append("    # the baselines' gains (docs/controller.md): no ros2 controller reads them; jaxsync does")
     for name in BASELINE_FIELDS:
         values = [float(x) for x in np.asarray(getattr(g, name), dtype=float)]
         lines.append(f"    {name}: {values!r}")
