@@ -180,16 +180,28 @@ def test_a_folder_is_held_by_one_run_at_a_time(tmp_path):
 def stand_ins(monkeypatch):
     """The held-out rollouts and the loop replaced; ``calls["metrics"]`` sets
     what the held-out scoring sees (both scenarios held by default)."""
-    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "chattering")
+    fields = (
+        "settled_peak_resultant_N",
+        "grip_force_error_rel",
+        "dropped",
+        "nonfinite",
+        "chattering",
+        "first_impact_peak_N",
+    )
     Fake = collections.namedtuple("FakeMetrics", fields)
     calls = {
         "metrics": Fake(
-            np.array([0.01, 0.02]), np.array([0.004, 0.006]), np.zeros(2, bool), np.zeros(2, bool), np.zeros(2, bool)
+            np.array([0.01, 0.02]),
+            np.array([0.004, 0.006]),
+            np.zeros(2, bool),
+            np.zeros(2, bool),
+            np.zeros(2, bool),
+            np.array([6.0, 7.0]),
         ),
         "evaluated": 0,
     }
 
-    def evaluator(model, duration):
+    def evaluator(model, duration, controller="synchronous"):
         def evaluate(g, s):
             calls["evaluated"] += 1
             return calls["metrics"]
