@@ -192,6 +192,8 @@ def pareto_plot(report: dict, path: str) -> None:
     normal stiffness and the first-impact peak: one colour per controller,
     hollow at default gains, larger markers for looser bounds."""
     plt = _results.pyplot()
+    from matplotlib import ticker  # here: matplotlib loads through jaxsync.io.results.pyplot (its backend set)
+
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     names = list(dict.fromkeys(r["controller"] for r in report["rows"]))
     colours = {n: f"C{i}" for i, n in enumerate(names)}
@@ -216,6 +218,10 @@ def pareto_plot(report: dict, path: str) -> None:
                 )
         ax.set_xscale("log")
         ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):  # plain numbers at 1, 2, 5 per decade (a range under a decade stays legible)
+            axis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+            axis.set_major_formatter(ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+            axis.set_minor_formatter(ticker.NullFormatter())
         ax.set_xlabel(LABELS[xkey])
         ax.grid(True, which="both", alpha=0.3)
     ref = report["compliance_reference"]
