@@ -56,6 +56,7 @@ from jaxsync._errors import (
     ModelFileError,
     ModelStructureError,
 )
+from jaxsync.control.compliance import apparent_stiffness
 from jaxsync.control.controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
 from jaxsync.control.gains import Gains, classical_equivalent, default_gains
 from jaxsync.physics.model import DualArmModel, default_model_path, load_model
@@ -84,6 +85,8 @@ _OPTIMIZE = {
     "CostWeights": "jaxsync.optimize.cost",
     "sample_scenarios": "jaxsync.optimize.scenarios",
     "make_plan": "jaxsync.optimize.sweep",
+    "StudyConfig": "jaxsync.optimize.study",
+    "run_study": "jaxsync.optimize.study",
 }
 _RENAMED = {"run_sweep": ("jaxsync.optimize.sweep", "run")}
 
@@ -121,6 +124,7 @@ __all__ = [
     "ControllerState",
     "Gains",
     "Reference",
+    "apparent_stiffness",
     "classical_equivalent",
     "default_gains",
     "init",
@@ -145,6 +149,8 @@ __all__ = [
     "TuneSpec",
     "make_loss",
     "make_plan",
+    "run_study",
+    "StudyConfig",
     "run_sweep",
     "sample_scenarios",
     "tune",

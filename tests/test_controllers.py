@@ -12,6 +12,7 @@ from jaxsync.control import baselines, compliance
 from jaxsync.control import controller as ctrl
 from jaxsync.control.gains import USED, default_gains
 from jaxsync.control.impedance import step_response
+from jaxsync.optimize import sweep_spec
 from jaxsync.sim import metrics as _metrics
 
 DT = 0.002
@@ -248,3 +249,15 @@ def test_baselines_hold_the_ball_on_the_short_task(rollouts):
         assert not bool(m.chattering), name
         assert float(m.grip_force_error_rel) < 0.10, name
         assert float(m.object_error_rms_m) < 0.005, name
+
+
+def test_sweeps_address_the_baselines_per_axis_gains():
+    t = sweep_spec.resolve_name("force_i.z")
+    assert (t.kind, t.field, t.index) == ("gain", "force_i", (2,))
+    assert sweep_spec.resolve_name("obj_stiffness").index == (slice(None),)
+    with pytest.raises(jaxsync.ConfigError, match="per-axis gains"):
+        sweep_spec.resolve_name("force_i.r.z")
+    p = sweep_spec.parse_param("force_i.z=0.0002,0.0008")
+    g, _ = sweep_spec.build_batch([p], np.array([[0.0002], [0.0008]]), default_gains(), jaxsync.default_scenario())
+    np.testing.assert_allclose(g.force_i[:, 2], [0.0002, 0.0008])
+    np.testing.assert_allclose(g.force_i[:, :2], np.broadcast_to(np.asarray(default_gains().force_i)[:2], (2, 2)))
