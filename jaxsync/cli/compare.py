@@ -54,6 +54,12 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(model_source(args), solver="accurate", **model_options(args))
     gains = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
+    tuned_for = gains_file.controller_of(args.gains) if args.gains else None
+    if tuned_for is not None and tuned_for not in args.controllers:
+        print(
+            f"note: {args.gains} was tuned for the {tuned_for} controller, which is not among "
+            f"{', '.join(args.controllers)} (--controllers)"
+        )
     ratio = _gains.stability_ratio(gains, pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
     print(
         f"normal-axis stability ratio (M + B dt + K dt^2) / apparent inertia: right {ratio[0]:.2f}, left "
