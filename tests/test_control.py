@@ -217,6 +217,7 @@ def _hand_made(T=10):
         offset=z(2, 6),
         delta=delta,
         impedance_offset=z(2, 6),
+        at_torque_limit=jnp.zeros((T, 2), bool).at[:3, 1].set(True),
     )
 
 
@@ -232,6 +233,10 @@ def test_metrics_on_hand_made_contacts():
     np.testing.assert_allclose(float(m.grip_force_error_rel), 0.0, atol=1e-9)
     np.testing.assert_allclose(float(m.sync_error_rms_m), 0.002, atol=1e-9)
     np.testing.assert_allclose(float(m.torque_effort), 14.0)
+    # the left arm at a torque limit in 3 of the T steps, the right never
+    np.testing.assert_allclose(
+        [float(m.torque_limit_share_right), float(m.torque_limit_share_left)], [0, 3 / len(tr.time)]
+    )
     assert not bool(m.dropped) and np.isnan(float(m.drop_time_s))
     # a known grip error: both pads press 11 N
     m2 = _metrics.summarize(tr._replace(pad_forces=tr.pad_forces * jnp.array([1.0, 1.1, 1.0])), s)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.sim.scenario import GRAVITY, Scenario, phase_times
+from jaxsync.sim.trajectory import at_torque_limit
 
 # A rollout counts as a drop when, during carry or hold, the object is this
 # far from its planned position (it fell, or slipped out of the grasp).
@@ -125,19 +126,16 @@ class Metrics(NamedTuple):
     force_chatter_N: jax.Array  # RMS step-to-step change of a pad's normal force, settled window (worse pad)
     chattering: jax.Array  # bool: force_chatter_N > CHATTER_THRESHOLD_N
     first_impact_peak_N: jax.Array  # largest normal pad force in the first IMPACT_WINDOW_S of contact
-
-
-TORQUE_LIMIT_FRACTION = 0.999  # a joint whose commanded torque reaches this share of its limit is at it
+    torque_limit_share_right: jax.Array  # share of control steps with a joint of the arm at its torque limit
+    torque_limit_share_left: jax.Array
 
 
 def torque_limit_share(torque, limits) -> np.ndarray:
     """(2,) per arm (right, left): the share of control steps at which some
-    joint's commanded torque is at its limit (``TORQUE_LIMIT_FRACTION`` of
-    it or beyond: the motor saturates). ``torque`` (T, 2 n) as a Trajectory
-    records it; ``limits`` (2, n), N m."""
-    limits = np.asarray(limits, dtype=float)
-    tau = np.asarray(torque, dtype=float).reshape(len(torque), 2, limits.shape[1])
-    return (np.abs(tau) >= TORQUE_LIMIT_FRACTION * limits[None]).any(-1).mean(0)
+    joint's commanded torque is at its limit (``jaxsync.sim.trajectory.at_torque_limit``).
+    ``torque`` (T, 2 n) as a Trajectory records it; ``limits`` (2, n), N m."""
+    limits = np.asarray(limits, dtype=float).reshape(-1)
+    return at_torque_limit(np.asarray(torque, dtype=float), limits).mean(0)
 
 
 def force_chatter(pad_forces: jax.Array, pad_normal: jax.Array, mask: jax.Array) -> jax.Array:
@@ -208,6 +206,8 @@ def summarize(traj, s: Scenario) -> Metrics:
         force_chatter_N=(chatter := force_chatter(traj.pad_forces, traj.pad_normal, mask)),
         chattering=chatter > CHATTER_THRESHOLD_N,
         first_impact_peak_N=first_impact_peak(traj.pad_forces, traj.pad_normal, traj.time),
+        torque_limit_share_right=jnp.mean(traj.at_torque_limit[:, 0].astype(traj.time.dtype)),
+        torque_limit_share_left=jnp.mean(traj.at_torque_limit[:, 1].astype(traj.time.dtype)),
     )
 
 

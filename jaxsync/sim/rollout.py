@@ -142,7 +142,18 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
                 d = _physics.after_control(mx, _physics.before_control(mx, d, passes), ctrl, unroll)
             forces = jnp.stack([_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms])
             row = _trajectory.row(
-                t, noisy.qpos, noisy.qvel, sensed.obj.pos, sensed.obj.linvel, pl, arms, forces, tau, info, cstate
+                t,
+                noisy.qpos,
+                noisy.qvel,
+                sensed.obj.pos,
+                sensed.obj.linvel,
+                pl,
+                arms,
+                forces,
+                tau,
+                info,
+                cstate,
+                limit=consts.torque_limit,
             )
             return ((d, cstate), pad_start), row
 

@@ -144,7 +144,19 @@ def rollout_mujoco(
         forces = _pad_forces_c(m, d, idx)
         rows.append(
             _trajectory.row(
-                k * dt, qpos, qvel, obj_pos, qvel[va : va + 3], pl, arms, forces, tau, info, cstate, np.stack
+                k * dt,
+                qpos,
+                qvel,
+                obj_pos,
+                qvel[va : va + 3],
+                pl,
+                arms,
+                forces,
+                tau,
+                info,
+                cstate,
+                np.stack,
+                limit=consts.torque_limit,
             )
         )
     return jax.tree_util.tree_map(lambda *x: jnp.asarray(np.stack([np.asarray(v) for v in x])), *rows)

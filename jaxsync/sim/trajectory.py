@@ -33,11 +33,27 @@ class Trajectory(NamedTuple):
     offset: jax.Array  # (T, 2, 6) x_ik - x_id
     delta: jax.Array  # (T, 2, 6) absolute errors (eq. 12)
     impedance_offset: jax.Array  # (T, 2, 6) e_i
+    at_torque_limit: jax.Array  # (T, 2) bool per arm: some joint's torque at its limit (at_torque_limit)
 
 
-def row(t, qpos, qvel, obj_pos, obj_vel, plan, arms, pad_forces, torque, info, cstate, stack=jnp.stack) -> Trajectory:
+TORQUE_LIMIT_FRACTION = 0.999  # a joint whose commanded torque reaches this share of its limit is at it
+
+
+def at_torque_limit(torque, limit):
+    """(..., 2) per arm: whether some joint's commanded torque is at its limit
+    (``TORQUE_LIMIT_FRACTION`` of it or beyond: the motor saturates).
+    ``torque`` (..., 2 n) right arm's n then left's; ``limit`` (2 n,), N m.
+    NumPy or JAX arrays alike."""
+    sat = abs(torque) >= TORQUE_LIMIT_FRACTION * limit
+    return sat.reshape(sat.shape[:-1] + (2, -1)).any(-1)
+
+
+def row(
+    t, qpos, qvel, obj_pos, obj_vel, plan, arms, pad_forces, torque, info, cstate, stack=jnp.stack, *, limit
+) -> Trajectory:
     """One control step's row, from the plan, the sensed (right, left) arms, the
-    controller's torque, info and new state (``stack``: ``np.stack`` on host data)."""
+    controller's torque, info and new state (``stack``: ``np.stack`` on host
+    data); ``limit`` the joints' torque limits (2 n,)."""
     return Trajectory(
         time=t,
         qpos=qpos,
@@ -57,4 +73,5 @@ def row(t, qpos, qvel, obj_pos, obj_vel, plan, arms, pad_forces, torque, info, c
         offset=info.offset,
         delta=info.delta,
         impedance_offset=cstate.impedance.offset,
+        at_torque_limit=at_torque_limit(torque, limit),
     )
