@@ -195,7 +195,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         cfg,
         out=out,
         resume=resume,
-        fingerprint=fingerprint,
+        fingerprint={**(fingerprint or {}), "controller": cfg.controller},  # a checkpoint records its controller
         validate=validate if cfg.validate_every else None,
         weights=weights,
     )
