@@ -129,7 +129,11 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
             if c == ref:
                 continue
             r = ratio_interval(peaks[(c, b)], peaks[(ref, b)], cfg.bootstrap)
-            report["ratios"].append({"controller": c, "over": ref, "bound": b, **r})
+            entry = {"controller": c, "over": ref, "bound": b, **r}
+            if b is not None:  # how many of each side's runs ended within the bound
+                rows = {x["controller"]: x for x in report["rows"] if x["bound"] == b}
+                entry["within_bounds"] = {n: [rows[n]["within_bounds"], rows[n]["runs"]] for n in (c, ref)}
+            report["ratios"].append(entry)
     return report
 
 
@@ -166,7 +170,11 @@ def table(report: dict) -> list[str]:
             continue
         lo, hi = q["ci95"]
         ci = f"[{lo:.3g}, {hi:.3g}]" if lo is not None else "[n/a]"
-        lines.append(f"settled peak {q['controller']} / {q['over']} ({bound}): {q['ratio']:.3g} (95 % CI {ci})")
+        note = ""
+        within = q.get("within_bounds")
+        if within and any(k < n for k, n in within.values()):
+            note = "; runs within the bound: " + ", ".join(f"{name} {k}/{n}" for name, (k, n) in within.items())
+        lines.append(f"settled peak {q['controller']} / {q['over']} ({bound}): {q['ratio']:.3g} (95 % CI {ci}){note}")
     return lines
 
 

@@ -202,3 +202,20 @@ def test_smoke_study_tunes_two_controllers(model, tmp_path):
     assert q["ratio"] is not None and q["ci95"][0] <= q["ratio"] <= q["ci95"][1]
     ref = json.loads((tmp_path / "s" / "reference.json").read_text())
     assert ref["controller"] == "classical" and ref["first_impact_peak_N"] > 1.0
+
+
+def test_a_ratio_says_when_runs_ended_outside_the_bound():
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0,), bootstrap=100)
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": _evaluation([0.01, 0.012, 0.009])}
+    inside = dict(_evaluation([0.03, 0.02, 0.04]), within_bounds=True)
+    outside = dict(_evaluation([0.01, 0.012, 0.009]), within_bounds=False)
+    runs = {("classical", 1.0, 0): {"heldout_after": inside}, ("synchronous", 1.0, 0): {"heldout_after": outside}}
+    report = report_mod.build(
+        cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, runs
+    )
+    (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
+    assert q["within_bounds"] == {"classical": [1, 1], "synchronous": [0, 1]}
+    (line,) = [x for x in report_mod.table(report) if "(bound x1)" in x]
+    assert line.endswith("runs within the bound: classical 1/1, synchronous 0/1"), line
+    (line,) = [x for x in report_mod.table(report) if "(default gains)" in x]
+    assert "within" not in line
