@@ -176,7 +176,8 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
 @pytest.mark.slow
 def test_smoke_study_tunes_two_controllers(model, tmp_path):
     """The whole study, small: two controllers, one seed, one bound, two
-    iterations on the short task, four held-out scenarios."""
+    iterations on the short task, two held-out and two validation
+    scenarios (one batch shape: one evaluation program per controller)."""
     cfg = study_mod.StudyConfig(
         controllers=("classical", "task_space"),
         bounds=(1.0,),
@@ -184,7 +185,7 @@ def test_smoke_study_tunes_two_controllers(model, tmp_path):
         iterations=2,
         batch=1,
         task="short",
-        heldout=4,
+        heldout=2,
         validation_batch=2,
         validate_every=1,
         bootstrap=200,
@@ -194,7 +195,7 @@ def test_smoke_study_tunes_two_controllers(model, tmp_path):
     for c in cfg.controllers:
         for b in (None, 1.0):
             r = rows[(c, b)]
-            assert r["dropped"] == 0 and r["scenarios"] == 4, (c, b)
+            assert r["dropped"] == 0 and r["scenarios"] == 2, (c, b)
             assert r["settled_peak_resultant_N"]["median"] > 1e-4, (c, b)
             assert r["first_impact_peak_N"]["median"] > 1.0, (c, b)
     assert rows[("classical", 1.0)]["runs"] == 1
