@@ -38,6 +38,7 @@ class TuneConfig:
     train_start: str = "approach"  # keyframe the training rollouts start from
     train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
     scenario: tuple = ()  # (field, value) overrides of every scenario's base: a robot file's object
+    grip_spread: float = 0.0  # the desired grip force randomised +- this share in every sampled scenario
     task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     validation_seed: int = 500
@@ -90,6 +91,8 @@ class TuneConfig:
             raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
         if self.sampling not in ("stratified", "iid"):
             raise ConfigError(f"sampling must be 'stratified' or 'iid', got {self.sampling!r}")
+        if not 0.0 <= self.grip_spread < 1.0:
+            raise ConfigError(f"grip spread must be a share in [0, 1), got {self.grip_spread}")
         if self.controller not in CONTROLLERS:
             raise ConfigError(f"controller must be one of {list(CONTROLLERS)}, got {self.controller!r}")
         for name in ("max_impact_N", "max_stiffness_N_per_m"):

@@ -23,12 +23,14 @@ def training_base(cfg) -> tuple[_scenario.Scenario, float]:
 
 
 def sample_scenarios(
-    key: jax.Array, n: int, base: _scenario.Scenario, *, stratified: bool = False
+    key: jax.Array, n: int, base: _scenario.Scenario, *, stratified: bool = False, grip_spread: float = 0.0
 ) -> _scenario.Scenario:
     """A batch of randomised scenarios around ``base``: object mass +-30 % (the
     controller keeps the nominal estimate), offset along the clamping axis
     +-5 mm, contact time constant 15-30 ms, friction 0.8-1.2, wrist force
-    noise 0.05-0.15 N, fresh noise keys.
+    noise 0.05-0.15 N, fresh noise keys; with ``grip_spread`` g > 0 also the
+    desired grip force, +-g relative (from its own key: the other draws stay
+    as they are without it).
 
     Each quantity is drawn independently and uniformly over its range. With
     ``stratified`` the batch is a Latin hypercube on the ranges' ends instead:
@@ -59,6 +61,14 @@ def sample_scenarios(
     batch = jax.tree_util.tree_map(rep, base)
     offset = jnp.zeros((n, 3)).at[:, 1].set(u(1, -0.005, 0.005))
     noise_keys = jax.vmap(lambda k: jax.random.key_data(k))(jax.random.split(ks[6], n)).astype(jnp.uint32)
+    if grip_spread:
+        kg = jax.random.fold_in(key, 2)
+        r = (
+            (jax.random.permutation(kg, n) / max(n - 1, 1) if n > 1 else jnp.full((1,), 0.5))
+            if stratified
+            else jax.random.uniform(kg, (n,), dtype=jnp.float64)
+        )
+        batch = batch._replace(grip_force=base.grip_force * (1.0 - grip_spread + 2.0 * grip_spread * r))
     return batch._replace(
         object_mass=base.object_mass * u(0, 0.7, 1.3),
         object_offset=offset,
@@ -73,20 +83,21 @@ def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.S
     """The training batch of one iteration (seeded by ``cfg.seed`` and the iteration;
     holding the ranges' ends unless ``cfg.sampling`` is "iid")."""
     key = jax.random.fold_in(jax.random.key(cfg.seed), iteration)
-    return sample_scenarios(key, cfg.batch, base, stratified=cfg.sampling == "stratified")
+    return sample_scenarios(key, cfg.batch, base, stratified=cfg.sampling == "stratified", grip_spread=cfg.grip_spread)
 
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the held-out seed (never used for training or selection)."""
     base = _scenario.default_scenario(**dict(cfg.scenario))
-    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, base)
+    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, base, grip_spread=cfg.grip_spread)
 
 
 def validation_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the validation seed: they pick the iterate, the
     held-out ones only score it."""
     base = _scenario.default_scenario(**dict(cfg.scenario))
-    return sample_scenarios(jax.random.key(cfg.validation_seed), cfg.validation_batch, base)
+    key = jax.random.key(cfg.validation_seed)
+    return sample_scenarios(key, cfg.validation_batch, base, grip_spread=cfg.grip_spread)
 
 
 def model_overrides(model) -> tuple:

@@ -34,6 +34,8 @@ from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TuneSpec
 from jaxsync.optimize.tune_state import CHECKPOINT
 
 STUDY_FILE = "study.json"
+# what a setting that a study's file does not hold meant when that study ran (before the setting existed)
+ABSENT_MEANS = {"grip_spread": 0.0, "scenario": []}
 # what a study writes into its folder (--restart removes these, nothing else)
 STUDY_PARTS = ("runs", "defaults", "reference.json", STUDY_FILE, *_report.FILES)
 REFERENCE_CONTROLLER = "classical"  # the bounds are factors of its default compliance
@@ -61,6 +63,7 @@ class StudyConfig:
     validate_every: int = 5
     eval_duration: float = 4.0
     bootstrap: int = 2000  # resamples of the ratios' 95 % intervals
+    grip_spread: float = 0.2  # the desired grip force +- this share in every scenario (10 N: 8 to 12 N)
     scenario: tuple = ()  # overrides of every scenario's base (run_study sets a robot file's object)
 
     def validate(self) -> StudyConfig:
@@ -104,6 +107,7 @@ class StudyConfig:
             validate_every=self.validate_every,
             eval_duration=self.eval_duration,
             scenario=self.scenario,
+            grip_spread=self.grip_spread,
             controller=controller,
             max_impact_N=(bounds or {}).get("max_impact_N"),
             max_stiffness_N_per_m=(bounds or {}).get("max_stiffness_N_per_m"),
@@ -155,7 +159,7 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
 def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
     """The settings in which a saved study differs from ``cfg`` (a setting the
     file does not hold counts at its default)."""
-    held = {**StudyConfig().describe(), **(saved.get("config") or {})}
+    held = {**StudyConfig().describe(), **ABSENT_MEANS, **(saved.get("config") or {})}
     diff = [k for k, v in cfg.describe().items() if held.get(k) != v]
     return diff + (["model"] if saved.get("model") != model_name else [])
 

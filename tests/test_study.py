@@ -157,6 +157,7 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         (["--controllers", "classical"], "at least 2"),
         (["--controllers", "classical,nope"], "unknown controller"),
         (["--seeds", "a"], "comma-separated numbers"),
+        (["--grip-spread", "1.5"], "grip spread"),
     ]:
         try:
             rc = main(["study", "--out", str(out), *args])
@@ -170,7 +171,7 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         assert not out.exists(), args
     p = build_parser().parse_args(["study"])
     assert p.controllers == ["classical", "synchronous", "object_impedance", "task_space"]
-    assert p.bounds == (0.7, 1.0, 1.5) and p.seeds == (0, 1, 2) and p.heldout == 32
+    assert p.bounds == (0.7, 1.0, 1.5) and p.seeds == (0, 1, 2) and p.heldout == 32 and p.grip_spread == 0.2
 
 
 @pytest.mark.slow

@@ -21,7 +21,7 @@ import jaxsync
 from jaxsync.cli import build_parser, main
 from jaxsync.cli.tune import change_text, mujoco_text
 from jaxsync.control import gains as _gains
-from jaxsync.optimize import checkpoint, methods, tune_state
+from jaxsync.optimize import checkpoint, methods, scenarios, tune_state
 from jaxsync.optimize import compare as _compare
 from jaxsync.optimize import loss as loss_mod
 from jaxsync.optimize import tune as tune_mod
@@ -86,6 +86,25 @@ def test_scenario_sampling_is_seeded_and_in_range():
     m = np.asarray(a.object_mass) / float(base.object_mass)
     assert m.min() >= 0.7 and m.max() <= 1.3
     assert np.abs(np.asarray(a.object_offset)[:, 1]).max() <= 0.005
+
+
+def test_grip_spread_varies_the_grip_force_and_nothing_else():
+    base = jaxsync.default_scenario()
+    plain = sample_scenarios(jax.random.key(3), 8, base)
+    spread = sample_scenarios(jax.random.key(3), 8, base, grip_spread=0.2)
+    g = np.asarray(spread.grip_force)
+    assert np.all((g >= 8.0 - 1e-9) & (g <= 12.0 + 1e-9)) and np.ptp(g) > 1.0
+    np.testing.assert_array_equal(np.asarray(plain.grip_force), float(base.grip_force))
+    for f in ("object_mass", "contact_timeconst", "friction", "force_noise", "object_offset"):  # the same draws
+        np.testing.assert_array_equal(np.asarray(getattr(plain, f)), np.asarray(getattr(spread, f)), err_msg=f)
+    ends = np.sort(
+        np.asarray(sample_scenarios(jax.random.key(3), 2, base, stratified=True, grip_spread=0.2).grip_force)
+    )
+    np.testing.assert_allclose(ends, [8.0, 12.0])
+    cfg = TuneConfig(grip_spread=0.2, heldout_batch=4)
+    assert np.ptp(np.asarray(scenarios.heldout_scenarios(cfg).grip_force)) > 0
+    with pytest.raises(jaxsync.ConfigError, match="grip spread"):
+        TuneConfig(grip_spread=1.0).validate()
 
 
 def test_stratified_batches_hold_each_ranges_ends():

@@ -47,6 +47,7 @@ def run(args) -> int:
         validation_batch=args.validation_batch,
         validate_every=args.validate_every,
         bootstrap=args.bootstrap,
+        grip_spread=args.grip_spread,
     ).validate()  # every input is checked before anything is written or compiled
     model = load_model(model_source(args), **model_options(args))
     n = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)
@@ -98,6 +99,12 @@ def add_parser(subparsers):
     p.add_argument("--validation-batch", type=positive(int), default=8, help="validation scenarios (8)")
     p.add_argument("--validate-every", type=int, default=5, help="iterations between validations (5)")
     p.add_argument("--bootstrap", type=positive(int), default=2000, help="bootstrap resamples (2000)")
+    p.add_argument(
+        "--grip-spread",
+        type=float,
+        default=0.2,
+        help="the desired grip force randomised +- this share in every scenario (0.2: 8 to 12 N)",
+    )
     p.add_argument("--out", default="results/study", help="output folder (results/study)")
     p.add_argument("--resume", action="store_true", help="continue the study in --out")
     p.add_argument("--restart", action="store_true", help="discard the study in --out and start over")
