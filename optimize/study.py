@@ -29,6 +29,7 @@ from jaxsync.optimize import methods as _methods
 from jaxsync.optimize import pipeline as _pipeline
 from jaxsync.optimize import scenarios as _scenarios
 from jaxsync.optimize import study_report as _report
+from jaxsync.optimize.compare import check_controllers
 from jaxsync.optimize.config import TuneConfig
 from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TuneSpec
 from jaxsync.optimize.tune_state import CHECKPOINT
@@ -67,11 +68,7 @@ class StudyConfig:
     scenario: tuple = ()  # overrides of every scenario's base (run_study sets a robot file's object)
 
     def validate(self) -> StudyConfig:
-        unknown = [c for c in self.controllers if c not in CONTROLLERS]
-        if unknown:
-            raise ConfigError(f"--controllers: unknown {', '.join(unknown)}; known: {', '.join(CONTROLLERS)}")
-        if len(self.controllers) < 2 or len(set(self.controllers)) != len(self.controllers):
-            raise ConfigError(f"--controllers must name at least two different controllers, got {self.controllers}")
+        check_controllers(self.controllers)
         if not self.bounds or any(not (b > 0 and np.isfinite(b)) for b in self.bounds):
             raise ConfigError(f"--bounds must be positive factors, e.g. 0.7,1,1.5, got {self.bounds}")
         if len(set(self.bounds)) != len(self.bounds):

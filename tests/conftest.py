@@ -5,6 +5,7 @@ Every jitted function is compiled once per session through the fixtures here.
 
 from __future__ import annotations
 
+import collections
 import gc
 import hashlib
 import inspect
@@ -117,6 +118,21 @@ def forward_sense(model):
 # rolled out for its shortest horizon with a settled window: every phase, hold
 # from 1.2 s, settled from 1.5 s.
 TEST_DURATION = 1.7
+
+
+def fake_heldout_metrics():
+    """What a stand-in for the held-out evaluator returns: two held scenarios'
+    metrics, those the tuner's scoring reads (``optimize.loss.eval_summary``)."""
+    fields = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "chattering")
+    fields += ("first_impact_peak_N",)
+    return collections.namedtuple("FakeMetrics", fields)(
+        settled_peak_resultant_N=np.array([0.01, 0.02]),
+        grip_force_error_rel=np.array([0.004, 0.006]),
+        dropped=np.zeros(2, bool),
+        nonfinite=np.zeros(2, bool),
+        chattering=np.zeros(2, bool),
+        first_impact_peak_N=np.array([6.0, 7.0]),
+    )
 
 
 def fast_scenario(**overrides):

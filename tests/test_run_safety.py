@@ -8,7 +8,6 @@ are tested in test_tune.py); what is tested is the plumbing around them.
 
 from __future__ import annotations
 
-import collections
 import json
 import os
 import pickle
@@ -18,6 +17,7 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import fake_heldout_metrics
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
@@ -180,24 +180,8 @@ def test_a_folder_is_held_by_one_run_at_a_time(tmp_path):
 def stand_ins(monkeypatch):
     """The held-out rollouts and the loop replaced; ``calls["metrics"]`` sets
     what the held-out scoring sees (both scenarios held by default)."""
-    fields = (
-        "settled_peak_resultant_N",
-        "grip_force_error_rel",
-        "dropped",
-        "nonfinite",
-        "chattering",
-        "first_impact_peak_N",
-    )
-    Fake = collections.namedtuple("FakeMetrics", fields)
     calls = {
-        "metrics": Fake(
-            np.array([0.01, 0.02]),
-            np.array([0.004, 0.006]),
-            np.zeros(2, bool),
-            np.zeros(2, bool),
-            np.zeros(2, bool),
-            np.array([6.0, 7.0]),
-        ),
+        "metrics": fake_heldout_metrics(),
         "evaluated": 0,
     }
 

@@ -6,7 +6,6 @@ plumbing and errors."""
 from __future__ import annotations
 
 import argparse
-import collections
 import dataclasses
 import json
 import time
@@ -15,7 +14,7 @@ import jax
 import numpy as np
 import pytest
 import tqdm as tqdm_module
-from conftest import TEST_DURATION
+from conftest import TEST_DURATION, fake_heldout_metrics
 
 import jaxsync
 from jaxsync.cli import build_parser, main
@@ -306,22 +305,7 @@ def fake_tuning(monkeypatch):
     """The optimisation loop and the held-out rollouts replaced by stand-ins
     (both are tested above; compiling them for a CLI test would cost minutes).
     Returns the dict the fake loop records its arguments in."""
-    fields = (
-        "settled_peak_resultant_N",
-        "grip_force_error_rel",
-        "dropped",
-        "nonfinite",
-        "chattering",
-        "first_impact_peak_N",
-    )
-    fake_metrics = collections.namedtuple("FakeMetrics", fields)(
-        settled_peak_resultant_N=np.array([0.01, 0.02]),
-        grip_force_error_rel=np.array([0.004, 0.006]),
-        dropped=np.array([False, False]),
-        nonfinite=np.array([False, False]),
-        chattering=np.array([False, False]),
-        first_impact_peak_N=np.array([6.0, 7.0]),
-    )
+    fake_metrics = fake_heldout_metrics()
     calls = {}
 
     def fake_evaluator(model, duration, controller="synchronous"):

@@ -61,8 +61,13 @@ def displacement(kind: str, gains, pads_pos, pads_rot, dt: float, axis: int, cro
         return off, new
 
     def period(state, _):
-        off0, new = offsets_at(jnp.zeros((2, 6)), state)
-        jac = jax.jacfwd(lambda d: offsets_at(d, state)[0])(jnp.zeros((2, 6))).reshape(12, 12)
+        def with_state(d):
+            off, new = offsets_at(d, state)
+            return off, (off, new)
+
+        # one pass gives the offsets at delta = 0, the new state and d offset / d delta
+        jac, (off0, new) = jax.jacfwd(with_state, has_aux=True)(jnp.zeros((2, 6)))
+        jac = jac.reshape(12, 12)
         off = jnp.linalg.solve(jnp.eye(12) + jac, off0.reshape(12)).reshape(2, 6)
         return new, off
 
