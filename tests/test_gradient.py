@@ -189,12 +189,11 @@ def test_full_task_gradient_matches_central_differences(tuning_program):
     assert np.isfinite(value) and cos >= 0.9999 and rel <= 1e-4, (cos, rel)
 
 
-def test_full_task_gradient_along_two_directions(tuning_program):
+def test_full_task_gradient_along_a_random_direction(tuning_program):
     """The default run's check of the tuner's own full-horizon gradient (the
     22-parameter check above is in the slow tier): at the same point, the
-    derivative along the gradient's own direction and along a random one,
-    from central differences of the same program's values (no other compile),
-    within 1e-4 of the gradient's norm."""
+    derivative along a random direction, from central differences of the same
+    program's values (no other compile), within 1e-4 of the gradient's norm."""
     scen, vg = tuning_program["scenarios"], tuning_program["value_and_grad"]
     theta = jax.tree_util.tree_map(
         lambda x: x + 0.1 * jnp.cos(jnp.arange(x.size).reshape(x.shape) + 1.0), tuning_program["theta0"]
@@ -204,12 +203,11 @@ def test_full_task_gradient_along_two_directions(tuning_program):
     flat, unravel = ravel_pytree(theta)
     norm = np.linalg.norm(g)
     r = np.random.default_rng(3).standard_normal(g.size)
-    h = 1e-4
-    for v in (g / norm, r / np.linalg.norm(r)):
-        plus, minus = (float(vg(unravel(flat + c * h * v), scen)[0][0]) for c in (1, -1))
-        fd = (plus - minus) / (2 * h)
-        assert abs(fd - g @ v) <= 1e-4 * norm, (fd, g @ v, norm)
-    assert np.isfinite(value) and norm > 0
+    v, h = r / np.linalg.norm(r), 1e-4
+    plus, minus = (float(vg(unravel(flat + c * h * v), scen)[0][0]) for c in (1, -1))
+    fd = (plus - minus) / (2 * h)
+    assert abs(fd - g @ v) <= 1e-4 * norm, (fd, g @ v, norm)
+    assert np.isfinite(value) and norm > 0 and abs(g @ v) > 1e-3 * norm
 
 
 def test_forward_mode_agrees_with_reverse_mode(one_step):
