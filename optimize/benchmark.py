@@ -5,9 +5,14 @@ environment-steps per second at several batch sizes; the same controller
 stepping MuJoCo C (one environment); bare ``mj_step``; one forward rollout
 against its gradient; cold and warm (persistent-cache) compile times of the
 gradient; the peak memory of one tuning step (the measurements are in
-``jaxsync.optimize.benchmark_measure``). It writes ``bench.json`` and returns
+``jaxsync.optimize.benchmark_measure`` and ``benchmark_children``). It writes ``bench.json`` and returns
 its content; :func:`table` formats it. A benchmark reports, it never fails:
 the targets of docs/performance.md are recorded next to the numbers.
+
+With a robot (``source``), every measurement is taken on the robot's
+composed scene at its default gains and object, and a last section measures
+the paper model's forward rollout, gradient and cold compile the same way,
+so that the robot's figures are given as ratios to the paper model's.
 
 The gradient figures are taken for both paths of ``PATHS``: ``implicit``
 (the converged solve, the implicit adjoint, the exact gradient: what
@@ -31,19 +36,21 @@ from collections.abc import Callable, Sequence
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
+from jaxsync.optimize.benchmark_children import (
+    cold_compile_with_xla_flags,
+    compile_times,
+    tune_step_memory,
+    warm_compile_s,
+)
 from jaxsync.optimize.benchmark_measure import (
     PATHS,
     XLA_DEFAULT_EMITTERS,
     bare_mj_step,
-    cold_compile_with_xla_flags,
-    compile_times,
     forward_and_gradient,
     have_flatbuffers,
     machine,
     mjx_throughput,
     mujoco_c_throughput,
-    tune_step_memory,
-    warm_compile_s,
 )
 from jaxsync.physics.model import load_model
 
@@ -54,6 +61,10 @@ TARGETS = {
     "grad_compile_cold_s": ("<=", 45.0),
     "grad_compile_warm_s": ("<=", 5.0),
     "tune_step_peak_rss_gib": ("<=", 2.0),
+    # with a robot: its gradient's cost (in forward rollouts) and its cold
+    # compile against the paper model's, measured in the same run
+    "grad_over_forward_over_paper": ("<=", 1.3),
+    "grad_compile_cold_over_paper": ("<=", 1.3),
 }
 
 FULL = dict(
@@ -112,13 +123,17 @@ def run(
     quick: bool = False,
     batch_sizes: Sequence[int] | None = None,
     log: Callable[[str], None] = _log_stderr,
+    source: str | None = None,
+    visual: bool = True,
 ) -> dict:
     """Every measurement, in one run; writes ``out/bench.json`` and returns its content.
 
     ``quick``: tiny horizons and batches and a small stand-in for the
     gradient (a smoke test, not a benchmark); ``batch_sizes`` replaces the
     MJX batch sizes; ``log`` receives the progress lines (standard error by
-    default).
+    default); ``source`` a robot file (or an MJCF in jaxsync's convention) to
+    benchmark instead of the paper model, against the paper model's gradient
+    figures; ``visual`` False loads it without its meshes.
     """
     cfg = dict(QUICK if quick else FULL)
     if batch_sizes:
@@ -127,6 +142,9 @@ def run(
             raise ConfigError(f"batch sizes must be positive whole numbers, got {list(sizes)}")
         cfg["batch_sizes"] = tuple(int(b) for b in sizes)
     _results.ensure_writable_dir(out)
+    # the children run away from the working directory: an absolute path
+    source = os.path.abspath(source) if source is not None else None
+    model_kw = {"source": source, "visual": visual}
     t_start = time.perf_counter()
     info = machine()
     log(
@@ -134,30 +152,44 @@ def run(
         f"JAX {info['jax']} {info['jax_backend']}"
     )
     small = cfg["small"]
-    model = load_model(solver="accurate")
-    log("[1/6] MJX closed loop, default scenario")
+    model = load_model(source, solver="accurate", visual=visual)
+    n = 7 if source else 6
+    log(f"[1/{n}] MJX closed loop, default scenario" + (f", {source}" if source else ""))
     mjx = mjx_throughput(model, cfg["batch_sizes"], cfg["mjx_duration"], cfg["repeats"], log)
-    log("[2/6] the same controller on MuJoCo C")
+    log(f"[2/{n}] the same controller on MuJoCo C")
     mjc = mujoco_c_throughput(model, cfg["c_duration"], log)
-    log("[3/6] bare mj_step")
+    log(f"[3/{n}] bare mj_step")
     bare = bare_mj_step(model, cfg["bare_steps"], log)
-    log("[4/6] forward rollout against its gradient, the tuner's path (implicit) and the reference (unrolled)")
-    fg = {p: forward_and_gradient(p, cfg["grad_duration"], cfg["grad_repeats"], log, small) for p in PATHS}
-    log("[5/6] gradient compile time, cold (empty cache) and warm (persistent cache), in fresh processes")
-    comp = {"implicit": compile_times("implicit", cfg["grad_duration"], small, log, exported=not small)}
+    log(f"[4/{n}] forward rollout against its gradient, the tuner's path (implicit) and the reference (unrolled)")
+    dur, reps = cfg["grad_duration"], cfg["grad_repeats"]
+    fg = {p: forward_and_gradient(p, dur, reps, log, small, **model_kw) for p in PATHS}
+    log(f"[5/{n}] gradient compile time, cold (empty cache) and warm (persistent cache), in fresh processes")
+    comp = {"implicit": compile_times("implicit", dur, small, log, exported=not small, **model_kw)}
     if cfg["reference_children"]:
-        comp["unrolled"] = compile_times("unrolled", cfg["grad_duration"], small, log, exported=False)
+        comp["unrolled"] = compile_times("unrolled", dur, small, log, exported=False, **model_kw)
         # jaxsync turns XLA's CPU fusion emitters off (jaxsync.runtime.xla); the same compile with XLA's default
-        comp["implicit_xla_default"] = cold_compile_with_xla_flags(
-            "implicit", cfg["grad_duration"], XLA_DEFAULT_EMITTERS, log
-        )
-    log("[6/6] peak memory of one tuning step, in fresh processes (cold cache: it compiles; warm: from the cache)")
-    tune = {"implicit": tune_step_memory("implicit", cfg["tune_batch"], cfg["tune_task"], small, log)}
+        flags = XLA_DEFAULT_EMITTERS
+        comp["implicit_xla_default"] = cold_compile_with_xla_flags("implicit", dur, flags, log, **model_kw)
+    log(f"[6/{n}] peak memory of one tuning step, in fresh processes (cold cache: it compiles; warm: from the cache)")
+    batch, task = cfg["tune_batch"], cfg["tune_task"]
+    tune = {"implicit": tune_step_memory("implicit", batch, task, small, log, **model_kw)}
     if cfg["reference_children"]:
-        tune["unrolled"] = tune_step_memory("unrolled", cfg["tune_batch"], cfg["tune_task"], small, log, warm=False)
+        tune["unrolled"] = tune_step_memory("unrolled", batch, task, small, log, warm=False, **model_kw)
         tune["implicit_xla_default"] = tune_step_memory(
-            "implicit", cfg["tune_batch"], cfg["tune_task"], small, log, warm=False, xla_flags=XLA_DEFAULT_EMITTERS
+            "implicit", batch, task, small, log, warm=False, xla_flags=XLA_DEFAULT_EMITTERS, **model_kw
         )
+    paper = None
+    if source:
+        log(f"[7/{n}] the paper model's forward rollout, gradient and cold compile, for the ratios")
+        paper_fg = forward_and_gradient("implicit", dur, reps, log, small)
+        paper_cold = compile_times("implicit", dur, small, log, exported=False, warm=False)["cold"]
+        paper = {
+            "forward_s": paper_fg["forward_s"],
+            "grad_s": paper_fg["grad_s"],
+            "grad_over_forward": paper_fg["grad_over_forward"],
+            "grad_compile_cold_s": paper_cold["total_s"],
+            "details": {"forward_and_gradient": paper_fg, "compile_cold": paper_cold},
+        }
     best_b = max(mjx["rates"], key=mjx["rates"].get)
 
     def path_figures(p: str) -> dict:
@@ -173,6 +205,7 @@ def run(
 
     implicit = path_figures("implicit")
     result = {
+        "model": source or "paper model",
         "mjx_env_steps_per_s": mjx["rates"],
         "mjx_best_batch": int(best_b),
         "mujoco_c_env_steps_per_s": mjc["rate"],
@@ -201,6 +234,12 @@ def run(
         else None,
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "paths": {p: path_figures(p) for p in PATHS},
+        # with a robot: the paper model's figures and the robot's ratios to them
+        "paper_model": paper,
+        "grad_over_forward_over_paper": implicit["grad_over_forward"] / paper["grad_over_forward"] if paper else None,
+        "grad_compile_cold_over_paper": implicit["grad_compile_cold_s"] / paper["grad_compile_cold_s"]
+        if paper
+        else None,
         "details": {
             "mjx": mjx,
             "mujoco_c": mjc,
@@ -284,9 +323,27 @@ def table(r: dict) -> str:
             None,
         ),
     ]
+    paper = r.get("paper_model")
+    if paper:
+        rows += [
+            ("the paper model: gradient / forward", f"{paper['grad_over_forward']:.2f}", "", None),
+            ("the paper model: gradient compile cold, s", f"{paper['grad_compile_cold_s']:.1f}", "", None),
+            (
+                "this model's gradient / forward over the paper model's",
+                f"{r['grad_over_forward_over_paper']:.2f}",
+                "",
+                "grad_over_forward_over_paper",
+            ),
+            (
+                "this model's cold compile over the paper model's",
+                f"{r['grad_compile_cold_over_paper']:.2f}",
+                "",
+                "grad_compile_cold_over_paper",
+            ),
+        ]
     tg = r.get("targets", {})
     w = max(len(a) for a, *_ in rows)
-    lines = [f"{'measure':<{w}}  {'implicit':>12}  {'unrolled':>8}  target"]
+    lines = [f"model: {r.get('model', 'paper model')}", f"{'measure':<{w}}  {'implicit':>12}  {'unrolled':>8}  target"]
     for name, val, val_unrolled, key in rows:
         t = tg.get(key)
         mark = ""

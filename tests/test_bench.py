@@ -11,6 +11,7 @@ test_gradient.
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -109,3 +110,81 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         assert "159.2" in rows["with XLA's default CPU emitters: gradient compile cold, s"]
         assert "2.50" in rows["with XLA's default CPU emitters: tuning step peak RSS (compiling), GiB"]
         assert table(r).splitlines()[-1].endswith("XLA_FLAGS: --xla_cpu_use_fusion_emitters=false")
+
+
+def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_path, monkeypatch, capsys):
+    """``jaxsync bench --robot FILE``: every measurement gets the robot (as an
+    absolute path: the children run elsewhere), a last section measures the
+    paper model's gradient and cold compile, and the ratios and their targets
+    are the robot's figures over the paper model's (stand-in measurements)."""
+    from jaxsync.optimize import benchmark as bm
+
+    seen = []
+    loaded = []
+
+    def fake_load(source, solver, visual=True):
+        loaded.append((source, visual))
+        return object()
+
+    def fake_fg(path, duration, repeats, log, small=False, source=None, visual=True):
+        seen.append(("fg", path, source))
+        ratio = {None: 2.0}.get(source, 3.0)
+        return {"forward_s": 1.0, "grad_s": ratio, "grad_over_forward": ratio, "label": path, "grad_finite": True}
+
+    def fake_compile(path, duration, small, log, exported=True, source=None, visual=True, warm=True):
+        seen.append(("compile", path, source, warm))
+        c = {"total_s": 40.0 if source is None else 50.0}
+        return {"cold": c} if not warm else {"cold": c, "warm": {"total_s": 3.0}}
+
+    def fake_tune(path, batch, task, small, log, warm=True, xla_flags=None, source=None, visual=True):
+        seen.append(("tune", path, source))
+        return {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}}
+
+    monkeypatch.setattr(bm, "load_model", fake_load)
+    monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
+    monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
+    monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
+    monkeypatch.setattr(bm, "forward_and_gradient", fake_fg)
+    monkeypatch.setattr(bm, "compile_times", fake_compile)
+    monkeypatch.setattr(bm, "tune_step_memory", fake_tune)
+    monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
+    robot = "mjcf/robots/iiwa14_twice.yaml"
+    assert run_cli(["bench", "--quick", "--robot", robot, "--no-visual", "--out", str(tmp_path)]) == 0
+    absolute = os.path.abspath(robot)
+    assert loaded == [(absolute, False)]
+    # the robot everywhere in sections 1-6, then the paper model (source None) in section 7
+    robot_calls = [c for c in seen if c[2] == absolute]
+    paper_calls = [c for c in seen if c[2] is None]
+    assert {c[0] for c in robot_calls} == {"fg", "compile", "tune"}
+    assert paper_calls == [("fg", "implicit", None), ("compile", "implicit", None, False)]
+    assert seen.index(paper_calls[0]) > max(seen.index(c) for c in robot_calls)
+    r = json.loads((tmp_path / "bench.json").read_text())
+    assert r["model"] == absolute
+    assert r["grad_over_forward_over_paper"] == pytest.approx(1.5)
+    assert r["grad_compile_cold_over_paper"] == pytest.approx(1.25)
+    assert r["targets"]["grad_over_forward_over_paper"]["met"] is False
+    assert r["targets"]["grad_compile_cold_over_paper"]["met"] is True
+    out = capsys.readouterr().out
+    rows = {line.split("  ")[0]: line for line in out.splitlines()}
+    assert "MISSED" in rows["this model's gradient / forward over the paper model's"]
+    assert "1.25" in rows["this model's cold compile over the paper model's"]
+    assert out.splitlines()[0] == f"model: {absolute}"
+
+
+def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
+    """The paper model's own bench records no ratios (None) and prints none."""
+    from jaxsync.optimize import benchmark as bm
+
+    monkeypatch.setattr(bm, "load_model", lambda source, solver, visual=True: object())
+    monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
+    monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
+    monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
+    fg = {"forward_s": 1.0, "grad_s": 2.0, "grad_over_forward": 2.0, "label": "x", "grad_finite": True}
+    monkeypatch.setattr(bm, "forward_and_gradient", lambda *a, **k: fg)
+    monkeypatch.setattr(bm, "compile_times", lambda *a, **k: {"cold": {"total_s": 40.0}, "warm": {"total_s": 3.0}})
+    monkeypatch.setattr(bm, "tune_step_memory", lambda *a, **k: {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}})
+    monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
+    r = bm.run(str(tmp_path), quick=True, log=lambda m: None)
+    assert r["model"] == "paper model" and r["paper_model"] is None
+    assert r["grad_over_forward_over_paper"] is None and "grad_over_forward_over_paper" not in r["targets"]
+    assert "over the paper model" not in bm.table(r)
