@@ -9,14 +9,20 @@ the training objective on a fixed batch:
 
 - ``oracle.value_and_grad(x) -> (f, g)``: one forward and one reverse pass;
 - ``oracle.values(X) -> f``: the objective of a population ``X`` (P, n) in
-  one batched forward pass (CMA-ES).
+  one batched forward pass (CMA-ES);
+- ``oracle.use(k)``, where the oracle can ``renew``: the objective on
+  training batch ``k`` from now on (L-BFGS moves to a fresh batch when it has
+  converged on its own).
 
 Methods (:data:`METHODS`):
 
 - ``adam``: optax Adam on the exact gradient, global-norm clipped;
 - ``lbfgs``: limited-memory BFGS (two-loop recursion, memory 10) with a
   backtracking Armijo line search and a cap on the step's length in theta:
-  quasi-Newton curvature for a gradient that is steep in a few directions;
+  quasi-Newton curvature for a gradient that is steep in a few directions.
+  Converged on its batch (no step lowers the cost twice in a row), it goes on
+  from where it stands on a fresh training batch, up to ``renewals`` times,
+  where the oracle can renew; then it reports convergence;
 - ``cmaes``: CMA-ES (the maintained ``cma`` package), its population
   evaluated as one batch;
 - ``cmaes-lbfgs``: CMA-ES for the first generations (a global look around),
@@ -50,12 +56,22 @@ METHODS = ("adam", "lbfgs", "cmaes", "cmaes-lbfgs")
 
 @dataclasses.dataclass
 class Oracle:
-    """The training objective on a fixed batch; counts what it is asked."""
+    """The training objective on a fixed batch; counts what it is asked.
+
+    ``renew(k)``, where given, switches the objective to training batch ``k``
+    (0 is the batch it starts on); :meth:`use` calls it once per change."""
 
     value_and_grad: Callable | None = None
     values: Callable | None = None
+    renew: Callable | None = None
     gradient_calls: int = 0
     forward_rollouts: int = 0  # population members evaluated
+    batch: int = 0
+
+    def use(self, k: int) -> None:
+        if k != self.batch:
+            self.renew(k)
+            self.batch = k
 
     def vg(self, x):
         self.gradient_calls += 1
@@ -116,10 +132,11 @@ class LBFGS:
     armijo: float = 1e-4
     shrink: float = 0.3
     max_trials: int = 6
+    renewals: int = 4  # fresh training batches after converging on one (where the oracle can renew)
     needs = ("value_and_grad",)
 
     def init(self, x0, seed: int = 0) -> dict:
-        return {"x": np.asarray(x0, dtype=float), "f": None, "g": None, "s": [], "y": []}
+        return {"x": np.asarray(x0, dtype=float), "f": None, "g": None, "s": [], "y": [], "batch": 0, "stalled": False}
 
     def _direction(self, g, s_hist, y_hist):
         if not s_hist:
@@ -138,6 +155,9 @@ class LBFGS:
         return -q
 
     def step(self, state, oracle: Oracle):
+        batch = int(state.get("batch", 0))
+        if oracle.renew is not None:
+            oracle.use(batch)  # a resumed run's oracle starts on batch 0
         x, f, g = state["x"], state["f"], state["g"]
         if g is None:
             f, g = oracle.vg(x)
@@ -152,17 +172,27 @@ class LBFGS:
         for _ in range(self.max_trials):
             x_new = x + alpha * d
             f_new, g_new = oracle.vg(x_new)
-            if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and f_new <= f + self.armijo * alpha * slope:
+            lower = f_new < f and f_new <= f + self.armijo * alpha * slope  # a step that lowers the cost
+            if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and lower:
                 s, y = x_new - x, g_new - g
                 s_hist, y_hist = list(state["s"]), list(state["y"])
                 if s @ y > 1e-10 * np.linalg.norm(s) * np.linalg.norm(y):
                     s_hist, y_hist = (s_hist + [s])[-self.memory :], (y_hist + [y])[-self.memory :]
-                row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1}
-                return {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist}, row
+                row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1, "batch": batch}
+                new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist}
+                return {**new, "batch": batch, "stalled": False}, row
             alpha *= self.shrink
-        # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
-        row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0}
-        return {"x": x, "f": f, "g": g, "s": [], "y": []}, row
+        row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0, "batch": batch}
+        if not state.get("stalled", False):
+            # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
+            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
+        # the second time in a row: converged on this batch
+        if oracle.renew is not None and batch < self.renewals:
+            oracle.use(batch + 1)
+            row["renewed"] = batch + 1
+            return {"x": x, "f": None, "g": None, "s": [], "y": [], "batch": batch + 1, "stalled": False}, row
+        row["converged"] = 1
+        return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
 
     def incumbent(self, state):
         return state["x"]
@@ -171,7 +201,8 @@ class LBFGS:
         return dict(state)  # arrays, floats and lists of arrays already
 
     def from_data(self, data) -> dict:
-        return {**data, "s": list(data["s"]), "y": list(data["y"])}
+        out = {**data, "s": list(data["s"]), "y": list(data["y"])}
+        return {**out, "batch": int(out.get("batch", 0)), "stalled": bool(out.get("stalled", False))}
 
 
 # ----------------------------------------------------------------- CMA-ES

@@ -101,21 +101,25 @@ class _MethodOracle:
     one batched forward pass of the population (data-parallel over the run's
     devices when it has several: ``optimize.parallel``)."""
 
-    def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig, n_total: int | None = None):
+    def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig, n_total: int | None = None, batch=None):
         _, self.unravel = ravel_pytree(theta)
         self.scen = scen
 
         def vg(x):  # traced (or read from disk) at its first use: CMA-ES alone never needs it
-            (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), scen)
+            (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), self.scen)
             return float(value), np.asarray(ravel_pytree(grad)[0])
 
         if n_total is not None:
             pop_dp = parallel.population_values(loss, self.unravel, n_total)
-            values = lambda X: pop_dp(X, scen)  # noqa: E731
+            values = lambda X: pop_dp(X, self.scen)  # noqa: E731
         else:
             pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
-            values = lambda X: pop(jnp.asarray(X), scen)  # noqa: E731
-        self.oracle = _methods.Oracle(value_and_grad=vg, values=values)
+            values = lambda X: pop(jnp.asarray(X), self.scen)  # noqa: E731
+
+        def renew(k):  # training batch k (same shapes: no new compile)
+            self.scen = batch(k)
+
+        self.oracle = _methods.Oracle(value_and_grad=vg, values=values, renew=renew if batch is not None else None)
 
 
 def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
@@ -134,15 +138,21 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
             raise TuneError(f"{cfg.method}: {bad} non-finite iterations in a row, the last at iteration {i}")
     # a line search that found no lower cost, twice in a row (the second time a
     # short steepest-descent step after the curvature memory was reset): the
-    # fixed batch's cost is at a local minimum to the line search's resolution
+    # batch's cost is at a local minimum to the line search's resolution. L-BFGS
+    # then goes on with a fresh batch ("renewed") while it has renewals left, and
+    # says when it has converged; for the other methods the rule is applied here
     stalled = finite and not accepted
     prev = state.history[-1] if state.history else None
-    converged = stalled and prev is not None and bool(prev["skipped"]) and math.isfinite(prev["cost"])
+    if "converged" in r or "batch" in r:
+        converged = bool(r.get("converged"))
+    else:
+        converged = stalled and prev is not None and bool(prev["skipped"]) and math.isfinite(prev["cost"])
     if stalled:
-        log(
-            f"iteration {i}: no step lowered the training cost"
-            + ("; converged, stopping" if converged else "; curvature memory reset")
-        )
+        if r.get("renewed"):
+            then = f"; converged on its training batch, going on with a fresh one ({r['renewed']})"
+        else:
+            then = "; converged, stopping" if converged else "; curvature memory reset"
+        log(f"iteration {i}: no step lowered the training cost" + then)
     row = {
         "iteration": i,
         "cost": float(r["train_cost"]),
@@ -264,7 +274,8 @@ def tune(
             else:
                 if oracle is None:  # CMA-ES's populations only evaluate the loss
                     forward = make_loss(model, spec, base, cfg, weights, differentiated=False)
-                    oracle = _MethodOracle(forward, get_value_and_grad, state.theta, scen, cfg, n_total)
+                    fresh = lambda k: training_batch(batch_cfg, k, train_base)  # noqa: E731
+                    oracle = _MethodOracle(forward, get_value_and_grad, state.theta, scen, cfg, n_total, fresh)
                 state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
             bar.update(1)
             if i == start:

@@ -2,7 +2,9 @@
 
 Every method (``optimize.methods``) gets the same parameters, the same fixed
 training batch (per seed), the same held-out scenarios and the same
-wall-clock budget of optimisation; compiling and held-out scoring are not
+wall-clock budget of optimisation (L-BFGS, once converged on the batch, goes
+on with the seed's fresh batches, as in ``jaxsync tune``; it stops when it
+has converged on its last); compiling and held-out scoring are not
 counted (they are reported). After every iteration the method's incumbent is
 scored on the held-out scenarios; a run's *time to target* is the first
 optimisation time at which that held-out cost is at or below the target (a
@@ -100,10 +102,10 @@ class Programs:
         assert np.allclose(self.tie @ np.asarray(x22), self.x0)
         self.x0_constant = np.asarray(x22)
 
-    def training(self, seed: int):
-        return sample_scenarios(
-            jax.random.key(seed), self.cfg.batch, self.base_scenario, stratified=self.cfg.stratified
-        )
+    def training(self, seed: int, k: int = 0):
+        """The fixed training batch of a seed; ``k`` > 0: the k-th fresh one (L-BFGS's renewals)."""
+        key = jax.random.key(seed) if k == 0 else jax.random.fold_in(jax.random.key(seed), k)
+        return sample_scenarios(key, self.cfg.batch, self.base_scenario, stratified=self.cfg.stratified)
 
     def to_full(self, problem: str, x) -> np.ndarray:
         return self.tie @ x if problem == "constant" else np.asarray(x)
@@ -111,19 +113,24 @@ class Programs:
     def start(self, problem: str) -> np.ndarray:
         return self.x0_constant if problem == "constant" else self.x0
 
-    def oracle(self, problem: str, scen) -> _methods.Oracle:
+    def oracle(self, problem: str, seed: int) -> _methods.Oracle:
+        """The training objective on the seed's batch; it can renew to the seed's fresh batches."""
         T = self.tie if problem == "constant" else None
+        batch = {"scen": self.training(seed)}
 
         def vg(x):
-            f, g = self.value_and_grad(jnp.asarray(self.to_full(problem, x)), scen)
+            f, g = self.value_and_grad(jnp.asarray(self.to_full(problem, x)), batch["scen"])
             g = np.asarray(g)
             return float(f), (T.T @ g if T is not None else g)
 
         def values(X):
             full = np.stack([self.to_full(problem, x) for x in X])
-            return np.asarray(self.values(jnp.asarray(full), scen))
+            return np.asarray(self.values(jnp.asarray(full), batch["scen"]))
 
-        return _methods.Oracle(value_and_grad=vg, values=values)
+        def renew(k):
+            batch["scen"] = self.training(seed, k)
+
+        return _methods.Oracle(value_and_grad=vg, values=values, renew=renew)
 
     def heldout_cost(self, problem: str, x) -> float:
         return float(self.value(jnp.asarray(self.to_full(problem, x)), self.heldout))
@@ -150,7 +157,7 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
     m = _methods.get(method, **options) if method != "cmaes" else _methods.get(method, popsize=cfg.popsize, **options)
     if method == "cmaes-lbfgs":
         m = dataclasses.replace(m, cmaes=_methods.CMAES(popsize=cfg.popsize))
-    oracle = programs.oracle(problem, programs.training(seed))
+    oracle = programs.oracle(problem, seed)
     x0 = programs.start(problem)
     h0 = programs.heldout_cost(problem, x0)
     state = m.init(x0, seed)
@@ -169,6 +176,8 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
         curve.append((used, h))
         rows.append({"iteration": i, "seconds": used, "heldout_cost": h, **row})
         log(f"  {problem:8s} {method:11s} seed {seed}  {used:6.1f} s  it {i:3d}  held-out {h:.4g}  best {best:.4g}")
+        if row.get("converged"):
+            break
     target = cfg.target * h0
     hit = next((tt for tt, c in curve if c <= target), None)
     return {
@@ -184,6 +193,7 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
         "iterations": len(rows),
         "gradient_calls": oracle.gradient_calls,
         "forward_rollouts_population": oracle.forward_rollouts * cfg.batch,
+        "training_batches": oracle.batch + 1,
         "curve": curve,
         "history": rows,
         "x": np.asarray(m.incumbent(state)).tolist(),

@@ -572,6 +572,48 @@ def test_lbfgs_skips_non_finite_trials_and_keeps_the_iterate():
     assert row["accepted"] == 0 and np.array_equal(m.incumbent(state), np.ones(2)) and len(calls) == 4
 
 
+def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
+    """On a batch whose minimum it has reached, L-BFGS takes the oracle's next
+    batch (here: a quadratic centred elsewhere) and converges there; a state
+    written to data and read back mid-run continues on the same batch; with no
+    renewals left it reports convergence."""
+    centres = [np.zeros(3), np.full(3, 0.5), np.array([1.0, -1.0, 0.2])]
+    current = {"c": centres[0]}
+
+    def vg(x):
+        d = x - current["c"]
+        return float(d @ d), 2 * d
+
+    def renew(k):
+        current["c"] = centres[k]
+
+    m = LBFGS(renewals=2)
+    oracle = Oracle(value_and_grad=vg, renew=renew)
+    state, rows = m.init(np.ones(3)), []
+    for _ in range(40):
+        state, row = m.step(state, oracle)
+        rows.append(row)
+        if row.get("renewed") == 1:  # mid-run: written to data, read back, a fresh oracle on batch 0
+            current["c"] = centres[0]
+            oracle = Oracle(value_and_grad=vg, renew=renew)
+            state = m.from_data(m.to_data(state))
+        if row.get("converged"):
+            break
+    assert [r["renewed"] for r in rows if "renewed" in r] == [1, 2]
+    assert rows[-1].get("converged") == 1 and oracle.batch == 2
+    np.testing.assert_allclose(m.incumbent(state), centres[2], atol=1e-6)
+    # where the oracle cannot renew: converged on the first batch, as before
+    m2, state2, rows2 = LBFGS(), LBFGS().init(np.ones(3)), []
+    current["c"] = centres[0]
+    for _ in range(40):
+        state2, row = m2.step(state2, Oracle(value_and_grad=vg))
+        rows2.append(row)
+        if row.get("converged"):
+            break
+    assert rows2[-1].get("converged") == 1 and not any("renewed" in r for r in rows2)
+    np.testing.assert_allclose(m2.incumbent(state2), centres[0], atol=1e-6)
+
+
 def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuning_program, tmp_path):
     """jaxsync tune --method lbfgs on tune's own (full-task, exact) gradient program:
     two iterations lower the training cost on its fixed batch, every accepted step
@@ -599,16 +641,23 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
         np.testing.assert_array_equal(a, b)
 
 
-def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_path):
+def _fingerprint(scenarios) -> bytes:
+    return b"".join(np.asarray(x).tobytes() for x in jax.tree_util.tree_leaves(scenarios))
+
+
+def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cost(model, monkeypatch, tmp_path):
     """A line search that finds no lower cost twice in a row (the second time after
-    the curvature memory is reset) is convergence on the fixed batch: tune() stops,
-    validates and checkpoints the last iterate and returns normally (it raised
-    'iterations in a row without a step' after 46 iterations of a real run)."""
+    the curvature memory is reset) is convergence on the batch: L-BFGS goes on
+    from where it stands on a fresh training batch (the iteration-k batch of the
+    run's seed), up to its 4 renewals; converged on the last, tune() stops,
+    validates and checkpoints the last iterate and returns normally."""
+    seen = []
 
     def fake_traced(loss, model, spec, base, cfg, weights, args, log):
         theta0 = args[0]
 
         def value_and_grad(theta, scenarios):  # the cost rises along -grad: every trial step fails
+            seen.append(_fingerprint(scenarios))
             pairs = zip(jax.tree_util.tree_leaves(theta), jax.tree_util.tree_leaves(theta0), strict=True)
             d = sum(jax.numpy.sum((a - b) ** 2) for a, b in pairs)
             ones = jax.tree_util.tree_map(jax.numpy.ones_like, theta)
@@ -617,14 +666,20 @@ def test_lbfgs_stops_early_when_no_step_lowers_the_cost(model, monkeypatch, tmp_
         return value_and_grad
 
     monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
-    cfg = TuneConfig(iterations=10, batch=1, validate_every=5, task="short", method="lbfgs")
+    cfg = TuneConfig(iterations=14, batch=1, validate_every=5, task="short", method="lbfgs")
     r = tune(
         model, TuneSpec(), _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation
     )
-    assert [row["skipped"] for row in r.history] == [1, 1]
-    assert [v["iteration"] for v in r.validation] == [0, 2]  # the last iterate validated
+    # two failed line searches per batch, 5 batches (the first and 4 fresh ones)
+    assert [row["skipped"] for row in r.history] == [1] * 10
+    assert [v["iteration"] for v in r.validation] == [0, 5, 10]  # the last iterate validated
     assert (tmp_path / "checkpoint.npz").exists()
     np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
+    # each batch's first evaluation is the start of its run of calls: 5 distinct batches, in order
+    train_base = training_base(cfg)[0]
+    expected = [_fingerprint(training_batch(cfg, k, train_base)) for k in range(5)]
+    assert len(set(expected)) == 5
+    assert list(dict.fromkeys(seen)) == expected
 
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
