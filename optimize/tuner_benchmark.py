@@ -276,6 +276,7 @@ def summarize(runs: list[dict]) -> list[dict]:
             "reached_hard": int(np.isfinite(th).sum()),
             "above_start": int(sum(w > 1 for w in worst)),
             "worst_iterate_over_start_max": float(max(worst)),
+            "training_batches": [int(r.get("training_batches", 1)) for r in rs],  # per seed (L-BFGS renews)
         }
         for name, values in (
             ("time_to_target", tt),
