@@ -181,7 +181,7 @@ def cold_compile_with_xla_flags(
     with tempfile.TemporaryDirectory(prefix="jaxsync-bench-cache-") as cache:
         r = _run_child("compile", cfg, cache, xla_flags=xla_flags)
     log(
-        f"  {path} with {xla_flags}: gradient compile cold {r['total_s']:.1f} s "
+        f"  {path}{_on(source)} with {xla_flags}: gradient compile cold {r['total_s']:.1f} s "
         f"(trace {r['trace_s']:.1f} + XLA {r['xla_compile_s']:.1f})"
     )
     return r
