@@ -112,6 +112,18 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         assert table(r).splitlines()[-1].endswith("XLA_FLAGS: --xla_cpu_use_fusion_emitters=false")
 
 
+def _stand_ins(monkeypatch, bm, load, fg, compile_times, tune_step):
+    """The benchmark's measurements replaced: the given ones and fixed figures for the rest."""
+    monkeypatch.setattr(bm, "load_model", load)
+    monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
+    monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
+    monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
+    monkeypatch.setattr(bm, "forward_and_gradient", fg)
+    monkeypatch.setattr(bm, "compile_times", compile_times)
+    monkeypatch.setattr(bm, "tune_step_memory", tune_step)
+    monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
+
+
 def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_path, monkeypatch, capsys):
     """``jaxsync bench --robot FILE``: every measurement gets the robot (as an
     absolute path: the children run elsewhere), a last section measures the
@@ -140,14 +152,7 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
         seen.append(("tune", path, source))
         return {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}}
 
-    monkeypatch.setattr(bm, "load_model", fake_load)
-    monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
-    monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
-    monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
-    monkeypatch.setattr(bm, "forward_and_gradient", fake_fg)
-    monkeypatch.setattr(bm, "compile_times", fake_compile)
-    monkeypatch.setattr(bm, "tune_step_memory", fake_tune)
-    monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
+    _stand_ins(monkeypatch, bm, fake_load, fake_fg, fake_compile, fake_tune)
     robot = "mjcf/robots/iiwa14_twice.yaml"
     assert run_cli(["bench", "--quick", "--robot", robot, "--no-visual", "--out", str(tmp_path)]) == 0
     absolute = os.path.abspath(robot)
@@ -175,15 +180,15 @@ def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
     """The paper model's own bench records no ratios (None) and prints none."""
     from jaxsync.optimize import benchmark as bm
 
-    monkeypatch.setattr(bm, "load_model", lambda source, solver, visual=True: object())
-    monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
-    monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
-    monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
     fg = {"forward_s": 1.0, "grad_s": 2.0, "grad_over_forward": 2.0, "label": "x", "grad_finite": True}
-    monkeypatch.setattr(bm, "forward_and_gradient", lambda *a, **k: fg)
-    monkeypatch.setattr(bm, "compile_times", lambda *a, **k: {"cold": {"total_s": 40.0}, "warm": {"total_s": 3.0}})
-    monkeypatch.setattr(bm, "tune_step_memory", lambda *a, **k: {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}})
-    monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
+    _stand_ins(
+        monkeypatch,
+        bm,
+        lambda source, solver, visual=True: object(),
+        lambda *a, **k: fg,
+        lambda *a, **k: {"cold": {"total_s": 40.0}, "warm": {"total_s": 3.0}},
+        lambda *a, **k: {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}},
+    )
     r = bm.run(str(tmp_path), quick=True, log=lambda m: None)
     assert r["model"] == "paper model" and r["paper_model"] is None
     assert r["grad_over_forward_over_paper"] is None and "grad_over_forward_over_paper" not in r["targets"]
