@@ -15,7 +15,6 @@ iterations and on Ctrl-C.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import time
 from collections.abc import Callable
@@ -136,17 +135,10 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
         log(f"iteration {i}: non-finite cost ({cfg.method}: cost {r.get('train_cost')}); no step taken")
         if bad >= cfg.max_bad_steps:
             raise TuneError(f"{cfg.method}: {bad} non-finite iterations in a row, the last at iteration {i}")
-    # a line search that found no lower cost, twice in a row (the second time a
-    # short steepest-descent step after the curvature memory was reset): the
-    # batch's cost is at a local minimum to the line search's resolution. L-BFGS
-    # then goes on with a fresh batch ("renewed") while it has renewals left, and
-    # says when it has converged; for the other methods the rule is applied here
+    # the method says when it has converged (L-BFGS: no lower cost twice in a
+    # row on its last batch; before that it goes on with a fresh one, "renewed")
     stalled = finite and not accepted
-    prev = state.history[-1] if state.history else None
-    if "converged" in r or "batch" in r:
-        converged = bool(r.get("converged"))
-    else:
-        converged = stalled and prev is not None and bool(prev["skipped"]) and math.isfinite(prev["cost"])
+    converged = bool(r.get("converged"))
     if stalled:
         if r.get("renewed"):
             then = f"; converged on its training batch, going on with a fresh one ({r['renewed']})"
