@@ -20,9 +20,6 @@ Methods (:data:`METHODS`):
 - ``lbfgs``: limited-memory BFGS (two-loop recursion, memory 10) with a
   backtracking Armijo line search and a cap on the step's length in theta:
   quasi-Newton curvature for a gradient that is steep in a few directions.
-  Each search's first trial is at most ``grow`` times the last accepted
-  step's length (where short steps are all the cost allows, as near a
-  chattering contact, the search does not start again at the cap).
   Converged on its batch (no step lowers the cost twice in a row), it goes on
   from where it stands on a fresh training batch, up to ``renewals`` times,
   where the oracle can renew; then it reports convergence;
@@ -136,7 +133,6 @@ class LBFGS:
     shrink: float = 0.3
     max_trials: int = 6
     renewals: int = 4  # fresh training batches after converging on one (where the oracle can renew)
-    grow: float | None = 3.0  # a step's first trial at most this times the last accepted step's length (None: no bound)
     needs = ("value_and_grad",)
 
     def init(self, x0, seed: int = 0) -> dict:
@@ -173,9 +169,6 @@ class LBFGS:
             d, slope = -g * (self.first_step / max(np.linalg.norm(g), 1e-300)), -self.first_step * np.linalg.norm(g)
             state = {**state, "s": [], "y": []}
         alpha = min(1.0, self.max_step / max(np.linalg.norm(d), 1e-300))
-        last_len = state.get("last_step")
-        if self.grow is not None and last_len:  # start near where the last line search ended, not at the cap
-            alpha = min(alpha, self.grow * last_len / max(np.linalg.norm(d), 1e-300))
         for _ in range(self.max_trials):
             x_new = x + alpha * d
             f_new, g_new = oracle.vg(x_new)
@@ -187,20 +180,19 @@ class LBFGS:
                     s_hist, y_hist = (s_hist + [s])[-self.memory :], (y_hist + [y])[-self.memory :]
                 row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1, "batch": batch}
                 new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist}
-                return {**new, "batch": batch, "stalled": False, "last_step": float(np.linalg.norm(s))}, row
+                return {**new, "batch": batch, "stalled": False}, row
             alpha *= self.shrink
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0, "batch": batch}
-        last = {"last_step": state.get("last_step")}  # a failed search or a fresh batch keeps it
         if not state.get("stalled", False):
             # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
-            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, **last}, row
+            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
         # the second time in a row: converged on this batch
         if oracle.renew is not None and batch < self.renewals:
             oracle.use(batch + 1)
             row["renewed"] = batch + 1
-            return {"x": x, "f": None, "g": None, "s": [], "y": [], "batch": batch + 1, "stalled": False, **last}, row
+            return {"x": x, "f": None, "g": None, "s": [], "y": [], "batch": batch + 1, "stalled": False}, row
         row["converged"] = 1
-        return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, **last}, row
+        return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
 
     def incumbent(self, state):
         return state["x"]

@@ -572,39 +572,6 @@ def test_lbfgs_skips_non_finite_trials_and_keeps_the_iterate():
     assert row["accepted"] == 0 and np.array_equal(m.incumbent(state), np.ones(2)) and len(calls) == 4
 
 
-def test_lbfgs_starts_each_line_search_near_the_last_accepted_step():
-    """Where only short steps lower the cost (a cliff 5e-3 from the start), the
-    first step is found by shrinking; the next line search's first trial is at
-    most ``grow`` times that step's length, not the 0.5 cap, so it spends no
-    trials on lengths already refused. Without the bound (grow=None) it starts
-    longer and needs more evaluations for the same two steps."""
-    x0 = np.ones(3)
-
-    def run(grow):
-        calls = []
-
-        def vg(x):
-            calls.append(x.copy())
-            r = float(np.linalg.norm(x - x0))
-            over = max(0.0, r - 5e-3)
-            return float(x @ x) + 1e3 * over, 2 * x + (1e3 * (x - x0) / r if over > 0 else 0.0)
-
-        m = LBFGS(grow=grow)
-        oracle = Oracle(value_and_grad=vg)
-        state, row = m.step(m.init(x0), oracle)
-        assert row["accepted"] == 1
-        x1, first = m.incumbent(state), np.linalg.norm(m.incumbent(state) - x0)
-        n = len(calls)
-        state, row = m.step(state, oracle)
-        return first, float(np.linalg.norm(calls[n] - x1)), len(calls), row
-
-    first, trial, calls_bounded, row = run(3.0)
-    assert 0 < first <= 5e-3 and row["accepted"] == 1
-    assert trial <= 3.0 * first * (1 + 1e-9)
-    first_free, trial_free, calls_free, _ = run(None)
-    assert first_free == first and trial_free > 3.0 * first and calls_free > calls_bounded
-
-
 def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
     """On a batch whose minimum it has reached, L-BFGS takes the oracle's next
     batch (here: a quadratic centred elsewhere) and converges there; a state
