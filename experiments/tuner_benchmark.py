@@ -91,6 +91,10 @@ def main(argv=None) -> int:
     print("compiling the shared programs (minutes cold, seconds from the compilation cache)...", flush=True)
     programs = B.Programs(jaxsync.load_model(), cfg)
     compile_s = programs.compile()
+    call_s = programs.call_seconds()
+    print(
+        f"one gradient {call_s['value_and_grad']:.2f} s, one value {call_s['training_value']:.2f} s (warm)", flush=True
+    )
     todo = [(pr, m, s) for pr in problems for s in seeds for m in names if (pr, m, s) not in done]
     print(f"{len(todo)} runs of {args.budget:g} s to go ({len(done)} already in {runs_path})", flush=True)
     for k, (problem, method, seed) in enumerate(todo):
@@ -106,6 +110,7 @@ def main(argv=None) -> int:
         {
             "summary": summary,
             "compile_s": compile_s,
+            "call_s": call_s,
             "config": vars(args),
             "parameters": {k: v.size() for k, v in B.PROBLEMS.items()},
             "wall_time_s": time.perf_counter() - t0,

@@ -8,6 +8,8 @@ method stands by (what is scored on held-out scenarios). The oracle evaluates
 the training objective on a fixed batch:
 
 - ``oracle.value_and_grad(x) -> (f, g)``: one forward and one reverse pass;
+- ``oracle.value(x) -> f``, where given: one forward pass, without the
+  gradient's reverse pass (L-BFGS's backtracking trials);
 - ``oracle.values(X) -> f``: the objective of a population ``X`` (P, n) in
   one batched forward pass (CMA-ES);
 - ``oracle.use(k)``, where the oracle can ``renew``: the objective on
@@ -20,7 +22,11 @@ Methods (:data:`METHODS`):
 - ``lbfgs``: limited-memory BFGS (two-loop recursion, memory 10) with a
   backtracking Armijo line search and a cap on the step's length in theta:
   quasi-Newton curvature for a gradient that is steep in a few directions.
-  Converged on its batch (no step lowers the cost twice in a row), it goes on
+  A line search whose first trial was rejected costs a full gradient per
+  trial; where the oracle has ``value``, the trials after a rejected one (and
+  every trial of the step after a backtracking one) take the value alone and
+  the gradient only at the accepted point: the same iterates, fewer reverse
+  passes. Converged on its batch (no step lowers the cost twice in a row), it goes on
   from where it stands on a fresh training batch, up to ``renewals`` times,
   where the oracle can renew; then it reports convergence;
 - ``cmaes``: CMA-ES (the maintained ``cma`` package), its population
@@ -64,7 +70,9 @@ class Oracle:
     value_and_grad: Callable | None = None
     values: Callable | None = None
     renew: Callable | None = None
+    value: Callable | None = None
     gradient_calls: int = 0
+    value_calls: int = 0  # single-point values (forward only)
     forward_rollouts: int = 0  # population members evaluated
     batch: int = 0
 
@@ -77,6 +85,10 @@ class Oracle:
         self.gradient_calls += 1
         f, g = self.value_and_grad(x)
         return float(f), np.asarray(g, dtype=float)
+
+    def v(self, x):
+        self.value_calls += 1
+        return float(self.value(x))
 
     def pop(self, X):
         self.forward_rollouts += len(X)
@@ -169,23 +181,37 @@ class LBFGS:
             d, slope = -g * (self.first_step / max(np.linalg.norm(g), 1e-300)), -self.first_step * np.linalg.norm(g)
             state = {**state, "s": [], "y": []}
         alpha = min(1.0, self.max_step / max(np.linalg.norm(d), 1e-300))
-        for _ in range(self.max_trials):
+        cheap = oracle.value is not None
+        # the first trial takes the gradient with its value unless the last line
+        # search backtracked (then the first trial is likely rejected as well)
+        probe = not (cheap and state.get("backtracked", False))
+        for trial in range(self.max_trials):
             x_new = x + alpha * d
-            f_new, g_new = oracle.vg(x_new)
-            lower = f_new < f and f_new <= f + self.armijo * alpha * slope  # a step that lowers the cost
-            if np.isfinite(f_new) and np.all(np.isfinite(g_new)) and lower:
+            if not cheap or (trial == 0 and probe):
+                f_new, g_new = oracle.vg(x_new)
+                ok = np.isfinite(f_new) and np.all(np.isfinite(g_new))
+            else:
+                f_new, g_new = oracle.v(x_new), None
+                ok = np.isfinite(f_new)
+            lower = ok and f_new < f and f_new <= f + self.armijo * alpha * slope  # a step that lowers the cost
+            if lower and g_new is None:  # accepted on its value: now its gradient
+                f_new, g_new = oracle.vg(x_new)
+                lower = np.isfinite(f_new) and np.all(np.isfinite(g_new))
+            if lower:
                 s, y = x_new - x, g_new - g
                 s_hist, y_hist = list(state["s"]), list(state["y"])
                 if s @ y > 1e-10 * np.linalg.norm(s) * np.linalg.norm(y):
                     s_hist, y_hist = (s_hist + [s])[-self.memory :], (y_hist + [y])[-self.memory :]
                 row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1, "batch": batch}
-                new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist}
+                row["trials"] = trial + 1
+                new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist, "backtracked": trial > 0}
                 return {**new, "batch": batch, "stalled": False}, row
             alpha *= self.shrink
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0, "batch": batch}
+        row["trials"] = self.max_trials
         if not state.get("stalled", False):
             # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
-            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
+            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "backtracked": True}, row
         # the second time in a row: converged on this batch
         if oracle.renew is not None and batch < self.renewals:
             oracle.use(batch + 1)
@@ -202,7 +228,8 @@ class LBFGS:
 
     def from_data(self, data) -> dict:
         out = {**data, "s": list(data["s"]), "y": list(data["y"])}
-        return {**out, "batch": int(out.get("batch", 0)), "stalled": bool(out.get("stalled", False))}
+        out = {**out, "batch": int(out.get("batch", 0)), "stalled": bool(out.get("stalled", False))}
+        return {**out, "backtracked": bool(out.get("backtracked", False))}
 
 
 # ----------------------------------------------------------------- CMA-ES

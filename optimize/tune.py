@@ -108,24 +108,29 @@ class _MethodOracle:
             (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), self.scen)
             return float(value), np.asarray(ravel_pytree(grad)[0])
 
+        value = None
         if n_total is not None:
             pop_dp = parallel.population_values(loss, self.unravel, n_total)
             values = lambda X: pop_dp(X, self.scen)  # noqa: E731
         else:
             pop = jax.jit(jax.vmap(lambda x, s: loss(self.unravel(x), s)[0], in_axes=(0, None)))
             values = lambda X: pop(jnp.asarray(X), self.scen)  # noqa: E731
+            one = jax.jit(lambda x, s: loss(self.unravel(x), s)[0])  # L-BFGS's backtracking trials
+            value = lambda x: one(jnp.asarray(x), self.scen)  # noqa: E731
 
         def renew(k):  # training batch k (same shapes: no new compile)
             self.scen = batch(k)
 
-        self.oracle = _methods.Oracle(value_and_grad=vg, values=values, renew=renew if batch is not None else None)
+        self.oracle = _methods.Oracle(
+            value_and_grad=vg, values=values, value=value, renew=renew if batch is not None else None
+        )
 
 
 def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
     """One iteration of an ``optimize.methods`` method; the history row as Adam's (no cost terms)."""
     t0 = time.perf_counter()
     i = state.iteration
-    calls0, pop0 = oracle.oracle.gradient_calls, oracle.oracle.forward_rollouts
+    calls0, pop0, v0 = oracle.oracle.gradient_calls, oracle.oracle.forward_rollouts, oracle.oracle.value_calls
     mstate, r = method.step(state.opt_state, oracle.oracle)
     x = method.incumbent(mstate)
     accepted = bool(r.get("accepted", 1))
@@ -152,6 +157,7 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
         "skipped": int(not (accepted and finite)),
         "seconds": time.perf_counter() - t0,
         "gradient_calls": oracle.oracle.gradient_calls - calls0,
+        "value_calls": oracle.oracle.value_calls - v0,  # forward-only values (L-BFGS's backtracking)
         "population_rollouts": (oracle.oracle.forward_rollouts - pop0) * cfg.batch,
     }
     theta = oracle.unravel(jnp.asarray(x)) if np.all(np.isfinite(x)) else state.theta

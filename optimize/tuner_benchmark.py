@@ -21,8 +21,8 @@ Two problems on the same programs:
 The constant problem is the schedule problem with its parameters tied (every
 phase and both arms equal): one linear map ``x160 = T x22`` and its transpose
 for the gradient, so both problems run on one set of compiled programs
-(value and gradient on the training batch, the population's values, the
-held-out value).
+(value and gradient on the training batch, the value alone on it (L-BFGS's
+backtracking trials), the population's values, the held-out value).
 """
 
 from __future__ import annotations
@@ -127,27 +127,48 @@ class Programs:
             full = np.stack([self.to_full(problem, x) for x in X])
             return np.asarray(self.values(jnp.asarray(full), batch["scen"]))
 
+        def value(x):
+            return float(self.value(jnp.asarray(self.to_full(problem, x)), batch["scen"]))
+
         def renew(k):
             batch["scen"] = self.training(seed, k)
 
-        return _methods.Oracle(value_and_grad=vg, values=values, renew=renew)
+        return _methods.Oracle(value_and_grad=vg, values=values, value=value, renew=renew)
 
     def heldout_cost(self, problem: str, x) -> float:
         return float(self.value(jnp.asarray(self.to_full(problem, x)), self.heldout))
 
     def compile(self, log=print) -> dict:
-        """Compile (or load from the cache) the three programs; seconds each."""
+        """Compile (or load from the cache) the four programs; seconds each."""
         scen = self.training(0)
         out = {}
         for name, call in (
             ("value_and_grad", lambda: self.value_and_grad(jnp.asarray(self.x0), scen)),
             ("population_values", lambda: self.values(jnp.asarray(np.stack([self.x0] * self.cfg.popsize)), scen)),
+            ("training_value", lambda: self.value(jnp.asarray(self.x0), scen)),
             ("heldout_value", lambda: self.value(jnp.asarray(self.x0), self.heldout)),
         ):
             t = time.perf_counter()
             jax.block_until_ready(call())
             out[name] = time.perf_counter() - t
             log(f"  compiled {name} in {out[name]:.1f} s")
+        return out
+
+    def call_seconds(self, repeats: int = 3) -> dict:
+        """Median seconds of one warm call on the training batch: the gradient
+        (with its value) and the value alone (a line-search trial's two prices)."""
+        scen, x = self.training(0), jnp.asarray(self.x0)
+        out = {}
+        for name, call in (
+            ("value_and_grad", lambda: self.value_and_grad(x, scen)),
+            ("training_value", lambda: self.value(x, scen)),
+        ):
+            times = []
+            for _ in range(repeats):
+                t = time.perf_counter()
+                jax.block_until_ready(call())
+                times.append(time.perf_counter() - t)
+            out[name] = float(np.median(times))
         return out
 
 
@@ -192,6 +213,7 @@ def run_one(programs: Programs, problem: str, method: str, seed: int, log: Calla
         "final_heldout_cost": curve[-1][1],
         "iterations": len(rows),
         "gradient_calls": oracle.gradient_calls,
+        "value_calls": oracle.value_calls,
         "forward_rollouts_population": oracle.forward_rollouts * cfg.batch,
         "training_batches": oracle.batch + 1,
         "curve": curve,
@@ -277,6 +299,10 @@ def summarize(runs: list[dict]) -> list[dict]:
             "above_start": int(sum(w > 1 for w in worst)),
             "worst_iterate_over_start_max": float(max(worst)),
             "training_batches": [int(r.get("training_batches", 1)) for r in rs],  # per seed (L-BFGS renews)
+            # what the budget bought, medians over seeds
+            "iterations_median": float(np.median([r["iterations"] for r in rs])),
+            "gradient_calls_median": float(np.median([r["gradient_calls"] for r in rs])),
+            "value_calls_median": float(np.median([r.get("value_calls", 0) for r in rs])),
         }
         for name, values in (
             ("time_to_target", tt),

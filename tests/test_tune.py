@@ -572,6 +572,65 @@ def test_lbfgs_skips_non_finite_trials_and_keeps_the_iterate():
     assert row["accepted"] == 0 and np.array_equal(m.incumbent(state), np.ones(2)) and len(calls) == 4
 
 
+def _rosenbrock(x):
+    a, b = x[:-1], x[1:]
+    g = np.zeros_like(x)
+    g[:-1] += -400 * a * (b - a**2) - 2 * (1 - a)
+    g[1:] += 200 * (b - a**2)
+    return float(np.sum(100 * (b - a**2) ** 2 + (1 - a) ** 2)), g
+
+
+def test_lbfgs_backtracks_on_values_alone_with_the_same_iterates():
+    """Given the oracle's forward-only value, L-BFGS's backtracking trials take
+    no gradient: the same iterates step by step (also across a checkpoint),
+    fewer gradient calls, and one value or one gradient per trial (plus the
+    gradient at a point accepted on its value)."""
+    plain, cheap = (
+        Oracle(value_and_grad=_rosenbrock),
+        Oracle(value_and_grad=_rosenbrock, value=lambda x: _rosenbrock(x)[0]),
+    )
+    m = LBFGS()
+    sp, sc = m.init(np.full(4, -1.2)), m.init(np.full(4, -1.2))
+    trials, backtracked, on_value = 0, 0, 0
+    for i in range(80):
+        sp, rp = m.step(sp, plain)
+        v0 = cheap.value_calls
+        sc, rc = m.step(sc, cheap)
+        np.testing.assert_array_equal(m.incumbent(sc), m.incumbent(sp))
+        assert rc["trials"] == rp["trials"] and rc["train_cost"] == rp["train_cost"]
+        trials += rp["trials"]
+        backtracked += rp["trials"] > 1
+        on_value += rc["accepted"] and cheap.value_calls > v0  # accepted on a value: then its gradient
+        if i == 20:
+            sc = m.from_data(m.to_data(sc))  # the line-search memory survives a checkpoint
+        if rp.get("converged"):
+            assert rc.get("converged")
+            break
+    assert backtracked >= 3 and plain.gradient_calls == trials + 1  # the start's gradient, then one per trial
+    assert cheap.value_calls > 0 and cheap.gradient_calls < plain.gradient_calls
+    assert cheap.gradient_calls + cheap.value_calls == trials + 1 + on_value
+    np.testing.assert_allclose(m.incumbent(sc), np.ones(4), atol=1e-3)
+
+
+def test_tune_oracle_values_on_its_training_batch_and_follows_renewals():
+    """jaxsync tune's method oracle: its forward-only value is the loss on the
+    current training batch (the gradient's value there), also after a renewal."""
+    theta = {"a": jax.numpy.array([0.5, -1.0]), "b": jax.numpy.array(2.0)}
+    batches = {0: jax.numpy.array(1.0), 1: jax.numpy.array(3.0)}
+
+    def loss(th, s):
+        return s * (jax.numpy.sum(th["a"] ** 2) + th["b"] ** 2), {}
+
+    vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    cfg = TuneConfig(iterations=1, batch=1, task="short", method="lbfgs")
+    o = tune_mod._MethodOracle(loss, lambda: vg, theta, batches[0], cfg, None, batches.get).oracle
+    x = np.array([1.0, 2.0, -0.5])
+    for k, want in ((0, 1.0 * 5.25), (1, 3.0 * 5.25)):
+        o.use(k)
+        assert o.v(x) == pytest.approx(want) and o.vg(x)[0] == pytest.approx(want)
+    assert o.value_calls == 2 and o.gradient_calls == 2
+
+
 def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
     """On a batch whose minimum it has reached, L-BFGS takes the oracle's next
     batch (here: a quadratic centred elsewhere) and converges there; a state

@@ -21,6 +21,9 @@ def _run(method, seed, curve, problem="constant", budget=10.0):
         "time_to_target_s": B.time_to(curve, 0.5 * h0),
         "best_heldout_cost": min(c for _, c in curve),
         "curve": curve,
+        "iterations": len(curve) - 1,
+        "gradient_calls": 3 * (len(curve) - 1) if method == "lbfgs" else 0,
+        "value_calls": 2 * seed,
     }
 
 
@@ -52,6 +55,7 @@ def test_summary_medians_spreads_and_counts():
     assert lb["above_start"] == 1 and lb["worst_iterate_over_start_max"] == pytest.approx(4.0)
     assert lb["time_to_hard_target_median_s"] == pytest.approx(6.5)
     assert lb["time_to_target_min_s"] == 6 and lb["time_to_target_max_s"] == 7
+    assert lb["iterations_median"] == 3.5 and lb["gradient_calls_median"] == 10.5 and lb["value_calls_median"] == 1
     cm = rows["cmaes"]
     assert cm["reached_hard"] == 1 and not np.isfinite(cm["time_to_hard_target_max_s"])
     text = B.table(B.summarize(RUNS))
