@@ -28,7 +28,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (0,1,2)")
     p.add_argument("--problems", default="constant,schedule", help="constant, schedule (both)")
     p.add_argument("--methods", default="adam,lbfgs,cmaes,cmaes-lbfgs", help="methods (all four)")
-    p.add_argument("--batch", type=int, default=2, help="training scenarios (2)")
+    p.add_argument("--batch", type=int, default=4, help="training scenarios (4, as jaxsync tune)")
     p.add_argument("--heldout-batch", type=int, default=8, help="held-out scenarios (8)")
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
     p.add_argument("--target", type=float, default=0.5, help="target: this fraction of the start's held-out cost")

@@ -56,7 +56,7 @@ PROBLEMS = {
 @dataclasses.dataclass(frozen=True)
 class BenchConfig:
     budget_s: float = 60.0  # optimisation wall time per run
-    batch: int = 2  # training scenarios (fixed per seed)
+    batch: int = 4  # training scenarios (fixed per seed), as jaxsync tune
     heldout_batch: int = 8
     heldout_seed: int = 10_000
     popsize: int = 16  # CMA-ES population: popsize x batch rollouts per generation
