@@ -148,9 +148,7 @@ class Programs:
             ("training_value", lambda: self.value(jnp.asarray(self.x0), scen)),
             ("heldout_value", lambda: self.value(jnp.asarray(self.x0), self.heldout)),
         ):
-            t = time.perf_counter()
-            jax.block_until_ready(call())
-            out[name] = time.perf_counter() - t
+            out[name] = _seconds(call)
             log(f"  compiled {name} in {out[name]:.1f} s")
         return out
 
@@ -158,18 +156,15 @@ class Programs:
         """Median seconds of one warm call on the training batch: the gradient
         (with its value) and the value alone (a line-search trial's two prices)."""
         scen, x = self.training(0), jnp.asarray(self.x0)
-        out = {}
-        for name, call in (
-            ("value_and_grad", lambda: self.value_and_grad(x, scen)),
-            ("training_value", lambda: self.value(x, scen)),
-        ):
-            times = []
-            for _ in range(repeats):
-                t = time.perf_counter()
-                jax.block_until_ready(call())
-                times.append(time.perf_counter() - t)
-            out[name] = float(np.median(times))
-        return out
+        calls = {"value_and_grad": lambda: self.value_and_grad(x, scen), "training_value": lambda: self.value(x, scen)}
+        return {name: float(np.median([_seconds(call) for _ in range(repeats)])) for name, call in calls.items()}
+
+
+def _seconds(call) -> float:
+    """Wall seconds of ``call()`` to its result."""
+    t = time.perf_counter()
+    jax.block_until_ready(call())
+    return time.perf_counter() - t
 
 
 def run_one(programs: Programs, problem: str, method: str, seed: int, log: Callable = print, **options) -> dict:
