@@ -269,6 +269,85 @@ def forward_and_gradient(
     }
 
 
+def ratio_of_ratios(times: dict) -> dict:
+    """The robot's gradient/forward over the paper model's, from timings taken
+    in rounds (``times[model][program]``: one time per round; models
+    ``"robot"``/``"paper"``, programs ``"forward"``/``"grad"``).
+
+    ``per_round``: the ratio within each round, four calls a few seconds
+    apart; ``per_round_median`` is the figure the target is judged on, with
+    its quartiles. ``of_best``: the ratio of each program's best time, kept
+    beside it. On this project's 2-core machine, the same files in three
+    processes of 15 rounds gave per-round medians of 1.07-1.14 and ratios of
+    the best times of 1.03-1.31: a forward call lasts 0.15-0.3 s, and one
+    lucky call of one program moves a ratio of bests by a fifth."""
+    t = {m: {k: np.asarray(v, float) for k, v in progs.items()} for m, progs in times.items()}
+    n = {len(v) for progs in t.values() for v in progs.values()}
+    if len(n) != 1 or 0 in n:
+        raise ValueError(f"every program needs the same number of rounds (at least one), got {sorted(n)}")
+    best = {m: float(p["grad"].min() / p["forward"].min()) for m, p in t.items()}
+    per = (t["robot"]["grad"] / t["robot"]["forward"]) / (t["paper"]["grad"] / t["paper"]["forward"])
+    q25, q50, q75 = np.percentile(per, [25, 50, 75])
+    return {
+        "of_best": best["robot"] / best["paper"],
+        "robot_grad_over_forward": best["robot"],
+        "paper_grad_over_forward": best["paper"],
+        "per_round": per.tolist(),
+        "per_round_median": float(q50),
+        "per_round_quartiles": [float(q25), float(q75)],
+    }
+
+
+def paired_forward_and_gradient(
+    duration: float, rounds: int, log, small: bool = False, source: str | None = None, visual: bool = True
+) -> dict:
+    """The robot's (``source``) and the paper model's forward rollout and
+    gradient (the implicit path), timed in the same rounds of one process.
+
+    Each round times all four programs, the robot's first in even rounds and
+    the paper model's first in odd ones, so that a change in the machine's
+    speed (this machine's call-to-call spread is larger than a 1.3x target's
+    margin) reaches both models alike; timing the two models minutes apart,
+    each best of a few calls, moved the ratio of ratios between 1.21 and 1.49
+    on the same files. Returns each model's best and median times and
+    :func:`ratio_of_ratios`."""
+    progs = {}
+    for name, src in (("robot", source), ("paper", None)):
+        fwd, grad, args, n_steps = gradient_functions("implicit", duration, small, src, visual)
+        jax.block_until_ready(fwd(*args))
+        jax.block_until_ready(grad(*args))
+        progs[name] = (fwd, grad, args)
+    times = {m: {"forward": [], "grad": []} for m in progs}
+    for r in range(rounds):
+        for m in ("robot", "paper") if r % 2 == 0 else ("paper", "robot"):
+            fwd, grad, args = progs[m]
+            for kind, f in (("forward", fwd), ("grad", grad)):
+                times[m][kind].append(_timeit(lambda f=f, args=args: jax.block_until_ready(f(*args)), 1))
+    rr = ratio_of_ratios(times)
+    models = {
+        m: {
+            "forward_s": min(t["forward"]),
+            "grad_s": min(t["grad"]),
+            "grad_over_forward": min(t["grad"]) / min(t["forward"]),
+            "forward_median_s": float(np.median(t["forward"])),
+            "grad_median_s": float(np.median(t["grad"])),
+        }
+        for m, t in times.items()
+    }
+    for m, f in models.items():
+        log(
+            f"  {m if m == 'paper' else os.path.basename(source or 'robot')}: forward {f['forward_s']:.3f} s, "
+            f"value_and_grad {f['grad_s']:.3f} s over {n_steps} steps (best of {rounds} rounds): "
+            f"ratio {f['grad_over_forward']:.2f}"
+        )
+    q25, q75 = rr["per_round_quartiles"]
+    log(
+        f"  gradient/forward over the paper model's: {rr['of_best']:.2f} of the best times; "
+        f"round by round median {rr['per_round_median']:.2f} (quartiles {q25:.2f}-{q75:.2f})"
+    )
+    return {"rounds": rounds, "steps": n_steps, "models": models, "ratio_of_ratios": rr, "times": times}
+
+
 def have_flatbuffers() -> bool:
     """Whether ``jax.export`` can serialise (the warm start with the traced function on disk)."""
     try:

@@ -112,13 +112,14 @@ def test_table_marks_missed_targets_also_in_quick_mode():
         assert table(r).splitlines()[-1].endswith("XLA_FLAGS: --xla_cpu_use_fusion_emitters=false")
 
 
-def _stand_ins(monkeypatch, bm, load, fg, compile_times, tune_step):
+def _stand_ins(monkeypatch, bm, load, fg, compile_times, tune_step, pair=None):
     """The benchmark's measurements replaced: the given ones and fixed figures for the rest."""
     monkeypatch.setattr(bm, "load_model", load)
     monkeypatch.setattr(bm, "mjx_throughput", lambda *a, **k: {"rates": {"1": 100.0}})
     monkeypatch.setattr(bm, "mujoco_c_throughput", lambda *a, **k: {"rate": 50.0, "rate_including_setup": 40.0})
     monkeypatch.setattr(bm, "bare_mj_step", lambda *a, **k: 1000.0)
     monkeypatch.setattr(bm, "forward_and_gradient", fg)
+    monkeypatch.setattr(bm, "paired_forward_and_gradient", pair)
     monkeypatch.setattr(bm, "compile_times", compile_times)
     monkeypatch.setattr(bm, "tune_step_memory", tune_step)
     monkeypatch.setattr(bm, "warm_compile_s", lambda comp: comp["warm"]["total_s"])
@@ -143,6 +144,21 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
         ratio = {None: 2.0}.get(source, 3.0)
         return {"forward_s": 1.0, "grad_s": ratio, "grad_over_forward": ratio, "label": path, "grad_finite": True}
 
+    def fake_pair(duration, rounds, log, small=False, source=None, visual=True):
+        from jaxsync.optimize.benchmark_measure import ratio_of_ratios
+
+        seen.append(("pair", "implicit", source))
+        # three rounds; the paper model's gradient fast in the last: the ratio
+        # of the best times (3.0) is not the rounds' median (1.5)
+        times = {
+            "robot": {"forward": [1.0] * 3, "grad": [3.0] * 3},
+            "paper": {"forward": [1.0] * 3, "grad": [2.0, 2.0, 1.0]},
+        }
+        models = {
+            m: {"forward_s": 1.0, "grad_s": t["grad"][0], "grad_over_forward": t["grad"][0]} for m, t in times.items()
+        }
+        return {"models": models, "ratio_of_ratios": ratio_of_ratios(times)}
+
     def fake_compile(path, duration, small, log, exported=True, source=None, visual=True, warm=True):
         seen.append(("compile", path, source, warm))
         c = {"total_s": 40.0 if source is None else 50.0}
@@ -152,27 +168,28 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
         seen.append(("tune", path, source))
         return {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}}
 
-    _stand_ins(monkeypatch, bm, fake_load, fake_fg, fake_compile, fake_tune)
+    _stand_ins(monkeypatch, bm, fake_load, fake_fg, fake_compile, fake_tune, fake_pair)
     robot = "mjcf/robots/iiwa14_twice.yaml"
     assert run_cli(["bench", "--quick", "--robot", robot, "--no-visual", "--out", str(tmp_path)]) == 0
     absolute = os.path.abspath(robot)
     assert loaded == [(absolute, False)]
-    # the robot everywhere in sections 1-6, then the paper model (source None) in section 7
-    robot_calls = [c for c in seen if c[2] == absolute]
-    paper_calls = [c for c in seen if c[2] is None]
-    assert {c[0] for c in robot_calls} == {"fg", "compile", "tune"}
-    assert paper_calls == [("fg", "implicit", None), ("compile", "implicit", None, False)]
-    assert seen.index(paper_calls[0]) > max(seen.index(c) for c in robot_calls)
+    # the robot alone in sections 1-6; in section 7 the robot against the paper
+    # model in the same rounds, then the paper model's cold compile (source None)
+    assert seen[-2:] == [("pair", "implicit", absolute), ("compile", "implicit", None, False)]
+    assert {c[0] for c in seen[:-2]} == {"fg", "compile", "tune"} and all(c[2] == absolute for c in seen[:-2])
     r = json.loads((tmp_path / "bench.json").read_text())
     assert r["model"] == absolute
     assert r["grad_over_forward_over_paper"] == pytest.approx(1.5)
+    assert r["paper_model"]["ratio_of_ratios"]["per_round"] == pytest.approx([1.5, 1.5, 3.0])
     assert r["grad_compile_cold_over_paper"] == pytest.approx(1.25)
     assert r["targets"]["grad_over_forward_over_paper"]["met"] is False
     assert r["targets"]["grad_compile_cold_over_paper"]["met"] is True
     out = capsys.readouterr().out
     rows = {line.split("  ")[0]: line for line in out.splitlines()}
-    assert "MISSED" in rows["this model's gradient / forward over the paper model's"]
+    assert "MISSED" in rows["this model's gradient / forward over the paper model's, median of the rounds"]
     assert "1.25" in rows["this model's cold compile over the paper model's"]
+    assert "3.00" in rows["this model's gradient / forward, in the same rounds"]
+    assert rows["the same: quartiles over the rounds; ratio of the best times"].split()[-2:] == ["1.50-2.25", "3.00"]
     assert out.splitlines()[0] == f"model: {absolute}"
 
 
@@ -193,3 +210,47 @@ def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
     assert r["model"] == "paper model" and r["paper_model"] is None
     assert r["grad_over_forward_over_paper"] is None and "grad_over_forward_over_paper" not in r["targets"]
     assert "over the paper model" not in bm.table(r)
+
+
+def test_ratio_of_ratios_takes_each_programs_best_and_reports_the_rounds():
+    """The target's figure is the ratio of the best times; a slow call in one
+    round moves the per-round figures, not it; unequal rounds are refused."""
+    from jaxsync.optimize.benchmark_measure import ratio_of_ratios
+
+    times = {
+        "robot": {"forward": [0.2, 0.2, 0.3], "grad": [0.9, 0.8, 0.8]},
+        "paper": {"forward": [0.2, 0.25, 0.2], "grad": [0.6, 0.6, 1.2]},
+    }
+    rr = ratio_of_ratios(times)
+    assert rr["robot_grad_over_forward"] == pytest.approx(4.0)
+    assert rr["paper_grad_over_forward"] == pytest.approx(3.0)
+    assert rr["of_best"] == pytest.approx(4.0 / 3.0)
+    assert rr["per_round"] == pytest.approx([1.5, 4.0 / 2.4, (0.8 / 0.3) / 6.0])
+    assert rr["per_round_median"] == pytest.approx(1.5)
+    assert rr["per_round_quartiles"][0] < 1.5 < rr["per_round_quartiles"][1]
+    times["paper"]["grad"] = [0.6, 0.6]
+    with pytest.raises(ValueError, match="same number of rounds"):
+        ratio_of_ratios(times)
+
+
+def test_paired_timing_alternates_the_models_round_by_round(monkeypatch):
+    """Each round times all four programs, the robot's first in even rounds and
+    the paper model's first in odd ones (stand-in programs record the order)."""
+    from jaxsync.optimize import benchmark_measure as m
+
+    calls = []
+
+    def fake_functions(path, duration, small, source, visual):
+        name = "paper" if source is None else "robot"
+        assert path == "implicit"
+        return (lambda: calls.append((name, "f"))), (lambda: calls.append((name, "g"))), (), 10
+
+    monkeypatch.setattr(m, "gradient_functions", fake_functions)
+    out = m.paired_forward_and_gradient(0.1, 3, lambda msg: None, source="robot.yaml")
+    # compiles (one call each), then three rounds
+    rounds = [calls[4 + 4 * i : 8 + 4 * i] for i in range(3)]
+    assert calls[:4] == [("robot", "f"), ("robot", "g"), ("paper", "f"), ("paper", "g")] and len(calls) == 16
+    assert [r[0][0] for r in rounds] == ["robot", "paper", "robot"]
+    assert all(sorted(r) == sorted(calls[:4]) for r in rounds)
+    assert out["rounds"] == 3 and len(out["ratio_of_ratios"]["per_round"]) == 3
+    assert set(out["models"]) == {"robot", "paper"}
