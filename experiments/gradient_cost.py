@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 
 import jaxsync
-from jaxsync.optimize.cost import CostWeights, cost
+from jaxsync.optimize.tuning.cost import CostWeights, cost
 
 
 def main() -> None:

@@ -27,7 +27,7 @@ def measure(model_path: str | None, repeats: int, duration: float) -> dict:
 
     import jaxsync
     from jaxsync.control.gains import default_gains_for
-    from jaxsync.optimize.cost import CostWeights, cost
+    from jaxsync.optimize.tuning.cost import CostWeights, cost
 
     jaxsync.set_xla_flags()
     jax.config.update("jax_enable_x64", True)

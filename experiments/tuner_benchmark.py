@@ -3,7 +3,7 @@
 The same parameters, fixed training batch (per seed), held-out scenarios and
 optimisation wall-clock budget for every method; on the 22-parameter problem
 of ``jaxsync tune`` and on the 160-parameter gain-schedule problem
-(``jaxsync.optimize.tuner_benchmark``). Each finished run is appended to
+(``jaxsync.optimize.benchmarks.tuner_benchmark``). Each finished run is appended to
 ``runs.jsonl`` at once; a re-run with the same ``--out`` skips the runs
 already there (an interrupted benchmark loses at most the run in progress).
 Writes ``summary.json`` (median and range over seeds of the time to the
@@ -50,8 +50,8 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     from jaxsync._errors import ConfigError
     from jaxsync.io import results as _results
-    from jaxsync.optimize import methods as M
-    from jaxsync.optimize import tuner_benchmark as B
+    from jaxsync.optimize.benchmarks import tuner_benchmark as B
+    from jaxsync.optimize.tuning import methods as M
 
     try:
         seeds = [int(s) for s in args.seeds.split(",") if s.strip()]

@@ -77,18 +77,18 @@ __version__ = "0.1.0"
 # library: it is loaded on first use, so ``import jaxsync`` stays light and
 # free of import cycles.
 _OPTIMIZE = {
-    "tune": "jaxsync.optimize.tune",
-    "TuneConfig": "jaxsync.optimize.tune",
-    "TuneResult": "jaxsync.optimize.tune",
-    "make_loss": "jaxsync.optimize.loss",
-    "TuneSpec": "jaxsync.optimize.params",
-    "CostWeights": "jaxsync.optimize.cost",
-    "sample_scenarios": "jaxsync.optimize.scenarios",
-    "make_plan": "jaxsync.optimize.sweep",
-    "StudyConfig": "jaxsync.optimize.study",
-    "run_study": "jaxsync.optimize.study",
+    "tune": "jaxsync.optimize.tuning.tune",
+    "TuneConfig": "jaxsync.optimize.tuning.tune",
+    "TuneResult": "jaxsync.optimize.tuning.tune",
+    "make_loss": "jaxsync.optimize.tuning.loss",
+    "TuneSpec": "jaxsync.optimize.tuning.params",
+    "CostWeights": "jaxsync.optimize.tuning.cost",
+    "sample_scenarios": "jaxsync.optimize.tuning.scenarios",
+    "make_plan": "jaxsync.optimize.studies.sweep",
+    "StudyConfig": "jaxsync.optimize.studies.study",
+    "run_study": "jaxsync.optimize.studies.study",
 }
-_RENAMED = {"run_sweep": ("jaxsync.optimize.sweep", "run")}
+_RENAMED = {"run_sweep": ("jaxsync.optimize.studies.sweep", "run")}
 
 
 def __getattr__(name: str):

@@ -16,11 +16,11 @@ import pytest
 
 import jaxsync
 from jaxsync.control.gains import classical_equivalent, default_gains
-from jaxsync.optimize import loss as loss_mod
-from jaxsync.optimize import tune as tune_mod
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import sample_scenarios, training_base
+from jaxsync.optimize.tuning import loss as loss_mod
+from jaxsync.optimize.tuning import tune as tune_mod
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base
 from jaxsync.runtime import programs
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
@@ -165,7 +165,7 @@ def shared_rollout():
     second each, a Python loop over the steps) and the MJX ones that several
     tests need (the backends' agreement, both sim-to-sim checks) run once.
     Tests pass it where ``rollout`` is called, or put it in place of
-    ``jaxsync.optimize.compare.rollout``."""
+    ``jaxsync.sim.crosscheck.rollout``."""
 
     def digest(tree):
         h = hashlib.sha256()

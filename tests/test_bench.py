@@ -16,7 +16,7 @@ import os
 import pytest
 
 from jaxsync.cli import main
-from jaxsync.optimize.benchmark import table, targets
+from jaxsync.optimize.benchmarks.benchmark import table, targets
 
 KEYS = (
     "mujoco_c_env_steps_per_s",
@@ -130,7 +130,7 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
     absolute path: the children run elsewhere), a last section measures the
     paper model's gradient and cold compile, and the ratios and their targets
     are the robot's figures over the paper model's (stand-in measurements)."""
-    from jaxsync.optimize import benchmark as bm
+    from jaxsync.optimize.benchmarks import benchmark as bm
 
     seen = []
     loaded = []
@@ -145,7 +145,7 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
         return {"forward_s": 1.0, "grad_s": ratio, "grad_over_forward": ratio, "label": path, "grad_finite": True}
 
     def fake_pair(duration, rounds, log, small=False, source=None, visual=True):
-        from jaxsync.optimize.benchmark_measure import ratio_of_ratios
+        from jaxsync.optimize.benchmarks.benchmark_measure import ratio_of_ratios
 
         seen.append(("pair", "implicit", source))
         # three rounds; the paper model's gradient fast in the last: the ratio
@@ -195,7 +195,7 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
 
 def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
     """The paper model's own bench records no ratios (None) and prints none."""
-    from jaxsync.optimize import benchmark as bm
+    from jaxsync.optimize.benchmarks import benchmark as bm
 
     fg = {"forward_s": 1.0, "grad_s": 2.0, "grad_over_forward": 2.0, "label": "x", "grad_finite": True}
     _stand_ins(
@@ -215,7 +215,7 @@ def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
 def test_ratio_of_ratios_takes_each_programs_best_and_reports_the_rounds():
     """The target's figure is the ratio of the best times; a slow call in one
     round moves the per-round figures, not it; unequal rounds are refused."""
-    from jaxsync.optimize.benchmark_measure import ratio_of_ratios
+    from jaxsync.optimize.benchmarks.benchmark_measure import ratio_of_ratios
 
     times = {
         "robot": {"forward": [0.2, 0.2, 0.3], "grad": [0.9, 0.8, 0.8]},
@@ -236,7 +236,7 @@ def test_ratio_of_ratios_takes_each_programs_best_and_reports_the_rounds():
 def test_paired_timing_alternates_the_models_round_by_round(monkeypatch):
     """Each round times all four programs, the robot's first in even rounds and
     the paper model's first in odd ones (stand-in programs record the order)."""
-    from jaxsync.optimize import benchmark_measure as m
+    from jaxsync.optimize.benchmarks import benchmark_measure as m
 
     calls = []
 

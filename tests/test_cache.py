@@ -10,8 +10,8 @@ import numpy as np
 from jax._src import core, pjit
 
 import jaxsync.mjcf
-import jaxsync.optimize.cost
-import jaxsync.optimize.tune
+import jaxsync.optimize.tuning.cost
+import jaxsync.optimize.tuning.tune
 from jaxsync.control.gains import default_gains
 from jaxsync.runtime import cache as _cache
 from jaxsync.runtime import patches
@@ -50,7 +50,7 @@ def test_fingerprint_covers_the_cost_the_loss_and_the_model():
     hashed wherever they are installed from: in a checkout or an editable
     install they live outside jaxsync/ (the bug: only jaxsync/ was hashed)."""
     files = _cache.source_files()
-    for module in (jaxsync.optimize.cost, jaxsync.optimize.tune, _cache):
+    for module in (jaxsync.optimize.tuning.cost, jaxsync.optimize.tuning.tune, _cache):
         assert os.path.realpath(module.__file__) in files, module.__name__
     model = os.path.join(os.path.dirname(jaxsync.mjcf.__file__), "dual_arm.xml")
     assert os.path.realpath(model) in files
@@ -60,7 +60,7 @@ def test_editing_the_cost_changes_the_key(tmp_path, monkeypatch):
     """Edit a copy of the cost's source: the fingerprint, and so the file the
     traced function is kept in, changes; the unedited copy gives the same key."""
     copy = tmp_path / "cost.py"
-    copy.write_bytes(open(jaxsync.optimize.cost.__file__, "rb").read())
+    copy.write_bytes(open(jaxsync.optimize.tuning.cost.__file__, "rb").read())
     files = [*(f for f in _cache.source_files() if not f.endswith(os.sep + "cost.py")), str(copy)]
     monkeypatch.setattr(_cache, "source_files", lambda: files)
     before = _cache._source_fingerprint()

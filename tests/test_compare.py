@@ -19,9 +19,10 @@ from jaxsync.cli import main
 from jaxsync.control.gains import default_gains
 from jaxsync.io import render as _render
 from jaxsync.io import results as _results
-from jaxsync.optimize import compare as _compare
-from jaxsync.optimize.compare_video import VIDEO_FPS, compare_video
+from jaxsync.optimize.studies import compare as _compare
+from jaxsync.optimize.studies.compare_video import VIDEO_FPS, compare_video
 from jaxsync.runtime.cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
+from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.scenario import default_scenario
 
@@ -260,8 +261,8 @@ def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts, shared_rollout, m
     s, g = rollouts["scenario"], rollouts["gains"]
     g2 = g._replace(k_rl=jax.numpy.asarray(0.2), k_ll=jax.numpy.asarray(0.2))
     batch = jax.tree_util.tree_map(lambda x: jax.numpy.asarray(x)[None], s)
-    monkeypatch.setattr(_compare, "rollout", shared_rollout)  # the same rollouts, run once for the session
-    check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, log=lambda m: None)
+    monkeypatch.setattr(_crosscheck, "rollout", shared_rollout)  # the same rollouts, run once for the session
+    check = _crosscheck.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, log=lambda m: None)
     assert check["scenarios"] == 1 and check["scenarios_lost"] == []
     assert check["mjx_before_N"] == float(_metrics.summarize(rollouts["synchronous"], s).settled_peak_resultant_N)
     for which in ("before", "after"):
@@ -269,19 +270,19 @@ def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts, shared_rollout, m
         assert check[f"mujoco_{which}_N"] != check[f"mjx_{which}_N"]  # another engine did roll it out
     assert check["factor_mjx"] == pytest.approx(check["mjx_before_N"] / check["mjx_after_N"])
     assert abs(check["factor_mjx"] - 1.0) > 0.05  # the two gains differ measurably, else the check proves nothing
-    lines = _compare.sim_to_sim_table(check)
+    lines = _crosscheck.sim_to_sim_table(check)
     assert check["agree"] and lines[-1].startswith("sim-to-sim: the improvement factors agree within 10 %"), lines
     assert json.loads(json.dumps(check)) == check  # summary.json takes it as it is
 
     per = json.loads(json.dumps(check["per_scenario"]))
     per["mujoco_after"][0]["settled_peak_resultant_N"] *= 1.5  # MuJoCo C's factor 1/1.5 of MJX's
-    off = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    off = _crosscheck.sim_to_sim_verdict(per, 1, TEST_DURATION)
     assert not off["agree"] and off["difference"] == pytest.approx((1 + check["difference"]) / 1.5 - 1)
-    assert _compare.sim_to_sim_table(off)[-1].startswith("WARNING: sim-to-sim check failed: the improvement factor")
+    assert _crosscheck.sim_to_sim_table(off)[-1].startswith("WARNING: sim-to-sim check failed: the improvement factor")
     per["mujoco_after"][0]["settled_peak_resultant_N"] /= 1.5
     per["mujoco_before"][0]["lost"] = True
-    lost = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
-    assert not lost["agree"] and lost["factor_mujoco"] is None and "dropped" in _compare.sim_to_sim_table(lost)[-1]
+    lost = _crosscheck.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    assert not lost["agree"] and lost["factor_mujoco"] is None and "dropped" in _crosscheck.sim_to_sim_table(lost)[-1]
 
 
 def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monkeypatch, capsys):
@@ -295,9 +296,9 @@ def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monke
 
     def fake(model, gains, baseline, scenarios, duration, *, n, **kw):
         seen.update(n=n, duration=duration, count=int(jax.tree_util.tree_leaves(scenarios)[0].shape[0]))
-        return _compare.sim_to_sim_verdict(per, 1, duration)
+        return _crosscheck.sim_to_sim_verdict(per, 1, duration)
 
-    monkeypatch.setattr(_compare, "sim_to_sim", fake)
+    monkeypatch.setattr(_crosscheck, "sim_to_sim", fake)
     out = tmp_path / "o"
     assert main(["compare", "--out", str(out), "--mujoco-check"]) == 5
     captured = capsys.readouterr()

@@ -12,7 +12,7 @@ from jaxsync.control import baselines, compliance
 from jaxsync.control import controller as ctrl
 from jaxsync.control.gains import USED, default_gains
 from jaxsync.control.impedance import step_response
-from jaxsync.optimize import sweep_spec
+from jaxsync.optimize.studies import sweep_spec
 from jaxsync.sim import metrics as _metrics
 
 DT = 0.002

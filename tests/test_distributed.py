@@ -27,7 +27,7 @@ from test_sweep import FAST, run_cli
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
 from jaxsync.control import gains as _gains
-from jaxsync.optimize.tune import tune
+from jaxsync.optimize.tuning.tune import tune
 from jaxsync.runtime import distributed as _distributed
 
 TIMEOUT_S = 600  # each launched process

@@ -55,7 +55,7 @@ def _layer(module: str) -> int:
 
 
 def test_modules_are_found():
-    assert {"jaxsync.physics.step", "jaxsync.control.controller", "jaxsync.optimize.tune"} <= set(MODULES)
+    assert {"jaxsync.physics.step", "jaxsync.control.controller", "jaxsync.optimize.tuning.tune"} <= set(MODULES)
 
 
 def test_no_import_loop_counting_imports_inside_functions():

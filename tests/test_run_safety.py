@@ -24,14 +24,15 @@ from jaxsync.cli import main
 from jaxsync.cli.tune import change_text
 from jaxsync.control.gains import default_gains
 from jaxsync.io import results as _results
-from jaxsync.optimize import checkpoint, methods, sweep, tune_state
-from jaxsync.optimize import loss as loss_mod
-from jaxsync.optimize import tune as tune_mod
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.methods import Oracle
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.sweep_spec import parse_param
-from jaxsync.optimize.tune import TuneResult
+from jaxsync.optimize.studies import sweep
+from jaxsync.optimize.studies.sweep_spec import parse_param
+from jaxsync.optimize.tuning import checkpoint, methods, tune_state
+from jaxsync.optimize.tuning import loss as loss_mod
+from jaxsync.optimize.tuning import tune as tune_mod
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.methods import Oracle
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.tune import TuneResult
 
 QUICK = ["--iterations", "1", "--no-mujoco-check"]
 

@@ -15,8 +15,8 @@ from jaxsync.cli import main
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import gains_file
-from jaxsync.optimize import compare as _compare
-from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.studies import compare as _compare
+from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.rollout import rollout

@@ -14,8 +14,8 @@ from jax.flatten_util import ravel_pytree
 import jaxsync
 from jaxsync.cli import main
 from jaxsync.control import gains as _gains
-from jaxsync.optimize.scenarios import sample_scenarios
-from jaxsync.optimize.sensitivity import METRICS, elasticities, metrics_function, sensitivity
+from jaxsync.optimize.studies.sensitivity import METRICS, elasticities, metrics_function, sensitivity
+from jaxsync.optimize.tuning.scenarios import sample_scenarios
 from jaxsync.physics import model as _model
 
 DURATION = 1.7  # the short task's shortest horizon with a settled window

@@ -6,9 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsync.optimize import compare as _compare
-from jaxsync.optimize.sweep_report import summarize_sweep
-from jaxsync.optimize.tune_state import select_iterate
+from jaxsync.optimize.studies import compare as _compare
+from jaxsync.optimize.studies.sweep_report import summarize_sweep
+from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.sim import metrics
 
 

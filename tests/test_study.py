@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from jaxsync.cli import build_parser, main
-from jaxsync.optimize import loss as loss_mod
-from jaxsync.optimize import pipeline as pipeline_mod
-from jaxsync.optimize import study as study_mod
-from jaxsync.optimize import study_report as report_mod
+from jaxsync.optimize.studies import study as study_mod
+from jaxsync.optimize.studies import study_report as report_mod
+from jaxsync.optimize.tuning import loss as loss_mod
+from jaxsync.optimize.tuning import pipeline as pipeline_mod
 from jaxsync.sim.metrics import Metrics
 
 

@@ -15,7 +15,7 @@ import pytest
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
 from jaxsync.io import results as _results
-from jaxsync.optimize import sweep, sweep_report
+from jaxsync.optimize.studies import sweep, sweep_report
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.rollout import cpu_vmap_limit
 

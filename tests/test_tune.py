@@ -20,18 +20,18 @@ import jaxsync
 from jaxsync.cli import build_parser, main
 from jaxsync.cli.tune import change_text, mujoco_text
 from jaxsync.control import gains as _gains
-from jaxsync.optimize import checkpoint, methods, scenarios, tune_state
-from jaxsync.optimize import compare as _compare
-from jaxsync.optimize import loss as loss_mod
-from jaxsync.optimize import tune as tune_mod
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.loss import make_loss
-from jaxsync.optimize.methods import LBFGS, Oracle
-from jaxsync.optimize.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
-from jaxsync.optimize.scenarios import sample_scenarios, training_base, training_batch
-from jaxsync.optimize.tune import TuneConfig, TuneResult, tune
-from jaxsync.optimize.tune_state import select_iterate
+from jaxsync.optimize.tuning import checkpoint, methods, scenarios, tune_state
+from jaxsync.optimize.tuning import loss as loss_mod
+from jaxsync.optimize.tuning import tune as tune_mod
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.loss import make_loss
+from jaxsync.optimize.tuning.methods import LBFGS, Oracle
+from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
+from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base, training_batch
+from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
+from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.physics import step as _physics
+from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 
 # The resumed-run test tunes with jaxsync tune's defaults (the full task, the
@@ -337,9 +337,9 @@ def fake_tuning(monkeypatch):
             "mujoco_before": mjx_rows["before"][:m],
             "mujoco_after": [dict(r, settled_peak_resultant_N=0.03) for r in mjx_rows["after"][:m]],
         }
-        return _compare.sim_to_sim_verdict(per, m, duration)
+        return _crosscheck.sim_to_sim_verdict(per, m, duration)
 
-    monkeypatch.setattr(_compare, "sim_to_sim", fake_sim_to_sim)
+    monkeypatch.setattr(_crosscheck, "sim_to_sim", fake_sim_to_sim)
     return calls
 
 
@@ -743,7 +743,7 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
     """The gains before and after on MuJoCo C beside MJX, through
-    the one sim-to-sim check (jaxsync.optimize.compare.sim_to_sim) with MJX's rows as tune
+    the one sim-to-sim check (jaxsync.sim.crosscheck.sim_to_sim) with MJX's rows as tune
     has them from its held-out scoring; the factors agree here (the same control
     law, the same scenario), and a disagreement is flagged in the printed line."""
     s, g = rollouts["scenario"], rollouts["gains"]
@@ -752,10 +752,11 @@ def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, mo
     one = lambda x: jax.tree_util.tree_map(lambda v: jax.numpy.asarray(v)[None], x)  # noqa: E731
     run = lambda x: shared_rollout(model, x, s, controller="synchronous", duration=TEST_DURATION)  # noqa: E731
     mjx = {
-        which: _compare.metric_rows(one(_metrics.summarize(run(x), s))) for which, x in (("before", g), ("after", g2))
+        which: _crosscheck.metric_rows(one(_metrics.summarize(run(x), s)))
+        for which, x in (("before", g), ("after", g2))
     }
-    monkeypatch.setattr(_compare, "rollout", shared_rollout)  # MuJoCo C's rollouts, run once for the session
-    check = _compare.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, mjx_rows=mjx, log=lambda m: None)
+    monkeypatch.setattr(_crosscheck, "rollout", shared_rollout)  # MuJoCo C's rollouts, run once for the session
+    check = _crosscheck.sim_to_sim(model, g2, g, batch, TEST_DURATION, n=4, mjx_rows=mjx, log=lambda m: None)
     assert check["scenarios"] == 1
     assert check["per_scenario"]["mjx_before"] == mjx["before"]  # taken as given
     assert check["mjx_before_N"] == mjx["before"][0]["settled_peak_resultant_N"]
@@ -766,5 +767,5 @@ def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, mo
     per = dict(check["per_scenario"])
     double = lambda r: dict(r, settled_peak_resultant_N=2 * r["settled_peak_resultant_N"])  # noqa: E731
     per["mujoco_after"] = [double(r) for r in per["mujoco_after"]]
-    off = _compare.sim_to_sim_verdict(per, 1, TEST_DURATION)
+    off = _crosscheck.sim_to_sim_verdict(per, 1, TEST_DURATION)
     assert not off["agree"] and "WARNING" in mujoco_text(off) and "below MJX's" in mujoco_text(off)

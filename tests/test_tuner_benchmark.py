@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxsync.optimize import tuner_benchmark as B
+from jaxsync.optimize.benchmarks import tuner_benchmark as B
 
 
 def _run(method, seed, curve, problem="constant", budget=10.0):

@@ -1,6 +1,6 @@
 """``jaxsync bench``: how fast the simulator, its gradient and its compilation are.
 
-Parses, runs ``jaxsync.optimize.benchmark.run`` (every measurement, written to
+Parses, runs ``jaxsync.optimize.benchmarks.benchmark.run`` (every measurement, written to
 ``bench.json``) and prints its table; docs/performance.md discusses the numbers.
 """
 
@@ -41,7 +41,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     sizes = _batch_list(args.batch_sizes) if args.batch_sizes is not None else None
-    from jaxsync.optimize import benchmark  # inside: the command line's start-up time (`jaxsync --help`)
+    from jaxsync.optimize.benchmarks import benchmark  # inside: the command line's start-up time (`jaxsync --help`)
 
     source = model_source(args)
     r = benchmark.run(args.out, quick=args.quick, batch_sizes=sizes, source=source, **model_options(args))

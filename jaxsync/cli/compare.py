@@ -47,9 +47,10 @@ def run(args: argparse.Namespace) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
-    from jaxsync.optimize import compare as _compare
+    from jaxsync.optimize.studies import compare as _compare
     from jaxsync.physics.inertia import pad_apparent_inertia
     from jaxsync.physics.model import load_model
+    from jaxsync.sim import crosscheck as _crosscheck
     from jaxsync.sim.metrics import CHATTER_THRESHOLD_N
 
     model = load_model(model_source(args), solver="accurate", **model_options(args))
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         print(line)
     check = summary.get("sim_to_sim")
     if check is not None:
-        for line in _compare.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
+        for line in _crosscheck.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
             print(line)
     print(f"results in {args.out}: {', '.join(files)}")
     dropped = {n: t for n in _compare.controllers_of(summary) if (t := _compare.drop_time(summary[n])) is not None}

@@ -11,7 +11,7 @@ def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
-    from jaxsync.optimize import sensitivity as sens
+    from jaxsync.optimize.studies import sensitivity as sens
     from jaxsync.physics.model import load_model
     from jaxsync.sim.scenario import default_scenario, short_task
 

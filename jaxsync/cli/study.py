@@ -31,8 +31,8 @@ def _numbers(kind, what: str):
 
 def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
-    from jaxsync.optimize import study as _study
-    from jaxsync.optimize import study_report as _report
+    from jaxsync.optimize.studies import study as _study
+    from jaxsync.optimize.studies import study_report as _report
     from jaxsync.physics.model import load_model
 
     cfg = _study.StudyConfig(

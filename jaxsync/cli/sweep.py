@@ -6,8 +6,8 @@ import argparse
 
 from jaxsync.cli._common import add_distributed_arguments, add_model_argument, model_options, model_source, positive
 from jaxsync.control.controller import CONTROLLERS
-from jaxsync.optimize.sweep_eval import DEFAULT_BUDGET_GIB
-from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS
+from jaxsync.optimize.studies.sweep_eval import DEFAULT_BUDGET_GIB
+from jaxsync.optimize.studies.sweep_report import DEFAULT_PLOT_METRICS
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -79,7 +79,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.io import gains_file
-    from jaxsync.optimize import sweep
+    from jaxsync.optimize.studies import sweep
 
     source = model_source(args)
     gains = gains_file.load_constant(args.gains, "jaxsync sweep") if args.gains else None

@@ -14,9 +14,9 @@ from jaxsync.cli._common import (
     model_source,
     positive,
 )
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.methods import METHODS
-from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TUNABLE, TuneSpec
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.methods import METHODS
+from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TUNABLE, TuneSpec
 
 
 def _weights(items: list[str] | None) -> CostWeights:
@@ -45,9 +45,9 @@ def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.control import gains as _gains
     from jaxsync.io import gains_file
-    from jaxsync.optimize import pipeline
-    from jaxsync.optimize import tune as tuning
-    from jaxsync.optimize.scenarios import model_overrides
+    from jaxsync.optimize.tuning import pipeline
+    from jaxsync.optimize.tuning import tune as tuning
+    from jaxsync.optimize.tuning.scenarios import model_overrides
     from jaxsync.physics.model import load_model
 
     tuned = _names(args.tune) or list(DEFAULT_TUNED_FOR[args.controller])
@@ -117,7 +117,7 @@ def run(args) -> int:
 
 
 def mujoco_text(c: dict) -> str:
-    """The MuJoCo C check's line (jaxsync.optimize.compare.sim_to_sim's result): both
+    """The MuJoCo C check's line (jaxsync.sim.crosscheck.sim_to_sim's result): both
     improvement factors, flagged when they disagree or an object was dropped."""
 
     def f(v, fmt):

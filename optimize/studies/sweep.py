@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
-from jaxsync.optimize.sweep_eval import (
+from jaxsync.optimize.studies.sweep_eval import (
     DEFAULT_BUDGET_GIB,
     DEFAULT_CHUNK_PER_DEVICE,
     GIB,
@@ -29,10 +29,18 @@ from jaxsync.optimize.sweep_eval import (
     gather,
     to_device,
 )
-from jaxsync.optimize.sweep_plan import Plan, make_plan
-from jaxsync.optimize.sweep_report import DEFAULT_PLOT_METRICS, plot, summarize_sweep, write_csv
-from jaxsync.optimize.sweep_spec import Param, Target, build_batch, known_names, make_points, parse_param, resolve_name
-from jaxsync.optimize.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
+from jaxsync.optimize.studies.sweep_plan import Plan, make_plan
+from jaxsync.optimize.studies.sweep_report import DEFAULT_PLOT_METRICS, plot, summarize_sweep, write_csv
+from jaxsync.optimize.studies.sweep_spec import (
+    Param,
+    Target,
+    build_batch,
+    known_names,
+    make_points,
+    parse_param,
+    resolve_name,
+)
+from jaxsync.optimize.studies.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.sim import metrics as _metrics
 

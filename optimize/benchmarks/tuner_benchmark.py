@@ -39,12 +39,12 @@ from jax.flatten_util import ravel_pytree
 
 from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
-from jaxsync.optimize import methods as _methods
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.loss import make_loss
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import sample_scenarios
+from jaxsync.optimize.tuning import methods as _methods
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.loss import make_loss
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.scenarios import sample_scenarios
 from jaxsync.sim import scenario as _scenario
 
 PROBLEMS = {

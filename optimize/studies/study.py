@@ -24,15 +24,15 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control.names import CONTROLLERS
 from jaxsync.io import results as _results
-from jaxsync.optimize import loss as _loss
-from jaxsync.optimize import methods as _methods
-from jaxsync.optimize import pipeline as _pipeline
-from jaxsync.optimize import scenarios as _scenarios
-from jaxsync.optimize import study_report as _report
-from jaxsync.optimize.compare import check_controllers
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.params import DEFAULT_TUNED_FOR, TuneSpec
-from jaxsync.optimize.tune_state import CHECKPOINT
+from jaxsync.optimize.studies import study_report as _report
+from jaxsync.optimize.studies.compare import check_controllers
+from jaxsync.optimize.tuning import loss as _loss
+from jaxsync.optimize.tuning import methods as _methods
+from jaxsync.optimize.tuning import pipeline as _pipeline
+from jaxsync.optimize.tuning import scenarios as _scenarios
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TuneSpec
+from jaxsync.optimize.tuning.tune_state import CHECKPOINT
 
 STUDY_FILE = "study.json"
 # what a setting that a study's file does not hold meant when that study ran (before the setting existed)

@@ -18,9 +18,15 @@ import time
 
 import jax
 
-from jaxsync.optimize.benchmark_measure import _on, gradient_functions, have_flatbuffers, small_gradient, tuning_loss
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.loop import apply_update
+from jaxsync.optimize.benchmarks.benchmark_measure import (
+    _on,
+    gradient_functions,
+    have_flatbuffers,
+    small_gradient,
+    tuning_loss,
+)
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.loop import apply_update
 from jaxsync.runtime import xla as _xla
 from jaxsync.runtime.cache import enable_compilation_cache, traced_on_disk
 
@@ -113,7 +119,7 @@ def _run_child(mode: str, cfg: dict, cache_dir: str | None, xla_flags: str | Non
     if xla_flags is not None:
         env["XLA_FLAGS"] = xla_flags
     code = (
-        "import json, sys; from jaxsync.optimize.benchmark_children import child; "
+        "import json, sys; from jaxsync.optimize.benchmarks.benchmark_children import child; "
         "print('JAXSYNC_BENCH ' + json.dumps(child(sys.argv[1], json.loads(sys.argv[2]))))"
     )
     # cwd away from any source checkout: ``python -c`` puts the cwd first on sys.path

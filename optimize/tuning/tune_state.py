@@ -14,8 +14,8 @@ from jax.flatten_util import ravel_pytree
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
-from jaxsync.optimize import checkpoint
-from jaxsync.optimize.params import TuneSpec
+from jaxsync.optimize.tuning import checkpoint
+from jaxsync.optimize.tuning.params import TuneSpec
 
 
 def select_iterate(validation: list[dict]) -> dict | None:

@@ -21,8 +21,8 @@ from jax.sharding import PartitionSpec as P
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
-from jaxsync.optimize.sweep_plan import Plan
-from jaxsync.optimize.sweep_spec import build_batch
+from jaxsync.optimize.studies.sweep_plan import Plan
+from jaxsync.optimize.studies.sweep_spec import build_batch
 from jaxsync.physics.model import load_model
 from jaxsync.runtime import programs
 from jaxsync.sim.metrics import summarize

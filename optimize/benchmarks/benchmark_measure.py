@@ -1,4 +1,4 @@
-"""The measurements of ``jaxsync bench`` (``jaxsync.optimize.benchmark`` runs them and assembles the results).
+"""The measurements of ``jaxsync bench`` (``benchmarks.benchmark`` runs them and assembles the results).
 
 Closed-loop MJX environment-steps per second; the same controller stepping
 MuJoCo C; bare ``mj_step``; and, for the two gradient paths of ``PATHS`` side
@@ -6,7 +6,7 @@ by side (the tuner's implicit path, and the unrolled one kept as a reference),
 one forward rollout against its gradient, cold and warm compile times of the
 gradient and the peak memory of one tuning step, these two in child processes
 (a fresh process, and for the cold compile an empty cache:
-``jaxsync.optimize.benchmark_children``). The gradient is
+``jaxsync.optimize.benchmarks.benchmark_children``). The gradient is
 the tuning cost's over the short task (``jaxsync.short_task``, batch 1); the
 tuning step is ``jaxsync tune``'s (the full task, its batch).
 
@@ -29,11 +29,11 @@ import mujoco
 import numpy as np
 
 from jaxsync.control.gains import default_gains_for
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.loss import make_loss
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import model_overrides, sample_scenarios, training_base
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.loss import make_loss
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.scenarios import model_overrides, sample_scenarios, training_base
 from jaxsync.physics.model import load_model
 from jaxsync.physics.sensing import sense
 from jaxsync.physics.step import before_control, put_data

@@ -12,7 +12,7 @@ synchronisation factors k_rk, k_lk, k_rl, k_ll (the relative change of the
 metric per unit of k).
 
 Example:
-  >>> from jaxsync.optimize.sensitivity import sensitivity
+  >>> from jaxsync.optimize.studies.sensitivity import sensitivity
   >>> s = sensitivity(jaxsync.load_model(), jaxsync.default_gains(), batch=4)  # doctest: +SKIP
   >>> s.rows()[0]  # doctest: +SKIP
 """
@@ -31,8 +31,8 @@ from jax.flatten_util import ravel_pytree
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
-from jaxsync.optimize.cost import smooth_metrics
-from jaxsync.optimize.scenarios import sample_scenarios
+from jaxsync.optimize.tuning.cost import smooth_metrics
+from jaxsync.optimize.tuning.scenarios import sample_scenarios
 from jaxsync.runtime import programs
 from jaxsync.sim.rollout import make_rollout
 from jaxsync.sim.scenario import min_duration
@@ -205,7 +205,7 @@ def write_results(out: str, s: Sensitivity, gains, *, batch: int, seed: int, dur
             "metrics": dict(zip(METRICS, s.values.tolist(), strict=True)),
             "rows": rows,
             "elasticity": "d log metric / d log gain; for k_rk, k_lk, k_rl, k_ll: d log metric / d k",
-            "metric_forms": "smooth forms of the tuning cost (optimize/cost.py smooth_metrics), mean over scenarios",
+            "metric_forms": "smooth forms of the tuning cost (tuning/cost.py smooth_metrics), mean over scenarios",
             "gains": _gains.to_dict(gains),
             "batch": batch,
             "seed": seed,

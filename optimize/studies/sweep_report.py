@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 from jaxsync.io import results as _results
-from jaxsync.optimize.sweep_plan import Plan
+from jaxsync.optimize.studies.sweep_plan import Plan
 from jaxsync.sim.metrics import BOOL_METRICS
 
 DEFAULT_PLOT_METRICS = ("settled_peak_resultant_N", "grip_force_error_rel")

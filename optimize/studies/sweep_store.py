@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
-from jaxsync.optimize.sweep_plan import Plan
+from jaxsync.optimize.studies.sweep_plan import Plan
 
 
 def _chunk_path(out: str, i: int) -> str:

@@ -1,6 +1,6 @@
 """One optax step, shared by the optax loops.
 
-The tuner's Adam (``jaxsync.optimize.tune``) and the benchmark's tuning step
+The tuner's Adam (``jaxsync.optimize.tuning.tune``) and the benchmark's tuning step
 (``jaxsync bench``) update their parameters here (the other methods:
 ``optimize.methods``): clip, step, and skip a non-finite step (keep the parameters
 and the optimiser state). Pure: it runs eagerly or inside ``jax.jit``.

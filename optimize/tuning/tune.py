@@ -29,15 +29,15 @@ from jaxsync._errors import JaxsyncError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import results as _results
-from jaxsync.optimize import methods as _methods
-from jaxsync.optimize import parallel
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.loop import apply_update
-from jaxsync.optimize.loss import make_loss, traced_value_and_grad
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import training_base, training_batch
-from jaxsync.optimize.tune_state import (
+from jaxsync.optimize.tuning import methods as _methods
+from jaxsync.optimize.tuning import parallel
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.loop import apply_update
+from jaxsync.optimize.tuning.loss import make_loss, traced_value_and_grad
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.scenarios import training_base, training_batch
+from jaxsync.optimize.tuning.tune_state import (
     CHECKPOINT,
     TuneResult,
     TuneState,

@@ -18,7 +18,7 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import Gains
-from jaxsync.optimize.sweep_spec import (
+from jaxsync.optimize.studies.sweep_spec import (
     PHASE_FIELDS,
     Param,
     check_overlaps,

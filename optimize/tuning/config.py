@@ -9,8 +9,8 @@ import optax
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.names import CONTROLLERS
-from jaxsync.optimize import methods as _methods
-from jaxsync.optimize.loop import first_order_problem, make_optimizer
+from jaxsync.optimize.tuning import methods as _methods
+from jaxsync.optimize.tuning.loop import first_order_problem, make_optimizer
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """The whole tuning job, as ``jaxsync tune`` runs it, for a Python caller.
 
 :func:`tune_and_evaluate` scores the starting gains on the held-out
-scenarios, tunes (:func:`jaxsync.optimize.tune.tune`, validation picking the
+scenarios, tunes (:func:`jaxsync.optimize.tuning.tune.tune`, validation picking the
 iterate), scores the selected gains on the same held-out scenarios, checks
 them on MuJoCo C, and writes the run's folder: ``gains.json`` (selected),
 ``gains_last.json``, ``history.csv``, ``loss.png``, ``heldout_before.json``,
@@ -22,16 +22,16 @@ from jaxsync._errors import DroppedObjectError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import results as _results
-from jaxsync.optimize import compare as _compare
-from jaxsync.optimize import loss as _loss
-from jaxsync.optimize import scenarios as _scenarios
-from jaxsync.optimize import tune as _tune
-from jaxsync.optimize.cost import CostWeights
-from jaxsync.optimize.params import TuneSpec, check_tuned
-from jaxsync.optimize.tune_report import plot_loss
-from jaxsync.optimize.tune_state import CHECKPOINT, prepare_out
+from jaxsync.optimize.tuning import loss as _loss
+from jaxsync.optimize.tuning import scenarios as _scenarios
+from jaxsync.optimize.tuning import tune as _tune
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.params import TuneSpec, check_tuned
+from jaxsync.optimize.tuning.tune_report import plot_loss
+from jaxsync.optimize.tuning.tune_state import CHECKPOINT, prepare_out
 from jaxsync.physics.model import DualArmModel
 from jaxsync.runtime import distributed as _distributed
+from jaxsync.sim import crosscheck as _crosscheck
 
 HELDOUT_BEFORE = "heldout_before.json"
 MUJOCO_CHECK_SCENARIOS = 4
@@ -221,7 +221,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         say(f"the same gains on MuJoCo C ({min(n, cfg.heldout_batch)} held-out scenarios, the same control law)...")
         # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
         mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
-        check = _compare.sim_to_sim(
+        check = _crosscheck.sim_to_sim(
             model,
             gains,
             base,

@@ -19,15 +19,15 @@ import numpy as np
 from jaxsync.control import compliance as _compliance
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
-from jaxsync.optimize.compare import metric_rows
-from jaxsync.optimize.config import TuneConfig
-from jaxsync.optimize.cost import CostWeights, cost, cost_terms
-from jaxsync.optimize.params import TuneSpec
-from jaxsync.optimize.scenarios import training_base
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.cost import CostWeights, cost, cost_terms
+from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.scenarios import training_base
 from jaxsync.physics import step as _physics
 from jaxsync.runtime import programs
 from jaxsync.runtime.cache import traced_on_disk
 from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.crosscheck import metric_rows
 from jaxsync.sim.rollout import make_rollout
 
 # TuneConfig fields the training loss's program depends on (the rest steer the loop)
@@ -151,7 +151,7 @@ def eval_summary(m) -> dict:
         "chattering": int(m["chattering"].sum()),
         "first_impact_peak_N": mean(m["first_impact_peak_N"]),
         "per_scenario_peak_N": m["settled_peak_resultant_N"].tolist(),
-        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.optimize.compare.sim_to_sim)
+        "per_scenario": rows,  # what the MuJoCo C check compares with (jaxsync.sim.crosscheck.sim_to_sim)
         # every metric of every scenario (NaN, e.g. the drop time of a held object: None)
         "metrics": {k: [None if x != x else x for x in v.tolist()] for k, v in m.items()},
     }

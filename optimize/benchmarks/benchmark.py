@@ -5,7 +5,7 @@ environment-steps per second at several batch sizes; the same controller
 stepping MuJoCo C (one environment); bare ``mj_step``; one forward rollout
 against its gradient; cold and warm (persistent-cache) compile times of the
 gradient; the peak memory of one tuning step (the measurements are in
-``jaxsync.optimize.benchmark_measure`` and ``benchmark_children``). It writes ``bench.json`` and returns
+``jaxsync.optimize.benchmarks.benchmark_measure`` and ``benchmark_children``). It writes ``bench.json`` and returns
 its content; :func:`table` formats it. A benchmark reports, it never fails:
 the targets of docs/performance.md are recorded next to the numbers.
 
@@ -22,7 +22,7 @@ truncated every 100 steps, a reference). The top-level figures are the
 implicit path's.
 
 Example:
-  >>> from jaxsync.optimize import benchmark
+  >>> from jaxsync.optimize.benchmarks import benchmark
   >>> r = benchmark.run("/tmp/bench", quick=True)  # doctest: +SKIP
   >>> print(benchmark.table(r))  # doctest: +SKIP
 """
@@ -37,13 +37,13 @@ from collections.abc import Callable, Sequence
 
 from jaxsync._errors import ConfigError
 from jaxsync.io import results as _results
-from jaxsync.optimize.benchmark_children import (
+from jaxsync.optimize.benchmarks.benchmark_children import (
     cold_compile_with_xla_flags,
     compile_times,
     tune_step_memory,
     warm_compile_s,
 )
-from jaxsync.optimize.benchmark_measure import (
+from jaxsync.optimize.benchmarks.benchmark_measure import (
     PATHS,
     XLA_DEFAULT_EMITTERS,
     bare_mj_step,

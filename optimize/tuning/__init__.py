@@ -1,0 +1,1 @@
+"""Tuning gains by gradient through whole rollouts: parameters, cost, batches, methods, the loop, the job."""
