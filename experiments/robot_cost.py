@@ -26,13 +26,13 @@ def measure(model_path: str | None, repeats: int, duration: float) -> dict:
     import jax
 
     import jaxsync
-    from jaxsync.control.gains import default_gains_for
+    from jaxsync.control.gains import default_gains
     from jaxsync.optimize.tuning.cost import CostWeights, cost
 
     jaxsync.set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     model = jaxsync.load_model(model_path)
-    s, g = jaxsync.short_task(), default_gains_for(model)
+    s, g = jaxsync.short_task(model), default_gains(model)
     roll = jaxsync.make_rollout(model, "synchronous", duration, remat=True, passes="tree")
 
     def loss(gains, s):

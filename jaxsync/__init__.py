@@ -59,7 +59,7 @@ from jaxsync._errors import (
 from jaxsync.control.compliance import apparent_stiffness
 from jaxsync.control.controller import CONTROLLERS, ControllerOptions, ControllerState, Reference, init, step
 from jaxsync.control.gains import Gains, classical_equivalent, default_gains
-from jaxsync.physics.model import DualArmModel, default_model_path, load_model
+from jaxsync.physics.model import DualArmModel, RobotScene, default_model_path, identity, load_model
 from jaxsync.physics.robot import Robot, load_robot
 from jaxsync.physics.sensing import ArmState, ObjectState, Sensed, sense
 from jaxsync.physics.step import after_control, before_control, put_data
@@ -108,6 +108,8 @@ __all__ = [
     # model and sensing
     "ArmState",
     "DualArmModel",
+    "RobotScene",
+    "identity",
     "ObjectState",
     "Sensed",
     "after_control",

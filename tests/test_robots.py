@@ -54,17 +54,17 @@ def test_composed_scene_has_what_jaxsync_needs(composed, name, n):
     # the arms' own joint data kept: ranges and armature of the file
     j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "r_joint2")
     assert m.jnt_limited[j] and m.dof_armature[m.jnt_dofadr[j]] == pytest.approx(0.1)
-    assert len(report["joint_names"]["right"]) == n
+    assert len(report.joint_names["right"]) == n
 
 
 def test_torque_limits_come_from_the_file_or_the_robot_file(composed):
     _, iiwa = composed["iiwa14_twice"]
-    assert iiwa["torque_limits"]["right"] == (320.0, 320.0, 176.0, 176.0, 110.0, 40.0, 40.0)  # position forcerange
+    assert iiwa.torque_limits["right"] == (320.0, 320.0, 176.0, 176.0, 110.0, 40.0, 40.0)  # position forcerange
     m, ur = composed["ur5e_twice"]
-    assert ur["torque_limits"]["left"] == (150.0, 150.0, 150.0, 28.0, 28.0, 28.0)  # the robot file's
+    assert ur.torque_limits["left"] == (150.0, 150.0, 150.0, 28.0, 28.0, 28.0)  # the robot file's
     a = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, "l_motor4")
     np.testing.assert_allclose(m.actuator_ctrlrange[a], [-28.0, 28.0])
-    assert any("integrator implicitfast" in note for note in iiwa["notes"])
+    assert any("integrator implicitfast" in note for note in iiwa.notes)
 
 
 @pytest.mark.parametrize("name", ["iiwa14_twice", "ur5e_twice"])
@@ -202,7 +202,7 @@ def test_a_6_dof_robot_holds_the_ball_and_the_chatter_metric_tells_its_gains_apa
 
     lam = pad_apparent_inertia(ur5e.mj_model)
     dt = float(ur5e.mj_model.opt.timestep)
-    own = G.default_gains_for(ur5e)
+    own = G.default_gains(ur5e)
     np.testing.assert_allclose(G.stability_ratio(own, lam, dt), G.STABILITY_MARGIN)
     assert np.all(G.stability_ratio(G.default_gains(), lam, dt) < 1)
     s = jaxsync.short_task()
@@ -219,7 +219,7 @@ def test_a_robots_composed_scene_runs_the_same_on_mujoco_c(ur5e):
     from jaxsync.control import gains as G
 
     s = jaxsync.short_task()
-    g = G.default_gains_for(ur5e)
+    g = G.default_gains(ur5e)
     x = jaxsync.rollout(ur5e, g, s, duration=2.0)
     c = jaxsync.rollout_mujoco(ur5e, g, s, duration=2.0)
     assert float(np.abs(np.asarray(c.obj_pos) - np.asarray(x.obj_pos)).max()) < 1e-3
@@ -234,7 +234,7 @@ def test_the_grasp_leaves_every_joint_room_to_move(composed, name):
     (found: an iiwa-like grasp with joint 2 at 1.994 of 2.094 rad dropped the ball)."""
     m, report = composed[name]
     for arm, side in (("right", "r"), ("left", "l")):
-        q = np.asarray(report["poses"][arm]["grasp_q"])
+        q = np.asarray(report.poses[arm]["grasp_q"])
         for k, qk in enumerate(q, start=1):
             j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint{k}")
             if m.jnt_limited[j]:

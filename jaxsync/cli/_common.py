@@ -72,6 +72,20 @@ def add_model_argument(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_gains_argument(p: argparse.ArgumentParser, help: str, positional: bool = False) -> None:
+    """``--gains`` (or a positional ``gains``) and ``--any-model``: gains files record the
+    model they were tuned on, and a command refuses them on another one unless told."""
+    if positional:
+        p.add_argument("gains", nargs="?", default=None, help=help)
+    else:
+        p.add_argument("--gains", default=None, help=help)
+    p.add_argument(
+        "--any-model",
+        action="store_true",
+        help="use gains recorded as tuned on another model (robot file or MJCF) than the one loaded",
+    )
+
+
 def model_source(args) -> str | None:
     """The model a command loads: --robot's file, --model's, or None (the paper model)."""
     return getattr(args, "robot", None) or getattr(args, "model", None)

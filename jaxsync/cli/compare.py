@@ -10,6 +10,7 @@ from jaxsync.cli._common import (
     EXIT_DROPPED,
     EXIT_SIM_TO_SIM,
     EXIT_UNSTABLE,
+    add_gains_argument,
     add_model_argument,
     controller_list,
     model_options,
@@ -26,9 +27,6 @@ def scenario_from_args(args: argparse.Namespace, model=None):
     from jaxsync.sim.scenario import default_scenario
 
     overrides = {}
-    if model is not None and model.robot is not None:  # the robot file's object
-        overrides["object_mass"] = model.robot["object_mass"]
-        overrides["object_radius"] = model.robot["object_radius"]
     if args.object_mass is not None:
         overrides["object_mass"] = args.object_mass
     if args.grip_force is not None:
@@ -40,7 +38,7 @@ def scenario_from_args(args: argparse.Namespace, model=None):
     overrides["noise_key"] = np.asarray(jax.random.key_data(jax.random.key(args.seed)))
     if "object_mass" in overrides:
         overrides["mass_estimate"] = overrides["object_mass"]
-    return default_scenario(**overrides)
+    return default_scenario(model, **overrides)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -54,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync.sim.metrics import CHATTER_THRESHOLD_N
 
     model = load_model(model_source(args), solver="accurate", **model_options(args))
-    gains = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
+    gains = gains_file.load_for(args.gains, model, args.any_model) if args.gains else _gains.default_gains(model)
     tuned_for = gains_file.controller_of(args.gains) if args.gains else None
     if tuned_for is not None and tuned_for not in args.controllers:
         print(
@@ -150,10 +148,8 @@ def add_parser(sub) -> None:
     )
     p.add_argument("--force-noise", type=float, default=None, help="wrist force noise std, N (0.1)")
     p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (0)")
-    p.add_argument(
-        "--gains",
-        default=None,
-        help="gains file: JSON, or a jaxsync export (gains.yaml, a ros2-admittance folder); default: built-in",
+    add_gains_argument(
+        p, "gains file: JSON, or a jaxsync export (gains.yaml, a ros2-admittance folder); default: the model's own"
     )
     p.add_argument("--out", default="results/compare", help="output folder (results/compare)")
     p.add_argument("--backend", default="mjx", choices=["mjx", "mujoco"], help="physics engine (mjx)")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from jaxsync._errors import ConfigError
-from jaxsync.cli._common import add_model_argument, model_options, model_source
+from jaxsync.cli._common import add_gains_argument, add_model_argument, model_options, model_source
 from jaxsync.control import gains as _gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
@@ -28,12 +28,14 @@ def run(args) -> int:
         from jaxsync.physics.model import load_model
 
         model = load_model(source, **model_options(args))
+        if args.gains is not None:  # gains tuned on another robot would be written with this one's names
+            gains_file.check_model(args.gains, model, args.any_model)
         if args.format == "ros2-admittance":
             interfaces = tuple(x.strip() for x in args.command_interfaces.split(",") if x.strip())
             target = _export.ros2_target(
                 model.mj_model, model.robot, distro=args.ros_distro, command_interfaces=interfaces
             )
-    gains = gains_file.load(args.gains) if args.gains is not None else _gains.default_gains_for(model)
+    gains = gains_file.load(args.gains) if args.gains is not None else _gains.default_gains(model)
     paths = _export.export(gains, args.format, args.out, target)
     back = gains_file.load(paths[0] if args.format != "ros2-admittance" else args.out)
     same = gains_file.same_gains(back, gains)
@@ -56,12 +58,11 @@ def add_parser(subparsers):
         "parameter files (one per arm) plus the synchronisation gains; each export reads back "
         "(jaxsync compare --gains takes it). See docs/export.md.",
     )
-    p.add_argument(
-        "gains",
-        nargs="?",
-        default=None,
-        help="gains file (JSON, or an export: gains.yaml, a ros2-admittance folder); without it, the default "
+    add_gains_argument(
+        p,
+        "gains file (JSON, or an export: gains.yaml, a ros2-admittance folder); without it, the default "
         "gains of --robot's robot (or of the paper model)",
+        positional=True,
     )
     p.add_argument("--format", required=True, choices=list(FORMATS), help="output format")
     add_model_argument(p)

@@ -10,15 +10,12 @@ from jaxsync.cli._common import add_model_argument, model_options, model_source
 def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.io import render as _render
-    from jaxsync.io import results as _results
     from jaxsync.physics.model import load_model
 
     backend = _render.select_gl_backend()
     model = load_model(model_source(args), **model_options(args))
-    _results.ensure_writable_dir(args.out)  # the input is checked: only now the folder
-    image = _render.render_pose(model.mj_model, model.keyframe_qpos(args.keyframe), args.width, args.height)
-    path = _render.save_png(image, os.path.join(args.out, f"{args.keyframe}.png"))
-    print(f"wrote {path} ({args.width}x{args.height}, OpenGL backend: {backend})")
+    png, record = _render.render_keyframe(model, args.keyframe, args.out, args.width, args.height)
+    print(f"wrote {png} and {os.path.basename(record)} ({args.width}x{args.height}, OpenGL backend: {backend})")
     return 0
 
 

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import time
 
-from jaxsync.cli._common import add_controller_argument, add_model_argument, model_options, model_source, positive
+from jaxsync.cli._common import (
+    add_controller_argument,
+    add_gains_argument,
+    add_model_argument,
+    model_options,
+    model_source,
+    positive,
+)
 
 
 def run(args) -> int:
@@ -16,11 +23,13 @@ def run(args) -> int:
     from jaxsync.sim.scenario import default_scenario, short_task
 
     # every input is checked before anything is written
-    gains = gains_file.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains()
-    base = short_task() if args.task == "short" else default_scenario()
+    model = load_model(model_source(args), **model_options(args))
+    if args.gains:
+        gains_file.check_model(args.gains, model, args.any_model)
+    gains = gains_file.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains(model)
+    base = short_task(model) if args.task == "short" else default_scenario(model)
     duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
     sens.check_duration(base, duration, "--duration", f"the {args.task} task")
-    model = load_model(model_source(args), **model_options(args))
     where = "the gains of " + args.gains if args.gains else "the default gains"
     t0 = time.perf_counter()
     s = sens.study(
@@ -52,7 +61,7 @@ def add_parser(subparsers):
     )
     add_model_argument(p)
     add_controller_argument(p)
-    p.add_argument("--gains", default=None, help="gains JSON (default: the built-in gains)")
+    add_gains_argument(p, "gains JSON (default: the model's own)")
     p.add_argument("--batch", type=positive(int), default=8, help="randomised scenarios (8)")
     p.add_argument("--seed", type=int, default=0, help="scenario seed (0)")
     p.add_argument(

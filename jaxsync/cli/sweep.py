@@ -82,13 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync.optimize.studies import sweep
 
     source = model_source(args)
-    gains = gains_file.load_constant(args.gains, "jaxsync sweep") if args.gains else None
-    if gains is None and source is not None:  # a robot's own default gains (docs/robots.md)
-        # imported here, not at the top: `jaxsync --help` stays fast
-        from jaxsync.control.gains import default_gains_for
-        from jaxsync.physics.model import load_model
-
-        gains = default_gains_for(load_model(source, **model_options(args)))
+    gains = gains_file.load_constant(args.gains, "jaxsync sweep") if args.gains else None  # None: the model's own
     plan = sweep.make_plan(
         args.param,
         samples=args.samples,

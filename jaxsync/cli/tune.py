@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli._common import (
     add_controller_argument,
     add_distributed_arguments,
+    add_gains_argument,
     add_model_argument,
     model_options,
     model_source,
@@ -47,7 +47,6 @@ def run(args) -> int:
     from jaxsync.io import gains_file
     from jaxsync.optimize.tuning import pipeline
     from jaxsync.optimize.tuning import tune as tuning
-    from jaxsync.optimize.tuning.scenarios import model_overrides
     from jaxsync.physics.model import load_model
 
     tuned = _names(args.tune) or list(DEFAULT_TUNED_FOR[args.controller])
@@ -88,8 +87,7 @@ def run(args) -> int:
     options = {k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")}
     skip = ("resume", "restart", "iterations", "out", "cache_dir", "mujoco_check", "coordinator", "process_id")
     model = load_model(model_source(args), **model_options(args))
-    cfg = dataclasses.replace(cfg, scenario=model_overrides(model))  # a robot file's object
-    base = gains_file.load(args.gains) if args.gains else _gains.default_gains_for(model)
+    base = gains_file.load_for(args.gains, model, args.any_model) if args.gains else _gains.default_gains(model)
     summary = pipeline.tune_and_evaluate(
         model,
         spec,
@@ -257,7 +255,7 @@ def add_parser(sub) -> None:
         help="a cost weight (repeatable): resultant_ms, resultant_peak, grip, sync, effort, peak_temperature "
         "(defaults in docs/tuning.md)",
     )
-    p.add_argument("--gains", default=None, help="start from this gains JSON (default: built-in)")
+    add_gains_argument(p, "start from this gains file (default: the model's own)")
     add_model_argument(p)
     add_distributed_arguments(p)
     p.add_argument("--out", default="results/tune", help="output folder (results/tune)")

@@ -64,8 +64,19 @@ USED = {
 }
 
 
-def default_gains() -> Gains:
-    """The gains of the paper comparison (docs/controller.md says why these)."""
+def default_gains(model=None) -> Gains:
+    """The default gains of ``model``: the paper comparison's for the paper model
+    or None (docs/controller.md says why these); for a robot file's model, the
+    same with the normal-axis mass each arm's pad needs at the grasp
+    (:func:`stable_defaults`). Every command and library job takes a model's
+    defaults from here.
+
+    Example:
+      >>> float(default_gains().imp_mass[0, 2])
+      2.0
+    """
+    if model is not None and getattr(model, "robot", None) is not None:
+        return stable_defaults(pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
     # Pad frame: x, y tangential, z along the normal. Soft along the normal
     # (the grip force is regulated through it), stiff tangentially and in
     # rotation so the grasp keeps its geometry while the object is carried.
@@ -145,15 +156,6 @@ def stable_defaults(apparent_inertia, dt: float, base: Gains | None = None) -> G
     obj_mass = np.array(g.obj_mass, dtype=float)
     obj_mass[NORMAL] = max(obj_mass[NORMAL], 2 * float(mass[:, NORMAL].max()))
     return strongly_typed(g._replace(imp_mass=mass, obj_mass=obj_mass))
-
-
-def default_gains_for(model) -> Gains:
-    """The default gains for a loaded model: the paper model's as they are
-    (``default_gains``); a robot file's with the normal-axis mass each arm's
-    pad needs at the grasp (``stable_defaults``)."""
-    if getattr(model, "robot", None) is None:
-        return default_gains()
-    return stable_defaults(pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
 
 
 def strongly_typed(g):

@@ -262,7 +262,7 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
         perm = _signed_permutation(R, f"{name} arm")
         cog = R_tip.T @ (d.xipos[ee] - d.xpos[tip_id])
         if robot is not None:
-            joints, links = tuple(robot["joint_names"][name]), robot["links"][name]
+            joints, links = tuple(robot.joint_names[name]), robot.links[name]
             base, tip = links["base"], links["tip"]
         else:
             jids = arm_joint_ids(m, side)

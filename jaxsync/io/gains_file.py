@@ -19,6 +19,7 @@ from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
 from jaxsync.io import export as _export
+from jaxsync.physics import model as _model
 
 
 def load(path: str | os.PathLike):
@@ -61,6 +62,40 @@ def controller_of(path: str | os.PathLike) -> str | None:
     except (OSError, json.JSONDecodeError):
         return None
     return data.get("controller") if isinstance(data, dict) else None
+
+
+def model_of(path: str | os.PathLike) -> dict | None:
+    """The model a gains file was tuned on (``jaxsync tune`` records it beside the
+    gains: ``jaxsync.physics.model.identity``), None when the file does not say."""
+    if os.path.isdir(path) or not str(path).endswith(".json"):
+        return None
+    try:
+        with open(path) as f:
+            data = json.load(f)
+    except (OSError, json.JSONDecodeError):
+        return None
+    recorded = data.get("model") if isinstance(data, dict) else None
+    return recorded if isinstance(recorded, dict) else None
+
+
+def check_model(path: str | os.PathLike, model, any_model: bool = False) -> None:
+    """Refuse gains tuned on another model than ``model`` (by its fingerprint: an
+    edited robot file is another robot), naming both; ``any_model`` lets them through."""
+    recorded = model_of(path)
+    if any_model or _model.same_model(recorded, model):
+        return
+    here = _model.describe_identity(_model.identity(model))
+    raise ConfigError(
+        f"gains file {path} was tuned on {_model.describe_identity(recorded)}, not on {here}: "
+        f"load that model ({recorded.get('file')}: --robot for a robot file, --model for an MJCF), or pass "
+        "--any-model to use the gains anyway"
+    )
+
+
+def load_for(path: str | os.PathLike, model, any_model: bool = False):
+    """:func:`load`, refusing gains tuned on another model (:func:`check_model`)."""
+    check_model(path, model, any_model)
+    return load(path)
 
 
 def load_constant(path: str | os.PathLike, command: str) -> Gains:

@@ -14,7 +14,9 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.io import results as _results
 from jaxsync.io.video import _draw_text, save_png, side_by_side, write_video
+from jaxsync.physics.model import identity
 from jaxsync.runtime.gl import RenderUnavailableError, select_gl_backend
 
 __all__ = [
@@ -295,3 +297,25 @@ def render_trajectory(
     if progress is not None:
         progress(len(frames), len(idx))
     return frames
+
+
+def render_keyframe(model, keyframe: str, out: str, width: int = 960, height: int = 720) -> list[str]:
+    """``jaxsync render``'s job: ``model`` (a :class:`~jaxsync.physics.model.DualArmModel`)
+    in ``keyframe``'s pose as ``out/<keyframe>.png``, and ``out/render.json``
+    recording which model it drew and its object; returns both paths."""
+    image = render_pose(model.mj_model, model.keyframe_qpos(keyframe), width, height)
+    _results.ensure_writable_dir(out)  # the input is checked: only now the folder
+    png = save_png(image, os.path.join(out, f"{keyframe}.png"))
+    m, index = model.mj_model, model.index
+    doc = {
+        "model": identity(model),
+        "keyframe": keyframe,
+        "size_px": [int(width), int(height)],
+        "object": {
+            "mass_kg": float(m.body_subtreemass[index.object_body]),
+            "radius_m": float(m.geom_size[index.object_geom][0]),
+        },
+    }
+    record = os.path.join(out, "render.json")
+    _results.write_json(record, doc)
+    return [png, record]

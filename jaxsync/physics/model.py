@@ -7,6 +7,7 @@ code only ever sees the integer ids gathered in :class:`ModelIndex`.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib.resources
 import os
 from typing import Literal
@@ -223,15 +224,72 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
+class RobotScene:
+    """What composing a robot file gave: the robot, its arms and its task.
+
+    ``joint_names``, ``links`` and ``torque_limits`` are keyed by arm side
+    (``"right"``, ``"left"``); the joint names are the robot's own, in the
+    order of jaxsync's ``r_joint1...`` (``l_joint1...``); ``links`` names each
+    arm's base, flange and tip link in the robot's MJCF. ``poses`` is the
+    solved grasp and approach (``jaxsync.physics.ik``), ``to_task`` the
+    rotation ``R`` and translation ``t`` from the robot's world to the task
+    frame, ``spec`` the composed ``MjSpec``, ``fingerprint`` a SHA-256 of the
+    composed scene (the robot file, every MJCF it reads and jaxsync's
+    additions): what a result or checkpoint records to say which robot it is.
+    """
+
+    name: str
+    file: str
+    joint_names: dict
+    links: dict
+    torque_limits: dict
+    object_mass: float
+    object_radius: float
+    notes: tuple
+    poses: dict
+    to_task: dict
+    spec: object = dataclasses.field(repr=False)
+    fingerprint: str = ""
+
+    def summary(self) -> dict:
+        """What composing the robot file decided, as plain data (no MjSpec)."""
+        poses = self.poses
+        return {
+            "name": self.name,
+            "file": self.file,
+            "fingerprint": self.fingerprint,
+            "joints": {arm: list(v) for arm, v in self.joint_names.items()},
+            "torque_limits_Nm": {arm: list(v) for arm, v in self.torque_limits.items()},
+            "object": {"mass_kg": self.object_mass, "radius_m": self.object_radius},
+            "grasp_manipulability": {arm: poses[arm]["manipulability"] for arm in poses},
+            "grasp_static_torque_share_max": {arm: max(poses[arm]["static_torque_share"]) for arm in poses},
+            "notes": list(self.notes),
+        }
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class DualArmModel:
-    """The compiled model: MuJoCo C, its MJX copy and the static ids."""
+    """The compiled model: MuJoCo C, its MJX copy and the static ids.
+
+    ``robot`` is what a robot file composed (:class:`RobotScene`), None for an
+    MJCF in jaxsync's convention (the paper model). ``fingerprint`` says which
+    model it is: the composed scene's for a robot, the MJCF file's bytes
+    otherwise. The model's default gains and scenario come from
+    ``jaxsync.default_gains(model)`` and ``jaxsync.default_scenario(model)``.
+    """
 
     path: str
     solver: str
     mj_model: mujoco.MjModel
     mjx_model: mjx.Model
     index: ModelIndex
-    robot: dict | None = None  # a robot file's composition: joint names, limits, notes, poses (load_model)
+    robot: RobotScene | None = None
+    fingerprint: str = ""
+
+    @property
+    def name(self) -> str:
+        """The robot's name, or the MJCF file's."""
+        return self.robot.name if self.robot is not None else os.path.splitext(os.path.basename(self.path))[0]
 
     @property
     def solver_unroll(self) -> int:
@@ -254,11 +312,6 @@ def load_mj_model(path: str | os.PathLike | None = None, solver: str = "accurate
 
 
 def _check_solver(solver: str) -> None:
-    if solver == "differentiable":
-        raise ConfigError(
-            "solver 'differentiable' is gone: the 'accurate' solver is differentiable (implicit adjoint of its "
-            "converged solve) and is the one to use; 'unrolled' (one-iteration solves) is a reference"
-        )
     if solver not in SOLVERS:
         raise ConfigError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
 
@@ -270,7 +323,7 @@ def _with_solver(m: mujoco.MjModel, solver: str) -> mujoco.MjModel:
     return m
 
 
-def _compile_model(path: str, visual: bool) -> tuple[mujoco.MjModel, dict | None]:
+def _compile_model(path: str, visual: bool) -> tuple[mujoco.MjModel, RobotScene | None]:
     """An MJCF file in jaxsync's convention, or a robot file's composed scene (and its report)."""
     if not os.path.isfile(path):
         raise ModelFileError(f"{path}: no such {'robot' if is_robot_file(path) else 'MJCF'} file")
@@ -288,9 +341,10 @@ def _compile_model(path: str, visual: bool) -> tuple[mujoco.MjModel, dict | None
     return m, None
 
 
-def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, dict]:
+def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, RobotScene]:
     """A robot file's task scene (``jaxsync.physics.compose``) with its grasp and
-    approach keyframes solved (``jaxsync.physics.ik``), compiled; and a report."""
+    approach keyframes solved (``jaxsync.physics.ik``), compiled; and what
+    composing it gave (:class:`RobotScene`)."""
     robot = load_robot(path)
     composed = _compose.compose(robot, visual=visual)
     m = composed.spec.compile()
@@ -300,20 +354,21 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, dict]
         robot.object_mass, path, floor_z=float(composed.to_task[1][2]),
     )  # fmt: skip
     m = composed.spec.compile()
-    report = {
-        "robot": robot.name,
-        "robot_file": robot.path,
-        "joint_names": composed.joint_names,
-        "links": composed.links,
-        "torque_limits": composed.torque_limits,
-        "object_radius": robot.object_radius,
-        "object_mass": robot.object_mass,
-        "notes": composed.notes,
-        "poses": poses,
-        "to_task": {"R": composed.to_task[0].tolist(), "t": composed.to_task[1].tolist()},
-        "spec": composed.spec,
-    }
-    return m, report
+    scene = RobotScene(
+        name=robot.name,
+        file=robot.path,
+        joint_names=composed.joint_names,
+        links=composed.links,
+        torque_limits=composed.torque_limits,
+        object_mass=float(robot.object_mass),
+        object_radius=float(robot.object_radius),
+        notes=tuple(composed.notes),
+        poses=poses,
+        to_task={"R": composed.to_task[0].tolist(), "t": composed.to_task[1].tolist()},
+        spec=composed.spec,
+        fingerprint=hashlib.sha256(composed.spec.to_xml().encode()).hexdigest(),
+    )
+    return m, scene
 
 
 def load_model(path: str | os.PathLike | None = None, solver: str = "accurate", *, visual: bool = True) -> DualArmModel:
@@ -342,7 +397,31 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate", 
     patches.mjx_elliptic_gradient()
     mx = mjx.put_model(m, device=_physics.local_device(), impl="jax")
     index = _build_index(m, mx, path)
-    return DualArmModel(path=path, solver=solver, mj_model=m, mjx_model=mx, index=index, robot=report)
+    if report is not None:
+        fingerprint = report.fingerprint
+    else:
+        with open(path, "rb") as f:
+            fingerprint = hashlib.sha256(f.read()).hexdigest()
+    return DualArmModel(
+        path=path, solver=solver, mj_model=m, mjx_model=mx, index=index, robot=report, fingerprint=fingerprint
+    )
+
+
+def identity(model: DualArmModel) -> dict:
+    """Which model this is, as results, gains files and checkpoints record it:
+    its name, its file (a robot file, or the MJCF) and its fingerprint."""
+    return {"name": model.name, "file": model.path, "fingerprint": model.fingerprint}
+
+
+def same_model(recorded: dict | None, model: DualArmModel) -> bool:
+    """Whether ``recorded`` (an :func:`identity`) names ``model``: the same
+    fingerprint. None (a file that records no model) cannot be checked and passes."""
+    return not recorded or recorded.get("fingerprint") == model.fingerprint
+
+
+def describe_identity(recorded: dict) -> str:
+    """``recorded`` (an :func:`identity`) in words, for messages."""
+    return f"'{recorded.get('name')}' ({recorded.get('file')}, fingerprint {str(recorded.get('fingerprint'))[:12]})"
 
 
 def summary(model: DualArmModel) -> dict:
@@ -374,19 +453,6 @@ def summary(model: DualArmModel) -> dict:
         "solver": f"{mujoco.mjtSolver(m.opt.solver).name} ({model.solver}: iterations={m.opt.iterations}, "
         f"ls_iterations={m.opt.ls_iterations})",
         "cone": mujoco.mjtCone(m.opt.cone).name,
-        **({"robot": robot_summary(model.robot)} if model.robot is not None else {}),
-    }
-
-
-def robot_summary(report: dict) -> dict:
-    """What composing a robot file decided, as plain data (no MjSpec)."""
-    poses = report["poses"]
-    return {
-        "name": report["robot"],
-        "file": report["robot_file"],
-        "joints": {arm: list(v) for arm, v in report["joint_names"].items()},
-        "torque_limits_Nm": {arm: list(v) for arm, v in report["torque_limits"].items()},
-        "grasp_manipulability": {arm: poses[arm]["manipulability"] for arm in poses},
-        "grasp_static_torque_share_max": {arm: max(poses[arm]["static_torque_share"]) for arm in poses},
-        "notes": list(report["notes"]),
+        "fingerprint": model.fingerprint,
+        **({"robot": model.robot.summary()} if model.robot is not None else {}),
     }

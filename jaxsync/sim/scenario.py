@@ -58,8 +58,26 @@ class Scenario(NamedTuple):
     noise_key: jax.Array
 
 
-def default_scenario(**overrides) -> Scenario:
-    """The paper comparison's task (docs/scenario.md explains each choice)."""
+def model_object(model) -> dict:
+    """The scenario fields a model brings: a robot file's object (its mass, which
+    the controller also assumes unless a ``mass_estimate`` is given, and its
+    radius); none for the paper model, whose object is the default scenario's."""
+    robot = getattr(model, "robot", None)
+    if robot is None:
+        return {}
+    return {"object_mass": float(robot.object_mass), "object_radius": float(robot.object_radius)}
+
+
+def default_scenario(model=None, /, **overrides) -> Scenario:
+    """The paper comparison's task (docs/scenario.md explains each choice), with
+    ``model``'s object (:func:`model_object`) and then ``overrides``. Every
+    command and library job takes a model's task from here.
+
+    Example:
+      >>> float(default_scenario(grip_force=12.0).grip_force)
+      12.0
+    """
+    overrides = {**model_object(model), **overrides}
     values = dict(
         object_mass=0.5,
         mass_estimate=None,
@@ -91,7 +109,7 @@ def default_scenario(**overrides) -> Scenario:
     return validate(Scenario(**arrays))
 
 
-def short_task(**overrides) -> Scenario:
+def short_task(model=None, /, **overrides) -> Scenario:
     """The default task compressed into 2 s (close 0.3 s, squeeze 0.4 s, lift
     0.5 s, hold from 1.2 s, metrics from 1.5 s): the short horizon that the
     tuner's ``--task short``, the benchmark's gradient and the tests roll out
@@ -107,7 +125,12 @@ def short_task(**overrides) -> Scenario:
     """
     values = dict(t_close=0.3, t_squeeze=0.4, t_carry=0.5, settle_time=0.3, lift=[0.02, 0.0, 0.05])
     values.update(overrides)
-    return default_scenario(**values)
+    return default_scenario(model, **values)
+
+
+def to_dict(s: Scenario) -> dict:
+    """A scenario as plain lists (what a result file records of the scenario base it ran)."""
+    return {k: np.asarray(v).tolist() for k, v in s._asdict().items()}
 
 
 def validate(s: Scenario) -> Scenario:

@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable, Sequence
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.benchmarks.benchmark_children import (
     cold_compile_with_xla_flags,
@@ -54,7 +55,8 @@ from jaxsync.optimize.benchmarks.benchmark_measure import (
     mujoco_c_throughput,
     paired_forward_and_gradient,
 )
-from jaxsync.physics.model import load_model
+from jaxsync.physics.model import identity, load_model
+from jaxsync.sim import scenario as _scenario
 
 TARGETS = {
     "mjx_over_mujoco_c": (">=", 3.0),
@@ -217,6 +219,10 @@ def run(
     implicit = path_figures("implicit")
     result = {
         "model": source or "paper model",
+        # what ran: the model's identity, its default gains and scenario (a robot file's raised gains and object)
+        "model_identity": identity(model),
+        "gains": _gains.to_dict(_gains.default_gains(model)),
+        "scenario_base": _scenario.to_dict(_scenario.default_scenario(model)),
         "mjx_env_steps_per_s": mjx["rates"],
         "mjx_best_batch": int(best_b),
         "mujoco_c_env_steps_per_s": mjc["rate"],

@@ -28,7 +28,7 @@ import jaxlib
 import mujoco
 import numpy as np
 
-from jaxsync.control.gains import default_gains_for
+from jaxsync.control.gains import default_gains
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
@@ -82,11 +82,6 @@ def _timeit(f, repeats: int) -> float:
     return best
 
 
-def _robot_scenario(model):
-    """The default scenario with a robot file's object (the paper model's as it is)."""
-    return default_scenario(**dict(model_overrides(model)))
-
-
 def _on(source: str | None) -> str:
     return f" on {os.path.basename(source)}" if source else ""
 
@@ -114,10 +109,10 @@ def mjx_throughput(model, batch_sizes, duration: float, repeats: int, log) -> di
 
     ev = jax.jit(jax.vmap(one, in_axes=(None, 0)))
     limit = cpu_vmap_limit()
-    g = default_gains_for(model)
+    g = default_gains(model)
     out, compile_s, how = {}, {}, {}
     for b in batch_sizes:
-        s = jax.tree_util.tree_map(jnp.asarray, _scenarios(_robot_scenario(model), b))
+        s = jax.tree_util.tree_map(jnp.asarray, _scenarios(default_scenario(model), b))
         f, how[str(b)] = ev, f"vmap {b}"
         if limit and b > limit:
             f = jax.jit(lambda g, s: jax.lax.map(lambda s1: one(g, s1), s, batch_size=limit))
@@ -141,7 +136,7 @@ def mujoco_c_throughput(model, duration: float, log) -> dict:
     first), so the steady rate is taken from the difference of a short and a
     long rollout; the raw rate of the long call is reported too.
     """
-    g, s = default_gains_for(model), _robot_scenario(model)
+    g, s = default_gains(model), default_scenario(model)
     short = min(0.02, duration / 2)
     jax.block_until_ready(rollout(model, g, s, backend="mujoco", duration=short))  # compile, warm the cache
     t0 = time.perf_counter()
@@ -192,7 +187,7 @@ def tuning_loss(
     model = load(path, source, visual)
     over["scenario"] = model_overrides(model)
     cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
-    base, spec = default_gains_for(model), TuneSpec()
+    base, spec = default_gains(model), TuneSpec()
     loss = make_loss(model, spec, base, cfg, CostWeights())
     scen_base, dur = training_base(cfg)
     scen = sample_scenarios(jax.random.key(0), batch, scen_base)

@@ -18,6 +18,7 @@ from jaxsync.io import results as _results
 from jaxsync.optimize.studies.compare_video import compare_video
 from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.physics.model import identity
 from jaxsync.runtime.cache import compile_watch
 from jaxsync.runtime.gl import select_gl_backend
 from jaxsync.sim import crosscheck as _crosscheck
@@ -208,7 +209,15 @@ def torque_limits(model) -> np.ndarray:
 
 
 def write_results(
-    out: str, results: dict, scenario, gains, options: dict, wall_time_s: float, limits=None, stiffness=None
+    out: str,
+    results: dict,
+    scenario,
+    gains,
+    options: dict,
+    wall_time_s: float,
+    limits=None,
+    stiffness=None,
+    model: dict | None = None,
 ) -> dict:
     """summary.json, series.csv and each controller's force plot; returns the summary. With
     ``limits`` ((2, n), N m) each controller's share of steps at a torque limit, per arm;
@@ -248,8 +257,10 @@ def write_results(
         held = not any(drop_time(summary[n]) is not None for n in (names[0], name))
         summary["resultant_ratios"][name] = (c / s) if held and s and s > 0 else None
     summary["resultant_ratio"] = summary["resultant_ratios"][names[1]]  # the first two's (the paper's pair)
-    summary["scenario"] = {k: np.asarray(v).tolist() for k, v in scenario._asdict().items()}
+    summary["scenario"] = _scenario.to_dict(scenario)
     summary["gains"] = _schedule.to_file_dict(gains)  # constant gains by name, or {"schedule": ...}
+    if model is not None:
+        summary["model"] = model  # which model ran: jaxsync.physics.model.identity
     summary["options"] = options
     summary["wall_time_s"] = wall_time_s
     _results.write_csv(os.path.join(out, "series.csv"), columns)
@@ -298,15 +309,24 @@ def paper_comparison(
         time.perf_counter() - t0,
         limits=torque_limits(model),
         stiffness=stiffness,
+        model=identity(model),
     )
     files = ["summary.json", "series.csv"] + [f"forces_{n}.png" for n in controllers]
     if video_speed is not None:
         files.append(os.path.basename(compare_video(model, results, scenario, out, speed=video_speed, log=log)))
     if mujoco_check:
-        cfg = TuneConfig()  # jaxsync tune's held-out scenarios and evaluation horizon
+        # jaxsync tune's held-out scenarios (with the model's object) and evaluation horizon
+        cfg = TuneConfig(scenario=_scenarios.model_overrides(model))
         held = _scenarios.heldout_scenarios(cfg)
         summary["sim_to_sim"] = _crosscheck.sim_to_sim(
-            model, gains, default_gains(), held, cfg.eval_duration, n=mujoco_check, log=log, controller=controllers[-1]
+            model,
+            gains,
+            default_gains(model),
+            held,
+            cfg.eval_duration,
+            n=mujoco_check,
+            log=log,
+            controller=controllers[-1],
         )
         _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary, files

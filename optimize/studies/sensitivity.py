@@ -33,7 +33,9 @@ from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning.cost import smooth_metrics
 from jaxsync.optimize.tuning.scenarios import sample_scenarios
+from jaxsync.physics.model import identity
 from jaxsync.runtime import programs
+from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.rollout import make_rollout
 from jaxsync.sim.scenario import min_duration
 
@@ -193,7 +195,18 @@ def plot(s: Sensitivity, path: str, title: str = "") -> None:
     plt.close(fig)
 
 
-def write_results(out: str, s: Sensitivity, gains, *, batch: int, seed: int, duration: float, seconds: float) -> list:
+def write_results(
+    out: str,
+    s: Sensitivity,
+    gains,
+    *,
+    batch: int,
+    seed: int,
+    duration: float,
+    seconds: float,
+    scenario=None,
+    model: dict | None = None,
+) -> list:
     """``sensitivity.csv`` (a row per gain entry), ``sensitivity.json`` (the
     same with the metrics and the run's settings) and ``sensitivity.png``;
     returns the file names."""
@@ -207,6 +220,8 @@ def write_results(out: str, s: Sensitivity, gains, *, batch: int, seed: int, dur
             "elasticity": "d log metric / d log gain; for k_rk, k_lk, k_rl, k_ll: d log metric / d k",
             "metric_forms": "smooth forms of the tuning cost (tuning/cost.py smooth_metrics), mean over scenarios",
             "gains": _gains.to_dict(gains),
+            "scenario_base": _scenario.to_dict(scenario) if scenario is not None else None,
+            "model": model,
             "batch": batch,
             "seed": seed,
             "duration_s": duration,
@@ -252,5 +267,8 @@ def study(
     )
     t0 = time.perf_counter()
     s = sensitivity(model, gains, scen, duration, controller=controller)
-    write_results(out, s, gains, batch=batch, seed=seed, duration=duration, seconds=time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    write_results(
+        out, s, gains, batch=batch, seed=seed, duration=duration, seconds=seconds, scenario=base, model=identity(model)
+    )
     return s

@@ -158,7 +158,7 @@ def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
     file does not hold counts at its default)."""
     held = {**StudyConfig().describe(), **ABSENT_MEANS, **(saved.get("config") or {})}
     diff = [k for k, v in cfg.describe().items() if held.get(k) != v]
-    return diff + (["model"] if saved.get("model") != model_name else [])
+    return diff + ([f"model: {saved.get('model')} then, {model_name} now"] if saved.get("model") != model_name else [])
 
 
 def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
@@ -171,7 +171,7 @@ def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
         with open(path) as f:
             return json.load(f)
     tcfg = cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None)
-    base = _gains.default_gains_for(model)
+    base = _gains.default_gains(model)
     evaluate = _loss.make_evaluator(model, cfg.eval_duration, REFERENCE_CONTROLLER)
     log(f"compliance reference: default {REFERENCE_CONTROLLER} on {cfg.validation_batch} validation scenarios...")
     ev = _loss.eval_summary(evaluate(base, _scenarios.validation_scenarios(tcfg)))
@@ -196,7 +196,7 @@ def bounds_for(reference: dict, factor: float) -> dict:
 def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
     """Every controller (and the reference) at its default gains on the held-out set, kept on disk."""
     held = _scenarios.heldout_scenarios(cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None))
-    base = _gains.default_gains_for(model)
+    base = _gains.default_gains(model)
     out_dir = os.path.join(out, "defaults")
     os.makedirs(out_dir, exist_ok=True)
     found = {}
@@ -234,7 +234,8 @@ def run_study(
     looked at while another process runs it, or after it was stopped."""
     cfg = dataclasses.replace(cfg, scenario=tuple(cfg.scenario) or _scenarios.model_overrides(model)).validate()
     _results.ensure_writable_dir(out)
-    model_name = model.path if model.robot is None else f"{model.path} (robot file)"
+    # the model by name and fingerprint: a robot file edited since is another robot
+    model_name = f"{model.name} ({model.path}, fingerprint {model.fingerprint[:12]})"
     t_start = time.perf_counter()
     if report_only:
         if not os.path.exists(os.path.join(out, STUDY_FILE)):
@@ -249,7 +250,7 @@ def run_study(
             f"{reference['first_impact_peak_N']:.3g} N, apparent normal stiffness "
             f"{reference['apparent_stiffness_normal_N_per_m']:.4g} N/m; bounds x {', '.join(map(str, cfg.bounds))}"
         )
-        base = _gains.default_gains_for(model)
+        base = _gains.default_gains(model)
         jobs = [(c, b, s) for b in cfg.bounds for c in cfg.controllers for s in cfg.seeds]
         runs, took = {}, []
         for k, (controller, factor, seed) in enumerate(jobs):

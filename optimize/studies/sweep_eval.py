@@ -11,7 +11,6 @@ XLA's memory analysis of the compiled chunk stays within the memory budget.
 
 from __future__ import annotations
 
-import functools
 import time
 
 import jax
@@ -21,9 +20,8 @@ from jax.sharding import PartitionSpec as P
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
-from jaxsync.optimize.studies.sweep_plan import Plan
+from jaxsync.optimize.studies.sweep_plan import Plan, loaded_model
 from jaxsync.optimize.studies.sweep_spec import build_batch
-from jaxsync.physics.model import load_model
 from jaxsync.runtime import programs
 from jaxsync.sim.metrics import summarize
 from jaxsync.sim.rollout import cpu_vmap_limit, make_rollout
@@ -34,10 +32,7 @@ DEFAULT_CHUNK_PER_DEVICE = {"cpu": 32}  # other platforms (GPU, TPU): 1024 per d
 GIB = 1024.0**3
 
 
-@functools.lru_cache(maxsize=4)  # a loaded model, not a program: clear() keeps it
-def _model(solver: str, model: str | None = None, visual: bool = True):
-
-    return load_model(model, solver=solver, visual=visual)
+_model = loaded_model
 
 
 def _mesh():

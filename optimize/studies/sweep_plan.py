@@ -7,6 +7,7 @@ plan continues with ``--resume``, a different one needs ``--restart``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -26,10 +27,17 @@ from jaxsync.optimize.studies.sweep_spec import (
     parse_param,
     validate_values,
 )
+from jaxsync.physics.model import identity, load_model
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.scenario import Scenario, min_duration
 
 PLAN_VERSION = 1
+
+
+@functools.lru_cache(maxsize=4)  # a loaded model, not a program: clear() keeps it
+def loaded_model(solver: str, model: str | None = None, visual: bool = True):
+    """The sweep's model (the plan's defaults come from it, the evaluation runs it), loaded once."""
+    return load_model(model, solver=solver, visual=visual)
 
 
 @dataclasses.dataclass
@@ -46,6 +54,7 @@ class Plan:
     x64: bool
     model: str | None = None  # an MJCF or robot file; None: the paper model
     visual: bool = True  # a robot's meshes loaded (False: --no-visual)
+    model_identity: dict | None = None  # jaxsync.physics.model.identity of the model loaded
 
     @property
     def spec(self) -> dict:
@@ -61,6 +70,8 @@ class Plan:
             "model": self.model,
             "x64": self.x64,
             "base_gains": _gains.to_dict(self.base_gains),
+            "base_scenario": _scenario.to_dict(self.base_scenario),
+            "model_identity": self.model_identity,
             "n_points": len(self.points),
             "points_sha256": hashlib.sha256(np.ascontiguousarray(self.points).tobytes()).hexdigest(),
         }
@@ -104,8 +115,10 @@ def make_plan(
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ConfigError(f"parameter(s) {dup} given more than once")
-    base_gains = base_gains if base_gains is not None else _gains.default_gains()
-    base_scenario = base_scenario if base_scenario is not None else _scenario.default_scenario()
+    # the model's own defaults (a robot file's raised gains and its object), and which model it is
+    loaded = loaded_model(solver, model, visual)
+    base_gains = base_gains if base_gains is not None else _gains.default_gains(loaded)
+    base_scenario = base_scenario if base_scenario is not None else _scenario.default_scenario(loaded)
     check_overlaps(params, base_gains, base_scenario)
     validate_values(params, base_gains, base_scenario)
     points = make_points(params, samples, seed)
@@ -133,4 +146,5 @@ def make_plan(
         bool(jax.config.jax_enable_x64),
         model,
         visual,
+        identity(loaded),
     )

@@ -10,7 +10,6 @@ traced form on disk between runs. :func:`make_evaluator` and
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 
 import jax
 import jax.numpy as jnp
@@ -160,10 +159,8 @@ def eval_summary(m) -> dict:
 def traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
     """jit(value_and_grad(loss)), its traced form kept on disk between runs
     (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
-    with open(model.path, "rb") as f:
-        model_hash = hashlib.sha256(f.read()).hexdigest()
-    if model.robot is not None:  # a robot file: what it composes (its arm files, jaxsync's additions) counts too
-        model_hash += hashlib.sha256(model.robot["spec"].to_xml().encode()).hexdigest()
+    # the MJCF file's bytes, or for a robot file what it composes (its arm files, jaxsync's additions)
+    model_hash = model.fingerprint
     program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
     key = repr(
         (

@@ -11,6 +11,7 @@ them on MuJoCo C, and writes the run's folder: ``gains.json`` (selected),
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import time
@@ -29,9 +30,10 @@ from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.params import TuneSpec, check_tuned
 from jaxsync.optimize.tuning.tune_report import plot_loss
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT, prepare_out
-from jaxsync.physics.model import DualArmModel
+from jaxsync.physics.model import DualArmModel, identity
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.sim import crosscheck as _crosscheck
+from jaxsync.sim import scenario as _scenario
 
 HELDOUT_BEFORE = "heldout_before.json"
 MUJOCO_CHECK_SCENARIOS = 4
@@ -108,6 +110,8 @@ def tune_and_evaluate(
       >>> summary["heldout_settled_peak_resultant_N_after"]  # doctest: +SKIP
     """
     weights = weights if weights is not None else CostWeights()
+    if not cfg.scenario:  # the model's own object (a robot file's): every scenario's base
+        cfg = dataclasses.replace(cfg, scenario=_scenarios.model_overrides(model))
     cfg.validate()
     check_tuned(spec.tuned, cfg.controller)
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
@@ -195,7 +199,8 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         cfg,
         out=out,
         resume=resume,
-        fingerprint={**(fingerprint or {}), "controller": cfg.controller},  # a checkpoint records its controller
+        # a checkpoint records its controller and its model: an edited robot file is another robot
+        fingerprint={**(fingerprint or {}), "controller": cfg.controller, "model": _identity_text(model)},
         validate=validate if cfg.validate_every else None,
         weights=weights,
     )
@@ -213,7 +218,8 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         which["within_bounds"] = within_bounds(which, cfg)
     described = spec.describe()
     for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):
-        doc = {"gains": _schedule.to_file_dict(g), "controller": cfg.controller, "tune": described}
+        doc = {"gains": _schedule.to_file_dict(g), "controller": cfg.controller, "model": identity(model)}
+        doc["tune"] = described
         _results.write_json(os.path.join(out, name), doc)
     check = None
     if mujoco_check:
@@ -238,6 +244,9 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         plot_loss(history, os.path.join(out, "loss.png"), result.validation, selected)
     summary = {
         "controller": cfg.controller,
+        "model": identity(model),
+        "gains_start": _schedule.to_file_dict(base),
+        "scenario_base": _scenario.to_dict(_scenario.default_scenario(**dict(cfg.scenario))),
         "bounds": {"max_impact_N": cfg.max_impact_N, "max_stiffness_N_per_m": cfg.max_stiffness_N_per_m},
         "initial_cost": history[0]["cost"] if history else None,
         "final_cost": history[-1]["cost"] if history else None,
@@ -261,3 +270,8 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     _results.write_json(os.path.join(out, "summary.json"), summary)
     _distributed.barrier("tune: results written")
     return summary
+
+
+def _identity_text(model) -> str:
+    """A model as a resumed run's fingerprint names it: its name and fingerprint."""
+    return f"{model.name} ({model.path}, fingerprint {model.fingerprint[:12]})"

@@ -101,10 +101,11 @@ def validation_scenarios(cfg) -> _scenario.Scenario:
 
 
 def model_overrides(model) -> tuple:
-    """The scenario overrides a model brings: a robot file's object (its mass,
-    which the controller then also assumes, and its radius); none for the paper model."""
-    robot = getattr(model, "robot", None)
-    if robot is None:
+    """A tuning configuration's ``scenario`` for ``model``: its object
+    (``jaxsync.sim.scenario.model_object``), which the controller also assumes;
+    none for the paper model."""
+    obj = _scenario.model_object(model)
+    if not obj:
         return ()
-    m, r = float(robot["object_mass"]), float(robot["object_radius"])
+    m, r = obj["object_mass"], obj["object_radius"]
     return (("object_mass", m), ("mass_estimate", m), ("object_radius", r))
