@@ -108,7 +108,7 @@ def test_every_robot_command_runs_the_robots_gains_and_object(robot, robot_file,
 
     out = tmp_path / "sweep"
     assert main(["sweep", *r, "--param", "k_rk=0.5", "--duration", "3.5", "--out", str(out)]) == 0
-    plan = json.loads((out / "plan.json").read_text())
+    plan = json.loads((out / "plan.json").read_text())["spec"]
     assert _same_gains(plan["base_gains"], robot) and _object_of(plan["base_scenario"]) == (MASS, RADIUS)
     assert plan["model_identity"] == ident
 
