@@ -75,33 +75,31 @@ __version__ = "0.1.0"
 
 # The tuning and sweep API lives in jaxsync.optimize, which imports the
 # library: it is loaded on first use, so ``import jaxsync`` stays light and
-# free of import cycles.
+# free of import cycles. Each public name: (module, attribute).
 _OPTIMIZE = {
-    "tune": "jaxsync.optimize.tuning.tune",
-    "TuneConfig": "jaxsync.optimize.tuning.tune",
-    "TuneResult": "jaxsync.optimize.tuning.tune",
-    "make_loss": "jaxsync.optimize.tuning.loss",
-    "TuneSpec": "jaxsync.optimize.tuning.params",
-    "CostWeights": "jaxsync.optimize.tuning.cost",
-    "sample_scenarios": "jaxsync.optimize.tuning.scenarios",
-    "make_plan": "jaxsync.optimize.studies.sweep",
-    "StudyConfig": "jaxsync.optimize.studies.study",
-    "run_study": "jaxsync.optimize.studies.study",
+    "tune": ("jaxsync.optimize.tuning.tune", "tune"),
+    "TuneConfig": ("jaxsync.optimize.tuning.tune", "TuneConfig"),
+    "TuneResult": ("jaxsync.optimize.tuning.tune", "TuneResult"),
+    "make_loss": ("jaxsync.optimize.tuning.loss", "make_loss"),
+    "TuneSpec": ("jaxsync.optimize.tuning.params", "TuneSpec"),
+    "CostWeights": ("jaxsync.optimize.tuning.cost", "CostWeights"),
+    "sample_scenarios": ("jaxsync.optimize.tuning.scenarios", "sample_scenarios"),
+    "make_plan": ("jaxsync.optimize.studies.sweep", "make_plan"),
+    "run_sweep": ("jaxsync.optimize.studies.sweep", "run"),
+    "StudyConfig": ("jaxsync.optimize.studies.study", "StudyConfig"),
+    "run_study": ("jaxsync.optimize.studies.study", "run_study"),
 }
-_RENAMED = {"run_sweep": ("jaxsync.optimize.studies.sweep", "run")}
 
 
 def __getattr__(name: str):
     if name in _OPTIMIZE:
-        return getattr(_importlib.import_module(_OPTIMIZE[name]), name)
-    if name in _RENAMED:
-        module, attr = _RENAMED[name]
-        return getattr(_importlib.import_module(module), attr)
+        module, attribute = _OPTIMIZE[name]
+        return getattr(_importlib.import_module(module), attribute)
     raise AttributeError(f"module 'jaxsync' has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted(set(globals()) | set(_OPTIMIZE) | set(_RENAMED))
+    return sorted(set(globals()) | set(_OPTIMIZE))
 
 
 __all__ = [

@@ -140,7 +140,7 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     out the plain rollout: both only change the backward pass, and its tree
     passes (``passes="tree"``: the same formulas summed in another order) only
     the rounding: every field within 1e-11 of its largest value (measured:
-    7e-13 at most, the contact forces). Checked against the session's plain
+    7e-13 at most, the contact forces). Checked against the shared plain
     rollout of the test task (grasp, lift, hold)."""
     plain = rollouts["synchronous"]
     fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, passes="tree", truncate_every=100)

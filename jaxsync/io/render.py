@@ -32,6 +32,9 @@ __all__ = [
     "write_video",
 ]
 
+# The default view: a free camera in front of the robot, a little to its right
+# and above the object, aimed between the shoulders and the object. It shows
+# the torso, both arms, both pads and the clamped ball (which lands near the
 # image centre); the pads clamp along world y, across the image.
 DEFAULT_CAMERA = {"lookat": (0.45, 0.0, 1.05), "distance": 1.95, "azimuth": 150.0, "elevation": -15.0}
 

@@ -219,10 +219,11 @@ def after_control(m: mjx.Model, d: mjx.Data, ctrl: jax.Array, solver_unroll: int
 
     With ``m.opt.iterations > 1`` (jaxsync's one solver setting) the solve is
     MJX's converged Newton solve, differentiated implicitly
-    (:func:`solve_implicit`). With ``m.opt.iterations == 1`` (the legacy
-    "unrolled" setting, kept to compare against) the one-iteration solve runs
-    ``solver_unroll`` times, each warm-started from the last, and reverse
-    mode differentiates through the iterations.
+    (:func:`solve_implicit`). With ``m.opt.iterations == 1`` (the
+    "unrolled" setting: a reference path the benchmark and the gradient tests
+    compare against) the one-iteration solve runs ``solver_unroll`` times,
+    each warm-started from the last, and reverse mode differentiates through
+    the iterations.
     """
     d = d.replace(ctrl=ctrl)
     d = mjx.fwd_actuation(m, d)

@@ -6,7 +6,9 @@ MuJoCo loads the backend named by the ``MUJOCO_GL`` environment variable when
 ``mujoco`` is first imported, and a backend that is not installed (or a name
 it does not know) makes ``import mujoco`` itself fail. ``import jaxsync``
 therefore imports ``mujoco`` through :func:`import_mujoco`, which defers the
-OpenGL part to the first ``Renderer``: only rendering needs OpenGL.
+OpenGL part to the first ``Renderer``: only rendering needs OpenGL (a
+workaround that changes MuJoCo's private internals, so it lives in
+``jaxsync.runtime.patches``).
 :func:`select_gl_backend` chooses a backend that works (probing each in a
 subprocess, so a failing backend cannot break this process) and activates it
 for the next ``Renderer``. See docs/rendering.md.
@@ -20,6 +22,7 @@ import subprocess
 import sys
 
 from jaxsync._errors import JaxsyncError
+from jaxsync.runtime import patches
 
 # Tried in this order when MUJOCO_GL is not set: both work without a display.
 GL_BACKENDS = ("egl", "osmesa")
@@ -30,17 +33,12 @@ SYSTEM_PACKAGES = {
     "osmesa": ("libosmesa6",),
 }
 
-# The default view: a free camera in front of the robot, a little to its right
-# and above the object, aimed between the shoulders and the object. It shows
-# the torso, both arms, both pads and the clamped ball (which lands near the
-
 
 class RenderUnavailableError(JaxsyncError):
     """No OpenGL backend for offscreen rendering works on this machine."""
 
 
-# MUJOCO_GL values that turn MuJoCo's rendering off, and the module of each backend.
-_DISABLED = ("disable", "disabled", "off", "false", "0")
+# The mujoco module that holds each backend's GLContext.
 _BACKEND_MODULES = {"egl": "mujoco.egl", "osmesa": "mujoco.osmesa", "glfw": "mujoco.glfw"}
 
 
@@ -66,10 +64,8 @@ class _DeferredGLContext:
     and puts its GLContext in place."""
 
     def __new__(cls, *args, **kwargs):
-        gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
         real = importlib.import_module(_backend_module(os.environ.get("MUJOCO_GL", ""))).GLContext
-        gl_context.GLContext = real
-        sys.modules["mujoco"].GLContext = real
+        patches.mujoco_gl_context(real)
         return real(*args, **kwargs)
 
 
@@ -78,25 +74,9 @@ def import_mujoco():
     (a backend that is not installed, a name MuJoCo does not know), the import
     works, and the backend is loaded by the first ``mujoco.Renderer``
     (:class:`_DeferredGLContext`). If ``mujoco`` is already imported, nothing
-    changes. Returns the module."""
-    if "mujoco" in sys.modules:
-        return sys.modules["mujoco"]
-    requested = os.environ.get("MUJOCO_GL")
-    os.environ["MUJOCO_GL"] = "disable"
-    try:
-        import mujoco  # here, under MUJOCO_GL=disable: the point of this function
-    finally:
-        if requested is None:
-            del os.environ["MUJOCO_GL"]
-        else:
-            os.environ["MUJOCO_GL"] = requested
-    value = (requested or "").strip().lower()
-    gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
-    gl_context._MUJOCO_GL = value
-    if value not in _DISABLED:
-        gl_context.GLContext = _DeferredGLContext
-        mujoco.GLContext = _DeferredGLContext
-    return mujoco
+    changes (``jaxsync.runtime.patches.mujoco_deferred_gl``). Returns the module."""
+    patches.mujoco_deferred_gl(_DeferredGLContext)
+    return sys.modules["mujoco"]
 
 
 _selected_backend: str | None = None
@@ -145,11 +125,11 @@ def _activate(backend: str) -> None:
     os.environ["MUJOCO_GL"] = backend
     if "mujoco" not in sys.modules:
         return  # mujoco reads MUJOCO_GL when it is imported
-    gl_context = importlib.import_module("mujoco.rendering.classic.gl_context")
-    if getattr(gl_context, "GLContext", None) is _DeferredGLContext:
-        gl_context._MUJOCO_GL = backend
+    context, loaded = patches.mujoco_gl_loaded()
+    if context is _DeferredGLContext:
+        patches.mujoco_gl_context(mujoco_gl=backend)
         return  # the first Renderer loads it (import_mujoco)
-    if getattr(gl_context, "_MUJOCO_GL", None) == backend:
+    if loaded == backend:
         return  # mujoco was imported with this backend already
     if backend not in GL_BACKENDS:
         raise RenderUnavailableError(
@@ -165,7 +145,7 @@ def _activate(backend: str) -> None:
         module = importlib.import_module(f"mujoco.{backend}")
     except ImportError as err:
         raise RenderUnavailableError(f"cannot switch mujoco to MUJOCO_GL={backend}: {err}") from None
-    gl_context.GLContext = module.GLContext
+    patches.mujoco_gl_context(module.GLContext)
 
 
 def select_gl_backend() -> str:

@@ -8,6 +8,9 @@ functions that need a patch call it.
 
 - :func:`mjx_elliptic_gradient`: finite reverse-mode gradients through MJX's
   elliptic-cone solver (the unrolled solver's gradients need it);
+- :func:`mujoco_deferred_gl` and :func:`mujoco_gl_context`: ``import mujoco``
+  that a ``MUJOCO_GL`` which cannot load does not break, its OpenGL backend
+  loaded by the first ``mujoco.Renderer`` (``jaxsync.runtime.gl``);
 - :func:`stable_lowering`: a program's persistent-cache key that does not
   depend on what the process traced before it;
 - :func:`clear_compiled_executables`: JAX's compiled programs dropped, its
@@ -17,20 +20,28 @@ functions that need a patch call it.
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
+import os
+import sys
 import types
 import warnings
 
 import jax
 import jax.numpy as jnp
-import mujoco
-from mujoco.mjx._src import solver as _mjx_solver
+
+# No ``import mujoco`` here: jaxsync.runtime.gl imports this module before
+# mujoco, which mujoco_deferred_gl imports with its OpenGL backend deferred.
 
 MJX_VERSION = "3.17.0"
-"""The MuJoCo MJX release the MJX patch was written for (pyproject.toml pins it)."""
+"""The MuJoCo and MJX release the MuJoCo patches were written for (pyproject.toml pins it)."""
 JAX_VERSIONS = ("0.10.",)
 """The JAX releases (prefixes) the JAX patches were written for."""
 
 _warned: set[str] = set()
+
+
+def _mujoco_version() -> str:
+    return importlib.metadata.version("mujoco")
 
 
 def _supported(name: str, have: str, want: tuple[str, ...]) -> bool:
@@ -88,11 +99,83 @@ def mjx_elliptic_gradient() -> bool:
     the implicit adjoint (``jaxsync.physics.step.solve_implicit``) never
     differentiates the line search. Returns whether the patch is in place.
     """
-    if not _supported("the MJX elliptic-cone patch", mujoco.__version__, (MJX_VERSION,)):
+    if not _supported("the MJX elliptic-cone patch", _mujoco_version(), (MJX_VERSION,)):
         return False
-    if not isinstance(_mjx_solver.jp, _JnpSafeSqrt):
-        _mjx_solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
+    from mujoco.mjx._src import solver  # private: imported only on the MJX version it was written for
+
+    if not isinstance(solver.jp, _JnpSafeSqrt):
+        solver.jp = _JnpSafeSqrt("jax.numpy with a zero-safe sqrt (jaxsync)")
     return True
+
+
+# ------------------------------------------------------- MuJoCo: OpenGL context
+
+_GL_CONTEXT = "mujoco.rendering.classic.gl_context"  # private: where MuJoCo keeps its GLContext
+MUJOCO_GL_OFF = ("disable", "disabled", "off", "false", "0")
+"""``MUJOCO_GL`` values that turn MuJoCo's rendering off (as its ``gl_context`` reads them)."""
+
+
+def mujoco_deferred_gl(stand_in: type) -> bool:
+    """``import mujoco`` without loading the OpenGL backend ``MUJOCO_GL`` names.
+
+    MuJoCo 3.17 loads that backend when ``mujoco`` is first imported (its
+    private ``mujoco.rendering.classic.gl_context``), so a backend that is not
+    installed, or a name MuJoCo does not know, makes ``import mujoco`` itself
+    fail. Here mujoco is imported with rendering off, ``MUJOCO_GL`` is put
+    back and recorded in ``gl_context`` as the value it was loaded with, and,
+    unless that value turns rendering off, ``stand_in`` becomes the
+    ``GLContext`` every ``mujoco.Renderer`` creates (and ``mujoco.GLContext``):
+    a class whose first instance loads the backend (``jaxsync.runtime.gl``).
+    Called by ``jaxsync.runtime.gl.import_mujoco``. If mujoco is already
+    imported, nothing changes. Returns whether mujoco was imported this way;
+    on another MuJoCo version it is imported as it is.
+    """
+    if "mujoco" in sys.modules:
+        return False
+    if not _supported("the MuJoCo deferred-OpenGL patch", _mujoco_version(), (MJX_VERSION,)):
+        importlib.import_module("mujoco")
+        return False
+    requested = os.environ.get("MUJOCO_GL")
+    os.environ["MUJOCO_GL"] = "disable"
+    try:
+        importlib.import_module("mujoco")
+    finally:
+        if requested is None:
+            del os.environ["MUJOCO_GL"]
+        else:
+            os.environ["MUJOCO_GL"] = requested
+    value = (requested or "").strip().lower()
+    mujoco_gl_context(stand_in if value not in MUJOCO_GL_OFF else None, mujoco_gl=value)
+    return True
+
+
+def mujoco_gl_context(context: type | None = None, mujoco_gl: str | None = None) -> bool:
+    """Set what MuJoCo's renderer reads from its private ``gl_context``:
+    ``context``, where given, becomes the ``GLContext`` every
+    ``mujoco.Renderer`` creates (and ``mujoco.GLContext``); ``mujoco_gl``,
+    where given, is recorded as the ``MUJOCO_GL`` it was loaded with. Returns
+    whether they were set (mujoco imported, on the version this was written for).
+    """
+    if "mujoco" not in sys.modules or not _supported(
+        "the MuJoCo OpenGL-context patch", _mujoco_version(), (MJX_VERSION,)
+    ):
+        return False
+    gl_context = importlib.import_module(_GL_CONTEXT)
+    if mujoco_gl is not None:
+        gl_context._MUJOCO_GL = mujoco_gl
+    if context is not None:
+        gl_context.GLContext = context
+        sys.modules["mujoco"].GLContext = context
+    return True
+
+
+def mujoco_gl_loaded() -> tuple[type | None, str | None]:
+    """The ``GLContext`` class MuJoCo's renderer creates and the ``MUJOCO_GL``
+    recorded as loaded (None where absent, or mujoco not imported)."""
+    if "mujoco" not in sys.modules:
+        return None, None
+    gl_context = importlib.import_module(_GL_CONTEXT)
+    return getattr(gl_context, "GLContext", None), getattr(gl_context, "_MUJOCO_GL", None)
 
 
 # ------------------------------------------------- JAX: cache keys, compiled code
