@@ -8,6 +8,7 @@ import os
 
 import numpy as np
 import pytest
+from conftest import ctrl_c_in_a_gc_callback
 
 from jaxsync.cli import build_parser, main
 from jaxsync.optimize.studies import study as study_mod
@@ -91,6 +92,8 @@ def fake_study(monkeypatch, model):
         calls.append((cfg.controller, cfg.max_impact_N, cfg.seed, resume))
         if len(calls) == fake_study_interrupt.get("at"):
             raise KeyboardInterrupt
+        if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
+            ctrl_c_in_a_gc_callback()  # Python's own handler: lost, and the run goes on
         after = dict(before)
         after["metrics"] = dict(before["metrics"])
         after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
@@ -221,3 +224,20 @@ def test_a_ratio_says_when_runs_ended_outside_the_bound():
     assert line.endswith("runs within the bound: classical 1/1, synchronous 0/1"), line
     (line,) = [x for x in report_mod.table(report) if "(default gains)" in x]
     assert "within" not in line
+
+
+def test_a_ctrl_c_lost_in_a_callback_stops_the_study_after_that_run(model, tmp_path, fake_study, capsys):
+    """A Ctrl-C inside code that swallows exceptions still stops the study
+    (exit 130) at the next safe point: the run it landed in is kept whole."""
+    calls, interrupt = fake_study
+    interrupt["ctrl_c_lost_at"] = 3
+    out = str(tmp_path / "study")
+    argv = ["study", "--controllers", "classical,synchronous", "--bounds", "0.7,1.5", "--seeds", "0,1"]
+    argv += ["--heldout", "4", "--bootstrap", "200", "--out", out]
+    assert main(argv) == 130
+    assert "jaxsync study: interrupted" in capsys.readouterr().err
+    assert len(calls) == 3
+    cfg = study_mod.StudyConfig(
+        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
+    )
+    assert study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)["runs_done"] == 3

@@ -31,6 +31,7 @@ from jaxsync.optimize.tuning.tune_report import plot_loss
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT, prepare_out
 from jaxsync.physics.model import DualArmModel
 from jaxsync.runtime import distributed as _distributed
+from jaxsync.runtime import interrupt as _interrupt
 from jaxsync.sim import crosscheck as _crosscheck
 
 HELDOUT_BEFORE = "heldout_before.json"
@@ -75,6 +76,7 @@ def within_bounds(evaluation: dict, cfg) -> bool:
 STIFF = "apparent_stiffness_normal_N_per_m"
 
 
+@_interrupt.deferred()  # Ctrl-C stops at a safe point (between iterations, after tuning)
 def tune_and_evaluate(
     model: DualArmModel,
     spec: TuneSpec,
@@ -199,6 +201,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         validate=validate if cfg.validate_every else None,
         weights=weights,
     )
+    _interrupt.check()  # the loop's last checkpoint is written: stop before the held-out scoring
     gains, history, selected = result.gains, result.history, result.selected
     if not main:  # process 0 scores and writes; wait until it has
         _distributed.barrier("tune: results written")
