@@ -74,6 +74,32 @@ def within_bounds(evaluation: dict, cfg) -> bool:
 
 
 STIFF = "apparent_stiffness_normal_N_per_m"
+WORSE_BY = 1.005  # a held-out mean this many times the start's counts as worse (0.5 %: past rounding)
+
+
+def worse_than_start(before: dict, after: dict) -> list[str]:
+    """What the kept gains score worse on than the starting gains, on the same
+    held-out scenarios (``optimize.loss.eval_summary``'s dicts): the mean
+    settled peak resultant and grip-force error (by more than ``WORSE_BY``),
+    and the scenarios dropped, diverged or chattering (any more); [] when
+    none. Each entry "what: start -> kept"."""
+    out = []
+    for key, what, fmt, unit in (
+        ("settled_peak_resultant_N", "settled peak resultant", ".5f", " N"),
+        ("grip_force_error_rel", "grip-force error", ".4f", ""),
+    ):
+        b, a = before.get(key), after.get(key)
+        if b is not None and a is not None and a > WORSE_BY * b:
+            out.append(f"{what} {b:{fmt}} -> {a:{fmt}}{unit} ({a / b:.2f}x)" if b > 0 else f"{what} 0 -> {a:{fmt}}")
+    for key, what in (
+        ("dropped", "scenarios dropped"),
+        ("nonfinite", "scenarios diverged"),
+        ("chattering", "chattering"),
+    ):
+        b, a = before.get(key) or 0, after.get(key) or 0
+        if a > b:
+            out.append(f"{what} {b} -> {a}")
+    return out
 
 
 @_interrupt.deferred()  # Ctrl-C stops at a safe point (between iterations, after tuning)
@@ -214,6 +240,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     for which, g in ((before, base), (after, gains)):
         which.update(stiffness_figures(stiffness(g)))
         which["within_bounds"] = within_bounds(which, cfg)
+    worse = worse_than_start(before, after)
     described = spec.describe()
     for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):
         doc = {"gains": _schedule.to_file_dict(g), "controller": cfg.controller, "tune": described}
@@ -254,6 +281,7 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         "iterations": len(history),
         "skipped_steps": int(sum(r["skipped"] for r in history)),
         "selected_iteration": selected["iteration"] if selected is not None else len(history),
+        "kept_worse_than_start": worse,  # worse_than_start: on the held-out scenarios, [] when none
         "validation": [dict(r) for r in result.validation],
         "options": options if options is not None else {},
         "weights": weights._asdict(),
