@@ -159,7 +159,8 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         (["--iterations", "0"], "must be positive"),
         (["--controllers", "classical"], "at least 2"),
         (["--controllers", "classical,nope"], "unknown controller"),
-        (["--seeds", "a"], "comma-separated numbers"),
+        (["--seeds", "a"], "argument --seeds: expected comma-separated numbers, got 'a'"),
+        (["--seeds", ","], "argument --seeds: name at least one, got ','"),
         (["--grip-spread", "1.5"], "grip spread"),
     ]:
         try:
@@ -172,6 +173,10 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         text = msg_text + capsys.readouterr().err
         assert rc == 2 and msg in text and "Traceback" not in text, (args, text[-400:])
         assert not out.exists(), args
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["study", "--help"])
+    help_text = capsys.readouterr().out
+    assert "95 % intervals" in " ".join(help_text.split()) and "%%" not in help_text
     p = build_parser().parse_args(["study"])
     assert p.controllers == ["classical", "synchronous", "object_impedance", "task_space"]
     assert p.bounds == (0.7, 1.0, 1.5) and p.seeds == (0, 1, 2) and p.heldout == 32 and p.grip_spread == 0.2
@@ -241,3 +246,16 @@ def test_a_ctrl_c_lost_in_a_callback_stops_the_study_after_that_run(model, tmp_p
         controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
     )
     assert study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)["runs_done"] == 3
+
+
+def test_the_table_shows_chattering_runs_beside_dropped_ones():
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0,), bootstrap=100)
+    chattering = _evaluation([0.01, 0.012, 0.009])
+    chattering["metrics"]["chattering"] = [True, False, True]
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": chattering}
+    report = report_mod.build(cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, {})
+    lines = report_mod.table(report)
+    head = lines[1].split()
+    assert head[-4:] == ["dropped", "chattering", "in", "bounds"]
+    (row,) = [x for x in lines if x.startswith("synchronous")]
+    assert row.split()[-3:] == ["0/3", "2/3", "-"]

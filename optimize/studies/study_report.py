@@ -150,7 +150,7 @@ def table(report: dict) -> list[str]:
         "controller's first-impact peak and apparent normal stiffness ('default': untuned)"
     ]
     head = f"{'controller':<18}{'bound':>8}{'settled peak, N':>30}{'internal err, N':>28}{'impact, N':>26}"
-    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'in bounds':>11}"
+    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'chattering':>12}{'in bounds':>11}"
     lines.append(head)
     for r in report["rows"]:
         bound = "default" if r["bound"] is None else f"x{r['bound']:g}"
@@ -158,10 +158,11 @@ def table(report: dict) -> list[str]:
         stiff = r["apparent_stiffness_normal_N_per_m"]["median"]
         stiff = f"{stiff:.4g}" if stiff is not None else "n/a"
         dropped = f"{r['dropped']}/{r['scenarios']}"
+        chattering = f"{r['chattering']}/{r['scenarios']}"
         lines.append(
             f"{r['controller']:<18}{bound:>8}{_fmt(r['settled_peak_resultant_N']):>30}"
             f"{_fmt(r['internal_force_error_rms_N']):>28}{_fmt(r['first_impact_peak_N']):>26}"
-            f"{stiff:>16}{dropped:>10}{inb:>11}"
+            f"{stiff:>16}{dropped:>10}{chattering:>12}{inb:>11}"
         )
     for q in report["ratios"]:
         bound = "default gains" if q["bound"] is None else f"bound x{q['bound']:g}"
