@@ -15,6 +15,7 @@ from jaxsync.optimize.studies import study as study_mod
 from jaxsync.optimize.studies import study_report as report_mod
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import pipeline as pipeline_mod
+from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.sim.metrics import Metrics
 
 
@@ -259,3 +260,31 @@ def test_the_table_shows_chattering_runs_beside_dropped_ones():
     assert head[-4:] == ["dropped", "chattering", "in", "bounds"]
     (row,) = [x for x in lines if x.startswith("synchronous")]
     assert row.split()[-3:] == ["0/3", "2/3", "-"]
+
+
+def test_the_reference_gains_count_as_within_their_own_bound():
+    """The classical run at x1 that keeps its start: the start came back from
+    the tuner's parametrisation with its stiffness moved by 4e-5 relative, and
+    its held-out first-impact peak (another batch than the validation one
+    that defines the bound) above the bound; it is counted within x1."""
+    cfg = TuneConfig(controller="classical", max_impact_N=6.0, max_stiffness_N_per_m=20350.7)
+    moved = {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 20351.6}
+    assert pipeline_mod.bound_excess(moved, cfg) == pytest.approx(4.4e-5, rel=0.01)
+    assert pipeline_mod.within_bounds(moved, cfg)
+    assert not pipeline_mod.within_bounds({**moved, "apparent_stiffness_normal_N_per_m": 20380.0}, cfg)
+
+    def run(excess, heldout_within):
+        validation = [{"iteration": 0, "bound_excess": excess, "within_bounds": excess <= 0}]
+        after = dict(_evaluation([0.03, 0.02, 0.04]), within_bounds=heldout_within)
+        return {"heldout_after": after, "validation": validation, "selected_iteration": 0}
+
+    study = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0, 1), bootstrap=100)
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": _evaluation([0.01, 0.012, 0.009])}
+    runs = {("classical", 1.0, s): run(4.4e-5, heldout_within=False) for s in (0, 1)}
+    runs.update({("synchronous", 1.0, s): run(0.01, heldout_within=True) for s in (0, 1)})
+    report = report_mod.build(
+        study, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, runs
+    )
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    assert rows[("classical", 1.0)]["within_bounds"] == 2 and rows[("synchronous", 1.0)]["within_bounds"] == 0
+    assert "validation scenarios" in report["bound_rule"] and "(1 + 0.001)" in report_mod.table(report)[0]

@@ -55,6 +55,14 @@ def stiffness_figures(k: dict) -> dict:
     return {f"apparent_stiffness_{axis}_N_per_m": float(v) for axis, v in k.items()}
 
 
+BOUND_MARGIN = 1e-3
+"""Relative margin of the compliance bounds: a figure up to bound x (1 + this)
+counts as within. The gains a run starts from come back from the tuner's
+parametrisation moved by rounding and by sharing across arms (a stiffness
+moved by 5e-5 relative was seen), so without it the gains that define a
+bound (the study's reference at x1) were counted outside their own bound."""
+
+
 def bound_excess(evaluation: dict, cfg) -> float:
     """How far an evaluation's compliance figures exceed ``cfg``'s bounds: the
     largest of (mean first-impact peak / its bound, apparent normal
@@ -69,8 +77,9 @@ def bound_excess(evaluation: dict, cfg) -> float:
 
 def within_bounds(evaluation: dict, cfg) -> bool:
     """Whether an evaluation's mean first-impact peak and apparent normal
-    stiffness are within ``cfg``'s compliance bounds (True when unbounded)."""
-    return bound_excess(evaluation, cfg) <= 0.0
+    stiffness are within ``cfg``'s compliance bounds, up to the relative
+    ``BOUND_MARGIN`` (True when unbounded)."""
+    return bound_excess(evaluation, cfg) <= BOUND_MARGIN
 
 
 STIFF = "apparent_stiffness_normal_N_per_m"
@@ -268,7 +277,11 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         plot_loss(history, os.path.join(out, "loss.png"), result.validation, selected)
     summary = {
         "controller": cfg.controller,
-        "bounds": {"max_impact_N": cfg.max_impact_N, "max_stiffness_N_per_m": cfg.max_stiffness_N_per_m},
+        "bounds": {
+            "max_impact_N": cfg.max_impact_N,
+            "max_stiffness_N_per_m": cfg.max_stiffness_N_per_m,
+            "margin_rel": BOUND_MARGIN,
+        },
         "initial_cost": history[0]["cost"] if history else None,
         "final_cost": history[-1]["cost"] if history else None,
         "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],
