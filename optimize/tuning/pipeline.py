@@ -58,7 +58,7 @@ def stiffness_figures(k: dict) -> dict:
 BOUND_MARGIN = 1e-3
 """Relative margin of the compliance bounds: a figure up to bound x (1 + this)
 counts as within. The gains a run starts from come back from the tuner's
-parametrisation moved by rounding and by sharing across arms (a stiffness
+parametrisation with both arms' impedance shared (their mean: a stiffness
 moved by 5e-5 relative was seen), so without it the gains that define a
 bound (the study's reference at x1) were counted outside their own bound."""
 
