@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import signal
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -87,3 +88,18 @@ def test_tune_stops_after_the_iteration_a_lost_ctrl_c_landed_in(tmp_path, stand_
     assert main([*TUNE, "--out", str(out), "--resume"]) == 0  # and the run goes on from there
     assert stand_in_gradient["calls"] == 4
     assert np.isfinite(json.loads((out / "summary.json").read_text())["final_cost"])
+
+
+def test_a_run_in_another_thread_leaves_the_handler_alone():
+    seen = []
+
+    def work():
+        with interrupt.deferred():
+            seen.append(signal.getsignal(signal.SIGINT))
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join()
+    assert seen == [signal.default_int_handler]
+    with interrupt.deferred():  # the main thread's block is still the outermost
+        assert signal.getsignal(signal.SIGINT) is not signal.default_int_handler

@@ -62,12 +62,11 @@ def check() -> None:
 def deferred():
     """Within: Ctrl-C is recorded and raised at the next :func:`check` (see the module)."""
     global _depth, _requests
+    if threading.current_thread() is not threading.main_thread():  # signals reach the main thread only
+        yield
+        return
     outermost = _depth == 0
-    install = (
-        outermost
-        and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    )
+    install = outermost and signal.getsignal(signal.SIGINT) is signal.default_int_handler
     previous = signal.signal(signal.SIGINT, _handler) if install else None
     if outermost:
         _requests = 0
