@@ -9,6 +9,7 @@ import collections
 import gc
 import hashlib
 import inspect
+import signal
 
 import jax
 import numpy as np
@@ -133,6 +134,19 @@ def fake_heldout_metrics():
         chattering=np.zeros(2, bool),
         first_impact_peak_N=np.array([6.0, 7.0]),
     )
+
+
+def ctrl_c_in_a_gc_callback() -> None:
+    """A Ctrl-C that lands inside a garbage-collection callback (JAX frees
+    buffers from one): CPython reports an exception raised there as
+    "Exception ignored in ..." and goes on."""
+
+    def callback(phase, info):
+        gc.callbacks.remove(callback)
+        signal.raise_signal(signal.SIGINT)  # the handler runs here, before raise_signal returns
+
+    gc.callbacks.append(callback)
+    gc.collect()
 
 
 def fast_scenario(**overrides):

@@ -119,12 +119,14 @@ def test_every_robot_command_runs_the_robots_gains_and_object(robot, robot_file,
     assert s["model"] == ident
 
     out = tmp_path / "study"
-    argv = ["study", *r, "--controllers", "classical", "--bounds", "1", "--seeds", "0", "--iterations", "1"]
+    argv = ["study", *r, "--controllers", "classical,synchronous", "--bounds", "1", "--seeds", "0", "--iterations", "1"]
     argv += ["--batch", "1", "--heldout", "1", "--task", "short", "--out", str(out)]
     assert main(argv) == 0
-    (summary,) = [p for p in out.rglob("summary.json")]
-    s = json.loads(summary.read_text())
-    assert _same_gains(s["gains_start"], robot) and _object_of(s["scenario_base"]) == (MASS, RADIUS)
+    runs = sorted((out / "runs").rglob("summary.json"))
+    assert len(runs) == 2
+    for summary in runs:
+        s = json.loads(summary.read_text())
+        assert _same_gains(s["gains_start"], robot) and _object_of(s["scenario_base"]) == (MASS, RADIUS)
 
     out = tmp_path / "export"
     assert main(["export", "--format", "yaml", *r, "--out", str(out)]) == 0

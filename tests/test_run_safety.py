@@ -298,3 +298,31 @@ def test_an_unchanged_score_says_unchanged():
     assert change_text(0.01, 0.01) == " (unchanged)"
     assert change_text(0.010001, 0.01) == " (unchanged)"
     assert change_text(0.0102, 0.01) == " (1.02x lower)"
+
+
+def test_kept_gains_worse_than_the_start_are_said(tmp_path, stand_ins, monkeypatch, capsys):
+    """--validate-every 0 keeps the last iterate, whatever it scores: the
+    summary and the printed output say when it is worse than the start."""
+    stand_in = tune_mod.tune
+
+    def worse_after(*a, **k):
+        result = stand_in(*a, **k)
+        m = stand_ins["metrics"]
+        stand_ins["metrics"] = m._replace(settled_peak_resultant_N=5.5 * m.settled_peak_resultant_N)
+        return result
+
+    monkeypatch.setattr(tune_mod, "tune", worse_after)
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), "--validate-every", "0", *QUICK]) == 0
+    said = capsys.readouterr().out
+    assert "WARNING: the kept gains (the last iterate: --validate-every 0 selects none) score worse" in said
+    assert "settled peak resultant 0.01500 -> 0.08250 N (5.50x)" in said
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kept_worse_than_start"] == ["settled peak resultant 0.01500 -> 0.08250 N (5.50x)"]
+
+
+def test_kept_gains_no_worse_than_the_start_say_nothing(tmp_path, stand_ins, capsys):
+    out = tmp_path / "run"
+    assert main(["tune", "--out", str(out), "--validate-every", "0", *QUICK]) == 0
+    assert "WARNING" not in capsys.readouterr().out
+    assert json.loads((out / "summary.json").read_text())["kept_worse_than_start"] == []

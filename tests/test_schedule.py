@@ -164,3 +164,13 @@ def test_compare_records_a_schedule_that_loads_back(tmp_path, rollouts):
     assert isinstance(back, _schedule.Schedule)
     for a, b in zip(sched.phases, back.phases, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_a_per_phase_spec_from_constant_gains_says_what_moved():
+    """``jaxsync tune --per-phase`` starts from constant gains by default: the
+    start's check compares them with each phase of the schedule it becomes."""
+    g = _gains.default_gains()
+    spec = TuneSpec(schedule=True)
+    assert spec.moved(g) == []
+    assert spec.moved(g._replace(k_rk=jnp.asarray(1.0))) == ["k_rk: 1 -> 0.999"]
+    assert spec.moved(_schedule.constant(g._replace(k_rk=jnp.asarray(1.0)))) == ["k_rk: 1 -> 0.999"]

@@ -8,12 +8,14 @@ import os
 
 import numpy as np
 import pytest
+from conftest import ctrl_c_in_a_gc_callback
 
 from jaxsync.cli import build_parser, main
 from jaxsync.optimize.studies import study as study_mod
 from jaxsync.optimize.studies import study_report as report_mod
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import pipeline as pipeline_mod
+from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.sim.metrics import Metrics
 
 
@@ -91,6 +93,8 @@ def fake_study(monkeypatch, model):
         calls.append((cfg.controller, cfg.max_impact_N, cfg.seed, resume))
         if len(calls) == fake_study_interrupt.get("at"):
             raise KeyboardInterrupt
+        if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
+            ctrl_c_in_a_gc_callback()  # Python's own handler: lost, and the run goes on
         after = dict(before)
         after["metrics"] = dict(before["metrics"])
         after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
@@ -156,7 +160,8 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         (["--iterations", "0"], "must be positive"),
         (["--controllers", "classical"], "at least 2"),
         (["--controllers", "classical,nope"], "unknown controller"),
-        (["--seeds", "a"], "comma-separated numbers"),
+        (["--seeds", "a"], "argument --seeds: expected comma-separated numbers, got 'a'"),
+        (["--seeds", ","], "argument --seeds: name at least one, got ','"),
         (["--grip-spread", "1.5"], "grip spread"),
     ]:
         try:
@@ -169,6 +174,10 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         text = msg_text + capsys.readouterr().err
         assert rc == 2 and msg in text and "Traceback" not in text, (args, text[-400:])
         assert not out.exists(), args
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["study", "--help"])
+    help_text = capsys.readouterr().out
+    assert "95 % intervals" in " ".join(help_text.split()) and "%%" not in help_text
     p = build_parser().parse_args(["study"])
     assert p.controllers == ["classical", "synchronous", "object_impedance", "task_space"]
     assert p.bounds == (0.7, 1.0, 1.5) and p.seeds == (0, 1, 2) and p.heldout == 32 and p.grip_spread == 0.2
@@ -221,3 +230,61 @@ def test_a_ratio_says_when_runs_ended_outside_the_bound():
     assert line.endswith("runs within the bound: classical 1/1, synchronous 0/1"), line
     (line,) = [x for x in report_mod.table(report) if "(default gains)" in x]
     assert "within" not in line
+
+
+def test_a_ctrl_c_lost_in_a_callback_stops_the_study_after_that_run(model, tmp_path, fake_study, capsys):
+    """A Ctrl-C inside code that swallows exceptions still stops the study
+    (exit 130) at the next safe point: the run it landed in is kept whole."""
+    calls, interrupt = fake_study
+    interrupt["ctrl_c_lost_at"] = 3
+    out = str(tmp_path / "study")
+    argv = ["study", "--controllers", "classical,synchronous", "--bounds", "0.7,1.5", "--seeds", "0,1"]
+    argv += ["--heldout", "4", "--bootstrap", "200", "--out", out]
+    assert main(argv) == 130
+    assert "jaxsync study: interrupted" in capsys.readouterr().err
+    assert len(calls) == 3
+    cfg = study_mod.StudyConfig(
+        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
+    )
+    assert study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)["runs_done"] == 3
+
+
+def test_the_table_shows_chattering_runs_beside_dropped_ones():
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0,), bootstrap=100)
+    chattering = _evaluation([0.01, 0.012, 0.009])
+    chattering["metrics"]["chattering"] = [True, False, True]
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": chattering}
+    report = report_mod.build(cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, {})
+    lines = report_mod.table(report)
+    head = lines[1].split()
+    assert head[-4:] == ["dropped", "chattering", "in", "bounds"]
+    (row,) = [x for x in lines if x.startswith("synchronous")]
+    assert row.split()[-3:] == ["0/3", "2/3", "-"]
+
+
+def test_the_reference_gains_count_as_within_their_own_bound():
+    """The classical run at x1 that keeps its start: the start came back from
+    the tuner's parametrisation with its stiffness moved by 4e-5 relative, and
+    its held-out first-impact peak (another batch than the validation one
+    that defines the bound) above the bound; it is counted within x1."""
+    cfg = TuneConfig(controller="classical", max_impact_N=6.0, max_stiffness_N_per_m=20350.7)
+    moved = {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 20351.6}
+    assert pipeline_mod.bound_excess(moved, cfg) == pytest.approx(4.4e-5, rel=0.01)
+    assert pipeline_mod.within_bounds(moved, cfg)
+    assert not pipeline_mod.within_bounds({**moved, "apparent_stiffness_normal_N_per_m": 20380.0}, cfg)
+
+    def run(excess, heldout_within):
+        validation = [{"iteration": 0, "bound_excess": excess, "within_bounds": excess <= 0}]
+        after = dict(_evaluation([0.03, 0.02, 0.04]), within_bounds=heldout_within)
+        return {"heldout_after": after, "validation": validation, "selected_iteration": 0}
+
+    study = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0, 1), bootstrap=100)
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": _evaluation([0.01, 0.012, 0.009])}
+    runs = {("classical", 1.0, s): run(4.4e-5, heldout_within=False) for s in (0, 1)}
+    runs.update({("synchronous", 1.0, s): run(0.01, heldout_within=True) for s in (0, 1)})
+    report = report_mod.build(
+        study, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, runs
+    )
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    assert rows[("classical", 1.0)]["within_bounds"] == 2 and rows[("synchronous", 1.0)]["within_bounds"] == 0
+    assert "validation scenarios" in report["bound_rule"] and "(1 + 0.001)" in report_mod.table(report)[0]

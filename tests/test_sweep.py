@@ -11,6 +11,7 @@ import sys
 import jax
 import numpy as np
 import pytest
+from conftest import ctrl_c_in_a_gc_callback
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
@@ -286,3 +287,30 @@ def test_cpu_chunks_stay_below_the_lapack_deadlock(monkeypatch):
             cpu_vmap_limit()
         monkeypatch.delenv("JAXSYNC_CPU_VMAP_LIMIT")
     assert sweep.DEFAULT_CHUNK_PER_DEVICE["cpu"] <= (cpu_vmap_limit() or 10**9)
+
+
+def test_a_ctrl_c_lost_in_a_callback_stops_the_sweep_after_that_chunk(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C inside code that swallows exceptions still stops the sweep
+    (exit 130) after the chunk it landed in, every finished chunk on disk.
+    The compiled chunk is a stand-in (the compiled runs are tested below)."""
+    calls = []
+
+    def chunk_fn(g, s):
+        calls.append(len(calls))
+        if len(calls) == 2:
+            ctrl_c_in_a_gc_callback()  # Python's own handler: lost, and the sweep goes on
+        fields = {k: np.full(1, 0.01) for k in _metrics.Metrics._fields}
+        fields.update({k: np.full(1, np.nan) for k in _metrics.Metrics._fields if k.endswith("_time_s")})
+        fields.update(dropped=np.zeros(1, bool), nonfinite=np.zeros(1, bool), chattering=np.zeros(1, bool))
+        return _metrics.Metrics(**fields)
+
+    monkeypatch.setattr(sweep, "_compile", lambda plan, c_stored, chunk, *a: (c_stored or chunk, chunk_fn, None, 0.0))
+    monkeypatch.setattr(sweep, "evaluator", lambda *a: (None, 100))
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--param", "k_rk=-0.5:0.5:2", "--param", "object_mass=0.5,0.6", "--chunk", "1"]
+    argv += ["--no-progress", "--out", str(out)]
+    assert run_cli(argv) == 130
+    assert "jaxsync sweep: interrupted" in capsys.readouterr().err
+    assert len(calls) == 2 and not (out / "summary.json").exists()
+    assert run_cli([*argv, "--resume"]) == 0
+    assert len(calls) == 4  # the two chunks left, the two finished read back

@@ -14,16 +14,16 @@ from jaxsync.cli._common import (
 )
 
 
-def _numbers(kind, what: str):
-    """An argparse type: comma-separated numbers of ``kind``."""
+def _numbers(kind):
+    """An argparse type: comma-separated numbers of ``kind`` (argparse names the option in its message)."""
 
     def parse(text):
         try:
             values = tuple(kind(t) for t in text.split(",") if t.strip())
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{what}: expected comma-separated numbers, got {text!r}") from None
+            raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
         if not values:
-            raise argparse.ArgumentTypeError(f"{what}: name at least one, got {text!r}")
+            raise argparse.ArgumentTypeError(f"name at least one, got {text!r}")
         return values
 
     return parse
@@ -75,7 +75,7 @@ def add_parser(subparsers):
         description="Tune each controller with the same method, budget, training seeds and cost, under "
         "each compliance bound (factors of the default classical controller's first-impact peak and "
         "apparent normal stiffness), and score all of them on one held-out set: medians and quartiles "
-        "per controller and bound, ratios with bootstrap 95 %% intervals, a Pareto plot. Resumable: "
+        "per controller and bound, ratios with bootstrap 95 % intervals, a Pareto plot. Resumable: "
         "each tuning run is kept (docs/study.md).",
     )
     p.add_argument(
@@ -86,11 +86,11 @@ def add_parser(subparsers):
     )
     p.add_argument(
         "--bounds",
-        type=_numbers(float, "--bounds"),
+        type=_numbers(float),
         default=(0.7, 1.0, 1.5),
         help="compliance bounds as factors of the default classical controller's (0.7,1,1.5)",
     )
-    p.add_argument("--seeds", type=_numbers(int, "--seeds"), default=(0, 1, 2), help="training seeds (0,1,2)")
+    p.add_argument("--seeds", type=_numbers(int), default=(0, 1, 2), help="training seeds (0,1,2)")
     p.add_argument("--iterations", type=positive(int), default=10, help="iterations per tuning run (10)")
     p.add_argument("--batch", type=positive(int), default=2, help="training scenarios per iteration (2)")
     p.add_argument("--method", default="lbfgs", help="tuning method, as jaxsync tune's --method (lbfgs)")

@@ -108,10 +108,26 @@ def run(args) -> int:
     gb, ga = summary["heldout_grip_force_error_rel_before"], summary["heldout_grip_force_error_rel_after"]
     print(f"held-out settled peak resultant: {_num(b, '.5f')} N -> {_num(a, '.5f')} N" + change_text(b, a))
     print(f"held-out grip-force error: {_num(gb, '.4f')} -> {_num(ga, '.4f')}")
+    if summary["kept_worse_than_start"]:
+        print(worse_text(summary))
     if summary["mujoco_check"] is not None:
         print(mujoco_text(summary["mujoco_check"]))
     print(f"results in {args.out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return 0
+
+
+def worse_text(summary: dict) -> str:
+    """The warning that the kept gains score worse than the start (summary["kept_worse_than_start"])."""
+    if summary["validation"]:
+        kept = f"iteration {summary['selected_iteration']}, selected by validation"
+    else:
+        kept = "the last iterate: --validate-every 0 selects none"
+    return (
+        f"WARNING: the kept gains ({kept}) score worse than the starting gains on the held-out scenarios: "
+        + "; ".join(summary["kept_worse_than_start"])
+        + ". gains.json holds them; the starting gains may be the better choice"
+        + ("" if summary["validation"] else " (--validate-every N keeps the best validated iterate)")
+    )
 
 
 def mujoco_text(c: dict) -> str:

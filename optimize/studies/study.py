@@ -33,6 +33,7 @@ from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TuneSpec
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT
+from jaxsync.runtime import interrupt as _interrupt
 
 STUDY_FILE = "study.json"
 # what a setting that a study's file does not hold meant when that study ran (before the setting existed)
@@ -206,6 +207,7 @@ def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
             with open(path) as f:
                 found[name] = json.load(f)
             continue
+        _interrupt.check()
         t0 = time.perf_counter()
         log(f"defaults: {name} on {cfg.heldout} held-out scenarios ({cfg.eval_duration:g} s; compiles first)...")
         evaluate = _loss.make_evaluator(model, cfg.eval_duration, name)
@@ -217,6 +219,7 @@ def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
     return found
 
 
+@_interrupt.deferred()  # Ctrl-C stops at a safe point: between runs, or a run between its iterations
 def run_study(
     model,
     cfg: StudyConfig,
@@ -254,6 +257,7 @@ def run_study(
         jobs = [(c, b, s) for b in cfg.bounds for c in cfg.controllers for s in cfg.seeds]
         runs, took = {}, []
         for k, (controller, factor, seed) in enumerate(jobs):
+            _interrupt.check()  # the runs before are kept whole
             where = run_dir(out, controller, factor, seed)
             label = f"[{k + 1}/{len(jobs)}] {controller}, bound x{factor:g}, seed {seed}"
             summary_path = os.path.join(where, "summary.json")
@@ -284,7 +288,7 @@ def run_study(
             after = runs[(controller, factor, seed)]["heldout_after"]
             log(
                 f"{label}: {took[-1]:.0f} s, held-out settled peak {_num(after['settled_peak_resultant_N'])} N, "
-                f"within bounds: {after['within_bounds']}"
+                f"within bounds: {_report.run_within_bounds(runs[(controller, factor, seed)])}"
             )
         report = _report.build(cfg, reference, defaults, runs)
         report["wall_time_s"] = time.perf_counter() - t_start

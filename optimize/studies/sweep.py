@@ -42,6 +42,7 @@ from jaxsync.optimize.studies.sweep_spec import (
 )
 from jaxsync.optimize.studies.sweep_store import load_chunk, prepare_out, read_plan, save_chunk
 from jaxsync.runtime import distributed as _distributed
+from jaxsync.runtime import interrupt as _interrupt
 from jaxsync.sim import metrics as _metrics
 
 __all__ = [
@@ -131,6 +132,7 @@ def _evaluate(plan: Plan, out: str, todo, c: int, compiled, n_dev: int, results:
         computed += 1
         if bar is not None:
             bar.update(stop - start)
+        _interrupt.check()  # a safe point: every chunk so far is on disk
     return computed
 
 
@@ -142,6 +144,7 @@ def _progress_bar(progress: bool, total: int, initial: int, nproc: int):
     return tqdm(total=total, initial=initial, unit="pt", desc=desc, file=sys.stderr, dynamic_ncols=True)
 
 
+@_interrupt.deferred()  # Ctrl-C stops between chunks, those finished kept
 def run(
     plan: Plan,
     out: str,

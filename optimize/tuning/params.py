@@ -222,7 +222,11 @@ class TuneSpec:
         e.g. k = 1 to 0.999, or shared across arms or axes), as "name: given ->
         used" with the largest change."""
         used = self.to_gains(self.init(base), base)
-        a, b = (base.phases, used.phases) if isinstance(base, _schedule.Schedule) else (base, used)
+        if isinstance(used, _schedule.Schedule):  # constant gains tuned per phase start as 4 equal phases
+            given = base if isinstance(base, _schedule.Schedule) else _schedule.constant(base)
+            a, b = given.phases, used.phases
+        else:
+            a, b = base, used
         out = []
         for name in Gains._fields:
             given, now = np.asarray(getattr(a, name), dtype=float), np.asarray(getattr(b, name), dtype=float)

@@ -48,6 +48,7 @@ from jaxsync.optimize.tuning.tune_state import (
     select_iterate,
     validated,
 )
+from jaxsync.runtime import interrupt as _interrupt
 
 
 class TuneError(JaxsyncError):
@@ -165,6 +166,7 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
     return state, row, converged
 
 
+@_interrupt.deferred()  # Ctrl-C stops the loop after an iteration, never lost in a callback
 def tune(
     model,
     spec: TuneSpec,
@@ -287,6 +289,7 @@ def tune(
                 state = validated(state, validate, spec, base, say)
             if (i + 1) % cfg.checkpoint_every == 0 or last:
                 save_state(write_ckpt, state, fingerprint, method, decay)
+            _interrupt.check()  # a safe point: a Ctrl-C recorded during the iteration stops here
             if converged:
                 say(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
                 break

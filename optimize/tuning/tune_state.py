@@ -185,7 +185,10 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
     ckpt = os.path.join(out, CHECKPOINT)
     if resume:
         if not os.path.exists(ckpt):
-            raise ConfigError(f"--resume: no checkpoint at {ckpt}")
+            raise ConfigError(
+                f"--resume: no checkpoint at {ckpt} to continue from: pass --restart instead to start a run there "
+                "(discarding any results it holds), or choose another --out"
+            )
         return
     found = [f for f in RUN_FILES if os.path.exists(os.path.join(out, f))]
     if restart:
