@@ -186,6 +186,10 @@ def _task_transform(robot: Robot, bases: dict[str, np.ndarray]) -> tuple[np.ndar
     return R, t
 
 
+def _drives(m: mujoco.MjModel, a: int, jids: list[int]) -> bool:
+    return m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and int(m.actuator_trnid[a, 0]) in jids
+
+
 def _limits(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) -> tuple[float, ...]:
     if arm.torque_limits is not None:
         return tuple(arm.torque_limits)
@@ -196,11 +200,11 @@ def _limits(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) ->
             a = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, prefix + arm.actuators[k])
             if a < 0:
                 on_arm = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i).removeprefix(prefix)
-                          for i in range(m.nu) if m.actuator_trnid[i, 0] in jids]  # fmt: skip
+                          for i in range(m.nu) if _drives(m, i, jids)]  # fmt: skip
                 raise ConfigError(
                     f"{label}.actuators: no actuator '{arm.actuators[k]}' in the model; the arm's actuators: {on_arm}"
                 )
-            if m.actuator_trnid[a, 0] != j:
+            if not _drives(m, a, [j]):
                 raise ConfigError(f"{label}.actuators: '{arm.actuators[k]}' does not drive joint '{name}'")
             gear = abs(float(m.actuator_gear[a, 0]))
             if m.actuator_forcelimited[a]:
