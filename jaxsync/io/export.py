@@ -235,10 +235,13 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
                 ft_sensors=None) -> Ros2Target:  # fmt: skip
     """The robot facts the admittance controller's parameters take, from a
     loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
-    paper model's MJCF names)."""
+    paper model's MJCF names). A robot file's names are its own, each arm's
+    joints and links (base, tip: every frame the files name) with the arm's
+    ``ros_prefix`` before them."""
     # imported here, not at the top: the export of yaml/json gains needs no MuJoCo
     import mujoco  # noqa: PLC0415
 
+    from jaxsync.physics import robot_names  # noqa: PLC0415
     from jaxsync.physics.inertia import arm_joint_ids  # noqa: PLC0415
 
     if distro not in DISTROS:
@@ -262,8 +265,9 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
         perm = _signed_permutation(R, f"{name} arm")
         cog = R_tip.T @ (d.xipos[ee] - d.xpos[tip_id])
         if robot is not None:
-            joints, links = tuple(robot.joint_names[name]), robot.links[name]
-            base, tip = links["base"], links["tip"]
+            ros = robot_names.ros_prefix(m, name)  # arms.<side>.ros_prefix; a base of "world" is everyone's
+            joints, links = tuple(ros + j for j in robot.joint_names[name]), robot.links[name]
+            base, tip = links["base"] if links["base"] == "world" else ros + links["base"], ros + links["tip"]
         else:
             jids = arm_joint_ids(m, side)
             joints = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in jids)

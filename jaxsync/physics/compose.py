@@ -21,7 +21,14 @@ jaxsync reads (``jaxsync.physics.model.required_names``):
 - jaxsync's physics options (timestep 2 ms, Euler, Newton, elliptic cone),
   with a note where the robot's file asked for others;
 - the ``approach`` and ``grasp`` keyframes, solved by inverse kinematics
-  (``jaxsync.physics.ik``).
+  (``jaxsync.physics.ik``);
+- the robot file's own joint names and each arm's ROS prefix, for messages
+  and exports (``jaxsync.physics.robot_names``).
+
+The flange is checked before anything is solved: a site or body of the arm on
+or below its last joint, whose +z points out of the arm (a frame turned back
+into the wrist would clamp the object with the wrist). The robot's file is
+attached with the scene's own ``<size>`` (a note names what it set).
 
 The scene is placed in jaxsync's task frame: the robot is moved (a rotation
 about the vertical and a shift, which change no physics) so that the clamp
@@ -34,12 +41,14 @@ loss, joint ranges) is kept.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import os
 
 import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError, ModelFileError
+from jaxsync.physics import robot_names
 from jaxsync.physics.robot import ARM_NAMES, Robot
 
 TASK_CENTRE_XY = (0.65, 0.0)  # jaxsync.sim.scenario.NOMINAL_XY
@@ -68,6 +77,10 @@ PHYSICS = {
     "iterations": 20,
     "ls_iterations": 10,
 }
+# <size> attributes the scene sets for itself; MuJoCo warns of each a robot's file sets otherwise when attached
+SIZES = ("memory", "nstack", "njmax", "nconmax", "nkey", "nuserdata", "nemax", "nuser_body", "nuser_jnt",
+         "nuser_geom", "nuser_site", "nuser_cam", "nuser_tendon", "nuser_actuator", "nuser_sensor")  # fmt: skip
+FLANGE_BEHIND = 0.5  # cos of the angle above which a joint of the arm lies in front of the flange: backwards
 
 
 @dataclasses.dataclass
@@ -126,18 +139,28 @@ def _quat_mat(q) -> np.ndarray:
     return m.reshape(3, 3)
 
 
-def _frames(scene: mujoco.MjSpec, robot: Robot, visual: bool) -> dict[str, tuple]:
+def _attach(scene: mujoco.MjSpec, child: mujoco.MjSpec, prefix: str, frame, sizes: set[str]) -> None:
+    """Attach ``child`` with the scene's own <size> (MuJoCo would warn of every one that differs, and
+    keep the scene's); the attributes the file set are added to ``sizes``, for one note."""
+    for key in SIZES:
+        if getattr(child, key) != getattr(scene, key):
+            sizes.add(key)
+            setattr(child, key, getattr(scene, key))
+    scene.attach(child, prefix=prefix, frame=frame)
+
+
+def _frames(scene: mujoco.MjSpec, robot: Robot, visual: bool, sizes: set[str]) -> dict[str, tuple]:
     """Attach the robot's arm(s) to ``scene``: {arm: (frame, prefix of its names, (pos, quat) of its base)}."""
     out = {}
     if robot.model is not None:
         frame = scene.worldbody.add_frame(name="robot")
-        scene.attach(_load_spec(robot.model, visual), prefix="robot/", frame=frame)
+        _attach(scene, _load_spec(robot.model, visual), "robot/", frame, sizes)
         for a in ARM_NAMES:
             out[a] = (frame, "robot/", (np.zeros(3), np.array([1.0, 0, 0, 0])))
         return out
     for a, arm in zip(ARM_NAMES, robot.arms, strict=True):
         frame = scene.worldbody.add_frame(name=f"{a}_base")
-        scene.attach(_load_spec(arm.model, visual), prefix=f"{a}/", frame=frame)
+        _attach(scene, _load_spec(arm.model, visual), f"{a}/", frame, sizes)
         out[a] = (frame, f"{a}/", (np.asarray(arm.base_pos), np.asarray(arm.base_quat)))
     return out
 
@@ -163,17 +186,25 @@ def _task_transform(robot: Robot, bases: dict[str, np.ndarray]) -> tuple[np.ndar
     return R, t
 
 
-def _limits(m: mujoco.MjModel, arm, names: list[str], jids: list[int], label: str) -> tuple[float, ...]:
+def _drives(m: mujoco.MjModel, a: int, jids: list[int]) -> bool:
+    return m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and int(m.actuator_trnid[a, 0]) in jids
+
+
+def _limits(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) -> tuple[float, ...]:
     if arm.torque_limits is not None:
         return tuple(arm.torque_limits)
     out = []
-    for k, (name, j) in enumerate(zip(names, jids, strict=True)):
+    for k, (name, j) in enumerate(zip(arm.joints, jids, strict=True)):
         lim = None
         if arm.actuators is not None:
-            a = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, arm.actuators[k])
+            a = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, prefix + arm.actuators[k])
             if a < 0:
-                raise ConfigError(f"{label}.actuators: no actuator '{arm.actuators[k]}' in the model")
-            if m.actuator_trnid[a, 0] != j:
+                on_arm = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, i).removeprefix(prefix)
+                          for i in range(m.nu) if _drives(m, i, jids)]  # fmt: skip
+                raise ConfigError(
+                    f"{label}.actuators: no actuator '{arm.actuators[k]}' in the model; the arm's actuators: {on_arm}"
+                )
+            if not _drives(m, a, [j]):
                 raise ConfigError(f"{label}.actuators: '{arm.actuators[k]}' does not drive joint '{name}'")
             gear = abs(float(m.actuator_gear[a, 0]))
             if m.actuator_forcelimited[a]:
@@ -193,6 +224,57 @@ def _limits(m: mujoco.MjModel, arm, names: list[str], jids: list[int], label: st
             )
         out.append(lim)
     return tuple(out)
+
+
+def _is_below(m: mujoco.MjModel, b: int, ancestor: int) -> bool:
+    while b not in (0, ancestor):
+        b = int(m.body_parentid[b])
+    return b == ancestor
+
+
+def _unknown_flange(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) -> ConfigError:
+    """The error for a flange the model does not have, naming the sites and bodies that could be meant."""
+    last = int(m.jnt_bodyid[jids[-1]])
+    bodies = [int(m.jnt_bodyid[j]) for j in jids[-3:]]
+    bodies = list(dict.fromkeys(bodies + [b for b in range(m.nbody) if b != last and _is_below(m, b, last)]))
+    sites = [i for i in range(m.nsite) if int(m.site_bodyid[i]) in bodies]
+    name = lambda obj, i: (mujoco.mj_id2name(m, obj, i) or "").removeprefix(prefix)  # noqa: E731
+    kinds = ((mujoco.mjtObj.mjOBJ_SITE, m.nsite), (mujoco.mjtObj.mjOBJ_BODY, m.nbody))
+    known = [mujoco.mj_id2name(m, obj, i) or "" for obj, n in kinds for i in range(n)]
+    close = difflib.get_close_matches(arm.flange, [k.removeprefix(prefix) for k in known if k.startswith(prefix)], 3)
+    meant = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else ";"
+    return ConfigError(
+        f"{label}.flange: no site or body '{arm.flange}' in the model{meant} the arm's last bodies: "
+        f"{[name(mujoco.mjtObj.mjOBJ_BODY, b) for b in bodies]}, sites on them: "
+        f"{[name(mujoco.mjtObj.mjOBJ_SITE, i) for i in sites]}"
+    )
+
+
+def _check_flange(m: mujoco.MjModel, d: mujoco.MjData, arm, prefix: str, label: str) -> None:
+    """The flange exists, sits on or below the arm's last joint, and its +z points out of the arm:
+    the nearest joint of the arm more than 1 cm from it must not lie in front of it (the wrist
+    between the pad and the object)."""
+    jids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, prefix + n) for n in arm.joints]
+    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, prefix + arm.flange)
+    bid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, prefix + arm.flange)
+    if sid >= 0:
+        body, p, z = int(m.site_bodyid[sid]), d.site_xpos[sid], d.site_xmat[sid].reshape(3, 3)[:, 2]
+    elif bid >= 0:
+        body, p, z = bid, d.xpos[bid], d.xmat[bid].reshape(3, 3)[:, 2]
+    else:
+        raise _unknown_flange(m, arm, prefix, jids, label)
+    if not _is_below(m, body, int(m.jnt_bodyid[jids[-1]])):
+        raise ConfigError(f"{label}.flange '{arm.flange}' is not on or below the arm's last joint '{arm.joints[-1]}'")
+    for name, j in zip(reversed(arm.joints), reversed(jids), strict=True):
+        v = d.xanchor[j] - p
+        if np.linalg.norm(v) > 0.01:
+            if v @ z > FLANGE_BEHIND * np.linalg.norm(v):
+                raise ConfigError(
+                    f"{label}.flange '{arm.flange}': its +z points back into the arm (joint '{name}' lies "
+                    f"{1000 * float(v @ z):.0f} mm in front of it along +z): name a site or body whose +z points "
+                    "out of the flange, away from the wrist"
+                )
+            return
 
 
 def _add_end_effector(scene: mujoco.MjSpec, body, pos, quat, p: str) -> None:
@@ -224,11 +306,14 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
     scene.modelname = f"jaxsync_{robot.name}"
     scene.compiler.degree = False
     scene.visual.global_.offwidth, scene.visual.global_.offheight = 1280, 960
-    asked = mujoco.MjSpec.from_file(robot.model or robot.right.model).option
+    asked = _load_spec(robot.model or robot.right.model, visual=True).option
     plain = mujoco.MjSpec().option  # MuJoCo's defaults: what a file that asks nothing gets
     for key in PHYSICS:  # the file's own options while attaching (MuJoCo warns of every conflict)
         setattr(scene.option, key, getattr(asked, key))
-    frames = _frames(scene, robot, visual)
+    sizes: set[str] = set()
+    frames = _frames(scene, robot, visual, sizes)
+    if sizes:
+        notes.append(f"the robot's file sets <size> {', '.join(sorted(sizes))}; the task scene sizes its own")
     for key, value in PHYSICS.items():
         enum = type(value) if not isinstance(value, int | float) else None
         text = lambda v, enum=enum: enum(v).name.split("_", 1)[1].lower() if enum else f"{v:g}"  # noqa: E731
@@ -271,7 +356,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
                 raise ConfigError(f"{label}.joints must run from the base to the flange, one chain; "
                                   f"'{arm.joints[k]}' is not below '{arm.joints[k - 1]}'")  # fmt: skip
         joint_names[a] = tuple(arm.joints)
-        limits[a] = _limits(m0, arm, list(arm.joints), jids, label)
+        limits[a] = _limits(m0, arm, prefix, jids, label)
         name = lambda b: mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_BODY, b) or "world"  # noqa: E731
         base = name(int(m0.body_parentid[bodies[0]]))
         links[a] = {"base": base.removeprefix(prefix) if base != "world" else "world"}
@@ -284,6 +369,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
         frame, prefix, (bpos, bquat) = frames[a]
         j = mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_JOINT, prefix + arm.joints[0])
         bases[a] = bpos + _quat_mat(bquat) @ d0.xpos[m0.jnt_bodyid[j]]
+        _check_flange(m0, d0, arm, prefix, f"{robot.path}: arms.{a}")
     R, t = _task_transform(robot, bases)
     for a in ARM_NAMES:
         frame, prefix, (bpos, bquat) = frames[a]
@@ -313,22 +399,12 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
             act.ctrllimited = True
             act.ctrlrange = [-limits[a][k - 1], limits[a][k - 1]]
         # the end effector at the flange (a site's frame, or a body's own)
-        site = scene.site(prefix + arm.flange)
+        site = scene.site(prefix + arm.flange)  # _check_flange found it, a site or a body
         if site is not None:
             sid = mujoco.mj_name2id(m0, mujoco.mjtObj.mjOBJ_SITE, prefix + arm.flange)
             body, pos, quat = site.parent, m0.site_pos[sid].copy(), m0.site_quat[sid].copy()
         else:
-            body = scene.body(prefix + arm.flange)
-            if body is None:
-                raise ConfigError(f"{robot.path}: arms.{a}.flange: no site or body '{arm.flange}' in the model")
-            pos, quat = np.zeros(3), np.array([1.0, 0, 0, 0])
-        last = scene.joint(f"{p}_joint{len(arm.joints)}").parent
-        b = body
-        while b is not None and b.name != last.name and b.name != "world":
-            b = b.parent
-        if b is None or b.name != last.name:
-            raise ConfigError(f"{robot.path}: arms.{a}.flange '{arm.flange}' is not on or below the arm's last "
-                              f"joint '{arm.joints[-1]}'")  # fmt: skip
+            body, pos, quat = scene.body(prefix + arm.flange), np.zeros(3), np.array([1.0, 0, 0, 0])
         _add_end_effector(scene, body, pos, quat, p)
         links[a]["tip"] = body.name.removeprefix(prefix)
     for g in scene.geoms:
@@ -356,6 +432,8 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
     for p in ("r", "l"):
         scene.add_pair(name=f"{p}_pad_object", geomname1="object", geomname2=f"{p}_pad", **PAD_PAIR)
     scene.add_pair(name="stand_object", geomname1="object", geomname2="stand", **STAND_PAIR)
+    robot_names.record(scene, {a: {"joints": list(arm.joints), "prefix": frames[a][1], "ros_prefix": arm.ros_prefix}
+                               for a, arm in zip(ARM_NAMES, robot.arms, strict=True)})  # fmt: skip
     return Composed(scene, robot, joint_names, links, limits, (R, t), notes)
 
 

@@ -13,7 +13,10 @@ the lift move the joints from there), then one that keeps every link of the
 arm at least 5 cm above the robot's floor (collisions are off in the task scene, so nothing else would
 keep an elbow out of the floor), then the best manipulability. Checked: manipulability and the
 static torque at the grasp (gravity, half the ball's weight and the grip
-force) against each joint's limit.
+force) against each joint's limit, and that no geom of the arm reaches into
+the ball at the grasp (a pad mounted facing back into the wrist would clamp
+with the wrist). Joints are named in messages as the robot file names them
+(``jaxsync.physics.robot_names``).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.physics import robot_names
 from jaxsync.physics.inertia import arm_joint_ids
 
 APPROACH_GAP = 0.03  # m between pad face and ball in the approach pose (the paper model's)
@@ -138,7 +142,7 @@ def solve_pad_pose(
     _, q, ep, er, w = best
     full_lo, full_hi = (np.array([m.jnt_range[j][i] for j in jids]) for i in (0, 1))
     binding = [
-        f"{mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j)} ({'lower' if abs(qi - a) < abs(qi - b) else 'upper'})"
+        f"{robot_names.joint_name(m, j)} ({'lower' if abs(qi - a) < abs(qi - b) else 'upper'})"
         for j, qi, a, b, lo_i, hi_i in zip(jids, q, full_lo, full_hi, lo, hi, strict=True)
         if m.jnt_limited[j] and (qi <= lo_i + 1e-6 or qi >= hi_i - 1e-6)
     ]
@@ -176,6 +180,34 @@ def static_torque_share(m: mujoco.MjModel, qpos, limits: dict[str, tuple[float, 
     return out
 
 
+OBJECT_OVERLAP = 0.005  # m: how far an arm's geom may reach into the object at the grasp
+
+
+def _check_clear_of_object(m: mujoco.MjModel, side: str, q, label: str) -> None:
+    """At the grasp the pad's normal points into the object; the arm behind the pad must stay out of
+    it (a flange whose +z does not point out of the arm puts the wrist into the object)."""
+    arm, jids = robot_names.SIDES[side], arm_joint_ids(m, side)
+    d = mujoco.MjData(m)  # the object at its place in the model (qpos0)
+    d.qpos[[m.jnt_qposadr[j] for j in jids]] = q
+    mujoco.mj_kinematics(m, d)
+    obj = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "object")
+    ee, root = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{side}_ee"), int(m.jnt_bodyid[jids[0]])
+    fromto, deepest = np.zeros(6), (0.0, -1)
+    for g in range(m.ngeom):
+        b = int(m.geom_bodyid[g])
+        while b not in (0, root, ee):
+            b = int(m.body_parentid[b])
+        if b == root:  # on the arm (not elsewhere, not the end effector's own pad)
+            deepest = min(deepest, (mujoco.mj_geomDistance(m, d, g, obj, 0.1, fromto), g))
+    if deepest[0] < -OBJECT_OVERLAP:
+        body = robot_names.body_name(m, arm, int(m.geom_bodyid[deepest[1]]))
+        raise ConfigError(
+            f"{label}: arms.{arm}: at the grasp the arm's body '{body}' is inside the object "
+            f"({-1000 * deepest[0]:.0f} mm deep): the pad faces the object along the flange's +z, which must "
+            f"point out of the arm, away from its last links (arms.{arm}.flange)"
+        )
+
+
 def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float, limits, grip_force: float,
                   object_mass: float, label: str, floor_z: float | None = None) -> dict:  # fmt: skip
     """Solve both poses for both arms, check them, add the keyframes to ``spec``; a report."""
@@ -199,6 +231,7 @@ def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float,
                 f"{label}: arms.{arm}: the grasp pose is singular (manipulability {pose.manipulability:.2g} < "
                 f"{MIN_MANIPULABILITY}): move the object or the arm's base"
             )
+        _check_clear_of_object(m, side, pose.q, label)
         approach = solve_pad_pose(m, side, *grasp_targets(centre, radius, APPROACH_GAP)[side], q_start=pose.q)
         if approach.position_error > 1e-4 or approach.rotation_error > 1e-3:
             raise ConfigError(
@@ -219,9 +252,11 @@ def add_keyframes(m: mujoco.MjModel, spec: mujoco.MjSpec, centre, radius: float,
         report[arm]["static_torque_share"] = s.tolist()
         k = int(np.argmax(s))
         if s[k] > TORQUE_SHARE:
+            joint = robot_names.joint_name(m, arm_joint_ids(m, arm[0])[k])
             raise ConfigError(
-                f"{label}: arms.{arm}: holding the grasp takes {100 * s[k]:.0f} % of joint {k + 1}'s torque limit "
-                f"statically (at most {100 * TORQUE_SHARE:.0f} %): a lighter object, another pose, or a stronger arm"
+                f"{label}: arms.{arm}: holding the grasp takes {100 * s[k]:.0f} % of the torque limit of joint "
+                f"'{joint}' statically (at most {100 * TORQUE_SHARE:.0f} %): a lighter object, another pose, or a "
+                "stronger arm"
             )
     for key, q in qpos.items():
         spec.add_key(name=key, qpos=q.tolist())

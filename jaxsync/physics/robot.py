@@ -14,8 +14,10 @@ or, one single-arm MJCF used twice, each arm with its own ``model`` and
 ``base`` ({pos: [x, y, z], quat: [w, x, y, z]}, in the robot's frame). Per
 arm, optionally: ``torque_limits`` (N m per joint, for models that carry
 none) and ``actuators`` (the model's torque motors to take the limits from,
-one per joint). ``flange`` names a site or a body whose +z axis points out of
-the flange. Optional at the top: ``clamp_axis`` ([x, y, z], horizontal: the
+one per joint) and ``ros_prefix`` (put before every joint and link name of
+the arm's ROS export, e.g. ``right_``, as multi-arm ros2_control descriptions
+prefix each arm). ``flange`` names a site or a body whose +z axis points out
+of the flange, away from the arm. Optional at the top: ``clamp_axis`` ([x, y, z], horizontal: the
 line the pads close along, from the right pad towards the left; default:
 the horizontal direction from the right arm's base to the left arm's) and
 ``stand`` (true: a stand under the object, the default).
@@ -29,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 
 import numpy as np
 import yaml
@@ -38,7 +41,8 @@ from jaxsync._errors import ConfigError
 SCHEMA_VERSION = 1
 ARM_NAMES = ("right", "left")
 _TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand"}
-_ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators"}
+_ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
+_ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _OBJECT_KEYS = {"position", "radius", "mass"}
 
 
@@ -53,6 +57,7 @@ class ArmSpec:
     base_quat: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     torque_limits: tuple[float, ...] | None = None
     actuators: tuple[str, ...] | None = None
+    ros_prefix: str = ""  # put before every joint and link name the arm's ROS files name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,7 +171,13 @@ def _arm(doc, name: str, root: str, path: str, bimanual: bool) -> ArmSpec:
                 f"{_where(path, key + '.actuators')} must name one torque motor per joint "
                 f"({len(joints)}), got {len(actuators)}"
             )
-    return ArmSpec(joints, doc["flange"], model, pos, quat, limits, actuators)
+    ros_prefix = doc.get("ros_prefix", "")
+    if not isinstance(ros_prefix, str) or (ros_prefix and not _ROS_PREFIX.fullmatch(ros_prefix)):
+        raise ConfigError(
+            f"{_where(path, key + '.ros_prefix')} must be a ROS name prefix (a letter, then letters, digits or _), "
+            f"got {ros_prefix!r}"
+        )
+    return ArmSpec(joints, doc["flange"], model, pos, quat, limits, actuators, ros_prefix)
 
 
 def load_robot(path: str | os.PathLike) -> Robot:
