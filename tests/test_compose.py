@@ -139,7 +139,7 @@ def test_a_file_with_size_attributes_composes_quietly_with_one_note(tmp_path, mo
         _, report = compose_robot(path)
     assert os.listdir(work) == []  # no MUJOCO_LOG.TXT
     assert "Attach conflict" not in capfd.readouterr().err
-    sizes = [n for n in report["notes"] if "<size>" in n]
+    sizes = [n for n in report.notes if "<size>" in n]
     assert sizes == ["the robot's file sets <size> memory, nkey, nuserdata; the task scene sizes its own"]
 
 

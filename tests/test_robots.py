@@ -88,7 +88,7 @@ def test_one_bimanual_file_and_one_arm_file_twice_give_the_same_scene(composed):
         d1, d2 = _at_key(m1, key), _at_key(m2, key)
         for s in ("r_pad", "l_pad", "r_ft", "l_ft"):
             np.testing.assert_allclose(_site(m1, d1, s)[0], _site(m2, d2, s)[0], atol=1e-6)
-    assert r1["joint_names"]["right"][0] == "joint1" and r2["joint_names"]["right"][0] == "right_joint1"
+    assert r1.joint_names["right"][0] == "joint1" and r2.joint_names["right"][0] == "right_joint1"
     assert np.isclose(m1.body_subtreemass[0], m2.body_subtreemass[0])  # the pair file adds two massless mounts
 
 
