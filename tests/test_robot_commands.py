@@ -145,3 +145,24 @@ def test_every_robot_command_runs_the_robots_gains_and_object(robot, robot_file,
     assert main(["render", *r, "--width", "64", "--height", "48", "--out", str(out)]) == 0
     s = json.loads((out / "render.json").read_text())
     assert s["model"] == ident and (s["object"]["mass_kg"], s["object"]["radius_m"]) == pytest.approx((MASS, RADIUS))
+
+
+def test_a_study_of_an_edited_robot_file_is_not_resumed(robot_file, tmp_path, capsys):
+    """A study folder records its robot by fingerprint: after the robot file is
+    edited in place (an arm base moved), --resume refuses by name before anything runs."""
+    from jaxsync.optimize.studies import study as _study
+
+    path, out = tmp_path / "robot.yaml", tmp_path / "study"
+    doc = yaml.safe_load(open(robot_file))
+    path.write_text(yaml.safe_dump(doc))
+    before = jaxsync.load_model(str(path), visual=False)
+    out.mkdir()
+    _study._prepare(str(out), _study.StudyConfig(), _study.model_label(before), False, False)
+    doc["arms"]["right"]["base"]["pos"] = [0, -0.42, 0]
+    path.write_text(yaml.safe_dump(doc))
+    after = jaxsync.load_model(str(path), visual=False)
+    assert before.fingerprint != after.fingerprint
+    rc = main(["study", "--robot", str(path), "--no-visual", "--resume", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and before.fingerprint[:12] in err and after.fingerprint[:12] in err
+    assert sorted(p.name for p in out.iterdir()) == ["study.json"]

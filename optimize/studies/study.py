@@ -154,6 +154,12 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
     _results.write_json(path, want)
 
 
+def model_label(model) -> str:
+    """The model as a study folder records it: by name and fingerprint, so that a
+    robot file edited since is another robot."""
+    return f"{model.name} ({model.path}, fingerprint {model.fingerprint[:12]})"
+
+
 def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
     """The settings in which a saved study differs from ``cfg`` (a setting the
     file does not hold counts at its default)."""
@@ -237,8 +243,7 @@ def run_study(
     looked at while another process runs it, or after it was stopped."""
     cfg = dataclasses.replace(cfg, scenario=tuple(cfg.scenario) or _scenarios.model_overrides(model)).validate()
     _results.ensure_writable_dir(out)
-    # the model by name and fingerprint: a robot file edited since is another robot
-    model_name = f"{model.name} ({model.path}, fingerprint {model.fingerprint[:12]})"
+    model_name = model_label(model)
     t_start = time.perf_counter()
     if report_only:
         if not os.path.exists(os.path.join(out, STUDY_FILE)):
