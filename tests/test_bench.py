@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import types
 
 import pytest
 
@@ -30,6 +31,11 @@ KEYS = (
     "tune_step_peak_rss_gib",
     "tune_step_peak_rss_warm_gib",
 )
+
+
+def _stand_in_model(source):
+    """What bench.json records of a model (its identity; no robot: the paper's defaults)."""
+    return types.SimpleNamespace(name="stand-in", path=source, fingerprint="0" * 64, robot=None)
 
 
 def run_cli(argv: list[str]) -> int:
@@ -137,7 +143,7 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
 
     def fake_load(source, solver, visual=True):
         loaded.append((source, visual))
-        return object()
+        return _stand_in_model(source)
 
     def fake_fg(path, duration, repeats, log, small=False, source=None, visual=True):
         seen.append(("fg", path, source))
@@ -201,7 +207,7 @@ def test_bench_without_a_robot_has_no_paper_ratios(monkeypatch, tmp_path):
     _stand_ins(
         monkeypatch,
         bm,
-        lambda source, solver, visual=True: object(),
+        lambda source, solver, visual=True: _stand_in_model(source),
         lambda *a, **k: fg,
         lambda *a, **k: {"cold": {"total_s": 40.0}, "warm": {"total_s": 3.0}},
         lambda *a, **k: {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}},
