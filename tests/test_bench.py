@@ -16,7 +16,9 @@ import types
 
 import pytest
 
+import jaxsync
 from jaxsync.cli import main
+from jaxsync.control import gains as _gains
 from jaxsync.optimize.benchmarks.benchmark import table, targets
 
 KEYS = (
@@ -185,6 +187,10 @@ def test_bench_robot_measures_the_robot_and_the_paper_model_for_the_ratios(tmp_p
     assert {c[0] for c in seen[:-2]} == {"fg", "compile", "tune"} and all(c[2] == absolute for c in seen[:-2])
     r = json.loads((tmp_path / "bench.json").read_text())
     assert r["model"] == absolute
+    # what ran: the loaded model's identity, its default gains and scenario
+    assert r["model_identity"] == {"name": "stand-in", "file": absolute, "fingerprint": "0" * 64}
+    assert r["gains"] == _gains.to_dict(jaxsync.default_gains())
+    assert r["scenario_base"]["object_mass"] == 0.5
     assert r["grad_over_forward_over_paper"] == pytest.approx(1.5)
     assert r["paper_model"]["ratio_of_ratios"]["per_round"] == pytest.approx([1.5, 1.5, 3.0])
     assert r["grad_compile_cold_over_paper"] == pytest.approx(1.25)

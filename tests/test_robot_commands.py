@@ -132,10 +132,8 @@ def test_every_robot_command_runs_the_robots_gains_and_object(robot, robot_file,
     assert main(["export", "--format", "yaml", *r, "--out", str(out)]) == 0
     assert gains_file.same_gains(gains_file.load(str(out / "gains.yaml")), jaxsync.default_gains(robot))
 
-    out = tmp_path / "bench"
-    assert main(["bench", "--quick", *r, "--out", str(out)]) == 0
-    s = json.loads((out / "bench.json").read_text())
-    assert _same_gains(s["gains"], robot) and _object_of(s["scenario_base"]) == (MASS, RADIUS)
+    # bench: its measurements compile for minutes in child processes; what it records of the
+    # model it loaded is checked with stand-in measurements (tests/test_bench.py)
 
     try:
         select_gl_backend()
