@@ -51,9 +51,8 @@ def load(path: str | os.PathLike):
         raise ConfigError(f"gains file {path}: {err}") from None
 
 
-def controller_of(path: str | os.PathLike) -> str | None:
-    """The controller a gains file was tuned for (``jaxsync tune`` records it
-    beside the gains), None when the file does not say."""
+def _recorded(path: str | os.PathLike, key: str):
+    """What a JSON gains file records beside the gains under ``key`` (None when it does not say)."""
     if os.path.isdir(path) or not str(path).endswith(".json"):
         return None
     try:
@@ -61,20 +60,19 @@ def controller_of(path: str | os.PathLike) -> str | None:
             data = json.load(f)
     except (OSError, json.JSONDecodeError):
         return None
-    return data.get("controller") if isinstance(data, dict) else None
+    return data.get(key) if isinstance(data, dict) else None
+
+
+def controller_of(path: str | os.PathLike) -> str | None:
+    """The controller a gains file was tuned for (``jaxsync tune`` records it
+    beside the gains), None when the file does not say."""
+    return _recorded(path, "controller")
 
 
 def model_of(path: str | os.PathLike) -> dict | None:
     """The model a gains file was tuned on (``jaxsync tune`` records it beside the
     gains: ``jaxsync.physics.model.identity``), None when the file does not say."""
-    if os.path.isdir(path) or not str(path).endswith(".json"):
-        return None
-    try:
-        with open(path) as f:
-            data = json.load(f)
-    except (OSError, json.JSONDecodeError):
-        return None
-    recorded = data.get("model") if isinstance(data, dict) else None
+    recorded = _recorded(path, "model")
     return recorded if isinstance(recorded, dict) else None
 
 
