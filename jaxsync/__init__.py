@@ -12,8 +12,11 @@ The public face; everything else lives in private modules
 - rollouts on MJX (:func:`rollout`, :func:`make_rollout`) and on MuJoCo C
   (:func:`rollout_mujoco`), recorded as a :class:`Trajectory`;
 - metrics: :func:`summarize`, :func:`series`, :class:`Metrics`;
-- tuning and sweeps (``jaxsync.optimize``, loaded on first use): :func:`tune`,
-  :class:`TuneConfig`, :class:`TuneSpec`, :class:`CostWeights`,
+- tuning and sweeps (``jaxsync.optimize``, loaded on first use): a tuning
+  job is one :class:`TuneConfig` (what is tuned, its training rollouts, the
+  scenarios' seeds, the method, the loop); :func:`tune_and_evaluate` runs it
+  and returns a :class:`TuneSummary`; :func:`tune` is its loop;
+  :class:`TuneSpec`, :class:`CostWeights`,
   :func:`make_loss`, :func:`sample_scenarios`, :func:`make_plan`,
   :func:`run_sweep`;
 - set-up, first thing in a script: :func:`set_xla_flags` (XLA's CPU settings,
@@ -78,7 +81,9 @@ __version__ = "0.1.0"
 # free of import cycles. Each public name: (module, attribute).
 _OPTIMIZE = {
     "tune": ("jaxsync.optimize.tuning.tune", "tune"),
-    "TuneConfig": ("jaxsync.optimize.tuning.tune", "TuneConfig"),
+    "TuneConfig": ("jaxsync.optimize.tuning.config", "TuneConfig"),
+    "TuneSummary": ("jaxsync.optimize.tuning.pipeline", "TuneSummary"),
+    "tune_and_evaluate": ("jaxsync.optimize.tuning.pipeline", "tune_and_evaluate"),
     "TuneResult": ("jaxsync.optimize.tuning.tune", "TuneResult"),
     "make_loss": ("jaxsync.optimize.tuning.loss", "make_loss"),
     "TuneSpec": ("jaxsync.optimize.tuning.params", "TuneSpec"),
@@ -145,6 +150,8 @@ __all__ = [
     # tuning and sweeps (jaxsync.optimize)
     "CostWeights",
     "TuneConfig",
+    "TuneSummary",
+    "tune_and_evaluate",
     "TuneResult",
     "TuneSpec",
     "make_loss",

@@ -6,7 +6,16 @@ these into a one-line message and a non-zero exit.
 
 
 class JaxsyncError(Exception):
-    """Base class of every error jaxsync raises on purpose."""
+    """Base class of every error jaxsync raises on purpose.
+
+    The message speaks in the library's words: the Python parameters by
+    name. ``inputs`` names the parameters it is about, so that a front end
+    can say which of its own options they are (the command line appends its
+    flags: ``jaxsync.cli``)."""
+
+    def __init__(self, message: str = "", *, inputs: tuple[str, ...] = ()):
+        super().__init__(message)
+        self.inputs = tuple(inputs)
 
 
 class ModelError(JaxsyncError):

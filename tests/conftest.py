@@ -19,8 +19,6 @@ import jaxsync
 from jaxsync.control.gains import classical_equivalent, default_gains
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import tune as tune_mod
-from jaxsync.optimize.tuning.cost import CostWeights
-from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base
 from jaxsync.runtime import programs
 from jaxsync.runtime.cache import enable_compilation_cache
@@ -214,11 +212,11 @@ def tuning_program(model):
     cache). Used by the full-task gradient check (test_gradient) and the
     resumed-run test (test_tune)."""
     cfg = tune_mod.TuneConfig(batch=2)
-    spec, base, weights = TuneSpec(), default_gains(), CostWeights()
-    loss = loss_mod.make_loss(model, spec, base, cfg, weights)
-    scen = sample_scenarios(jax.random.key(7), cfg.batch, training_base(cfg)[0])
+    spec, base, weights = cfg.problem.tuned, default_gains(), cfg.problem.weights
+    loss = loss_mod.make_loss(model, base, cfg)
+    scen = sample_scenarios(jax.random.key(7), cfg.training.batch, training_base(cfg.training)[0])
     theta0 = spec.init(base)
-    value_and_grad = loss_mod.traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta0, scen), None)
+    value_and_grad = loss_mod.traced_value_and_grad(loss, model, base, cfg, (theta0, scen), None)
     return {
         "cfg": cfg,
         "spec": spec,

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import csv
-import dataclasses
 import json
 import os
 import signal
@@ -213,9 +212,9 @@ def test_two_process_tuning_equals_one_process_with_both_batches(model, tuning_p
     process with batch 2 (the scenarios of both), to float64 rounding: the
     data-parallel cost and gradient (optimize.parallel) average what one
     process's batch averages. Process 0 alone writes the results."""
-    cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, validate_every=0, method="lbfgs")
-    assert cfg.batch == 2 and cfg.task == "full"
-    one = tune(model, tuning_program["spec"], tuning_program["base"], cfg, progress=False)
+    cfg = tuning_program["cfg"].replace(iterations=2, validate_every=0, method="lbfgs")
+    assert cfg.training.batch == 2 and cfg.training.task == "full"
+    one = tune(model, tuning_program["base"], cfg, progress=False)
     out = tmp_path / "two"
     argv = ["tune", "--out", str(out), "--iterations", "2", "--batch", "1", "--method", "lbfgs"]
     argv += ["--validate-every", "0", "--heldout-batch", "1", "--no-mujoco-check"]

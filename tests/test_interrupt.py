@@ -55,7 +55,7 @@ def stand_in_gradient(monkeypatch):
     during which a Ctrl-C lands in a garbage-collection callback."""
     at = {"ctrl_c": None, "calls": 0}
 
-    def traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
+    def traced_value_and_grad(loss, model, base, cfg, args, log):
         def value_and_grad(theta, scen):
             if at["calls"] == at["ctrl_c"]:
                 ctrl_c_in_a_gc_callback()

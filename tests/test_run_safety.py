@@ -21,7 +21,6 @@ from conftest import fake_heldout_metrics
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
-from jaxsync.cli.tune import change_text
 from jaxsync.control.gains import default_gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies import sweep
@@ -32,7 +31,8 @@ from jaxsync.optimize.tuning import tune as tune_mod
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.optimize.tuning.methods import Oracle
 from jaxsync.optimize.tuning.params import TuneSpec
-from jaxsync.optimize.tuning.tune import TuneResult
+from jaxsync.optimize.tuning.tune import TuneResult, method_of
+from jaxsync.optimize.tuning.tune_report import change_text
 
 QUICK = ["--iterations", "1", "--no-mujoco-check"]
 
@@ -108,12 +108,12 @@ def test_every_method_resumes_where_an_uninterrupted_run_goes(tmp_path, name):
 def test_a_cmaes_tuning_state_saves_and_resumes(tmp_path):
     """The tuner's own state of a CMA-ES run through save_state / resumed_state."""
     spec, base, method = TuneSpec(), default_gains(), methods.get("cmaes")
-    state = tune_state.fresh_state(spec, base, None, method, seed=0)
+    state = tune_state.fresh_state(spec, base, method, seed=0)
     mstate, _ = method.step(state.opt_state, _quadratic_like(method.incumbent(state.opt_state)))
     state = state._replace(opt_state=mstate, iteration=1)
     path = str(tmp_path / "checkpoint.npz")
     tune_state.save_state(path, state, {"method": "cmaes"}, method)
-    back = tune_state.resumed_state(path, {"method": "cmaes"}, spec, base, None, method)
+    back = tune_state.resumed_state(path, {"method": "cmaes"}, spec, base, method)
     np.testing.assert_array_equal(method.incumbent(back.opt_state), method.incumbent(mstate))
     assert back.iteration == 1
 
@@ -128,12 +128,12 @@ def _quadratic_like(x0):
 
 def test_a_resume_names_the_options_that_differ(tmp_path):
     spec, base = TuneSpec(), default_gains()
-    opt = TuneConfig(method="adam").optimizer_transform()
-    state = tune_state.fresh_state(spec, base, opt)
+    method = method_of(TuneConfig(method="adam"))
+    state = tune_state.fresh_state(spec, base, method)
     path = str(tmp_path / "checkpoint.npz")
-    tune_state.save_state(path, state, {"seed": 0, "batch": 4, "lr": 0.05})
+    tune_state.save_state(path, state, {"seed": 0, "batch": 4, "lr": 0.05}, method)
     with pytest.raises(ConfigError) as err:
-        tune_state.resumed_state(path, {"seed": 7, "batch": 4, "lr": 0.05}, spec, base, opt)
+        tune_state.resumed_state(path, {"seed": 7, "batch": 4, "lr": 0.05}, spec, base, method)
     assert "seed: 0 then, 7 now" in str(err.value) and "batch" not in str(err.value)
 
 
@@ -141,15 +141,15 @@ def test_a_cosine_run_resumed_with_other_iterations_is_refused(tmp_path):
     """Its learning rate decays over the first length: a longer resumed run
     would not be the longer run. A constant-rate run can be extended."""
     spec, base = TuneSpec(), default_gains()
-    opt = TuneConfig(method="adam", iterations=3).optimizer_transform()
-    state = tune_state.fresh_state(spec, base, opt)
+    method = method_of(TuneConfig(method="adam", iterations=3))
+    state = tune_state.fresh_state(spec, base, method)
     path = str(tmp_path / "checkpoint.npz")
-    tune_state.save_state(path, state, None, None, 3)
-    with pytest.raises(ConfigError, match="--iterations 5, but the run .* decays its learning rate over 3"):
-        tune_state.resumed_state(path, None, spec, base, opt, None, 5)
-    assert tune_state.resumed_state(path, None, spec, base, opt, None, 3).iteration == 0
-    tune_state.save_state(path, state, None, None, None)  # constant rate
-    assert tune_state.resumed_state(path, None, spec, base, opt, None, None).iteration == 0
+    tune_state.save_state(path, state, None, method, 3)
+    with pytest.raises(ConfigError, match="iterations 5, but the run .* decays its learning rate over 3"):
+        tune_state.resumed_state(path, None, spec, base, method, 5)
+    assert tune_state.resumed_state(path, None, spec, base, method, 3).iteration == 0
+    tune_state.save_state(path, state, None, method, None)  # constant rate
+    assert tune_state.resumed_state(path, None, spec, base, method, None).iteration == 0
 
 
 # ----------------------------------------------------------------- one run per folder
@@ -193,7 +193,7 @@ def stand_ins(monkeypatch):
 
         return evaluate
 
-    def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, out=None, **kw):
+    def fake_tune(model, base, cfg, *, validate=None, out=None, **kw):
         calls["cfg"] = cfg
         calls["locked"] = os.path.exists(os.path.join(out, _results.LOCK))
         v0 = {"iteration": 0, **validate(base)} if validate else None
@@ -243,9 +243,9 @@ def test_a_start_that_drops_the_object_everywhere_stops_before_tuning(tmp_path, 
 @pytest.mark.parametrize(
     "flags, message",
     [
-        (["--method", "adam", "--optimizer", "lbfgs"], "steps from (updates, state, params) alone"),
-        (["--method", "adam", "--optimizer", "tree_utils"], "'tree_utils'"),
-        (["--truncate-every", "-5"], "truncate every must be a positive number of steps"),
+        (["--method", "polyak_sgd"], "steps from (updates, state, params) alone"),
+        (["--method", "tree_utils"], "'tree_utils'"),
+        (["--truncate-every", "-5"], "truncate_every must be a positive number of steps"),
     ],
 )
 def test_options_are_checked_before_any_work(tmp_path, stand_ins, capsys, flags, message):
@@ -315,7 +315,7 @@ def test_kept_gains_worse_than_the_start_are_said(tmp_path, stand_ins, monkeypat
     out = tmp_path / "run"
     assert main(["tune", "--out", str(out), "--validate-every", "0", *QUICK]) == 0
     said = capsys.readouterr().out
-    assert "WARNING: the kept gains (the last iterate: --validate-every 0 selects none) score worse" in said
+    assert "WARNING: the kept gains (the last iterate: validate_every 0 selects none) score worse" in said
     assert "settled peak resultant 0.01500 -> 0.08250 N (5.50x)" in said
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kept_worse_than_start"] == ["settled peak resultant 0.01500 -> 0.08250 N (5.50x)"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import types
 
 import numpy as np
 import pytest
@@ -89,8 +90,8 @@ def fake_study(monkeypatch, model):
 
         return evaluate
 
-    def fake_tune(model, spec, base, cfg, weights=None, *, out, resume, restart, before, **kw):
-        calls.append((cfg.controller, cfg.max_impact_N, cfg.seed, resume))
+    def fake_tune(model, base, cfg, *, out, resume, restart, before, **kw):
+        calls.append((cfg.problem.controller, cfg.problem.max_impact_N, cfg.data.seed, resume))
         if len(calls) == fake_study_interrupt.get("at"):
             raise KeyboardInterrupt
         if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
@@ -99,11 +100,11 @@ def fake_study(monkeypatch, model):
         after["metrics"] = dict(before["metrics"])
         after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
         after["within_bounds"] = True
-        summary = {"heldout_before": before, "heldout_after": after, "controller": cfg.controller, "bounds": {}}
+        summary = {"heldout_before": before, "heldout_after": after, "controller": cfg.problem.controller, "bounds": {}}
         os.makedirs(out, exist_ok=True)
         with open(os.path.join(out, "summary.json"), "w") as f:
             json.dump(summary, f)
-        return summary
+        return types.SimpleNamespace(to_dict=lambda: summary)
 
     fake_study_interrupt = {}
     monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
@@ -114,7 +115,7 @@ def fake_study(monkeypatch, model):
 def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_study):
     calls, interrupt = fake_study
     cfg = study_mod.StudyConfig(
-        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
+        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout_batch=4, bootstrap=200
     )
     out = str(tmp_path / "study")
     interrupt["at"] = 3
@@ -124,7 +125,7 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     partial = study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)
     assert partial["runs_done"] == 2 and partial["runs"] == 8 and partial["bounds_reported"] == []
     assert {r["bound"] for r in partial["rows"]} == {None} and len(calls) == 3  # the defaults only; nothing tuned
-    with pytest.raises(Exception, match="--resume"):
+    with pytest.raises(Exception, match="resume to continue it"):
         study_mod.run_study(model, cfg, out, log=lambda m: None)
     other = study_mod.StudyConfig(**{**cfg.__dict__, "iterations": 3})
     with pytest.raises(Exception, match="iterations"):
@@ -162,7 +163,7 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         (["--controllers", "classical,nope"], "unknown controller"),
         (["--seeds", "a"], "argument --seeds: expected comma-separated numbers, got 'a'"),
         (["--seeds", ","], "argument --seeds: name at least one, got ','"),
-        (["--grip-spread", "1.5"], "grip spread"),
+        (["--grip-spread", "1.5"], "grip_spread must be a share in [0, 1), got 1.5 (--grip-spread)"),
     ]:
         try:
             rc = main(["study", "--out", str(out), *args])
@@ -195,7 +196,7 @@ def test_smoke_study_tunes_two_controllers(model, tmp_path):
         iterations=2,
         batch=1,
         task="short",
-        heldout=2,
+        heldout_batch=2,
         validation_batch=2,
         validate_every=1,
         bootstrap=200,
@@ -244,7 +245,7 @@ def test_a_ctrl_c_lost_in_a_callback_stops_the_study_after_that_run(model, tmp_p
     assert "jaxsync study: interrupted" in capsys.readouterr().err
     assert len(calls) == 3
     cfg = study_mod.StudyConfig(
-        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout=4, bootstrap=200
+        controllers=("classical", "synchronous"), bounds=(0.7, 1.5), seeds=(0, 1), heldout_batch=4, bootstrap=200
     )
     assert study_mod.run_study(model, cfg, out, report_only=True, log=lambda m: None)["runs_done"] == 3
 

@@ -6,7 +6,6 @@ plumbing and errors."""
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 
@@ -18,17 +17,16 @@ from conftest import TEST_DURATION, fake_heldout_metrics
 
 import jaxsync
 from jaxsync.cli import build_parser, main
-from jaxsync.cli.tune import change_text, mujoco_text
 from jaxsync.control import gains as _gains
 from jaxsync.optimize.tuning import checkpoint, methods, scenarios, tune_state
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import tune as tune_mod
-from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
 from jaxsync.optimize.tuning.methods import LBFGS, Oracle
 from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
 from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
+from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text
 from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.physics import step as _physics
 from jaxsync.sim import crosscheck as _crosscheck
@@ -69,7 +67,7 @@ def test_spec_sharing_and_errors():
     assert float(g.k_rk) == float(base.k_rk)  # frozen
     with pytest.raises(jaxsync.ConfigError, match="unknown parameter"):
         TuneSpec(tuned=("k_zz",))
-    with pytest.raises(jaxsync.ConfigError, match="learning rate"):
+    with pytest.raises(jaxsync.ConfigError, match="learning_rate"):
         TuneConfig(learning_rate=0.0).validate()
     with pytest.raises(jaxsync.ConfigError, match="batch"):
         TuneConfig(batch=0).validate()
@@ -102,7 +100,7 @@ def test_grip_spread_varies_the_grip_force_and_nothing_else():
     np.testing.assert_allclose(ends, [8.0, 12.0])
     cfg = TuneConfig(grip_spread=0.2, heldout_batch=4)
     assert np.ptp(np.asarray(scenarios.heldout_scenarios(cfg).grip_force)) > 0
-    with pytest.raises(jaxsync.ConfigError, match="grip spread"):
+    with pytest.raises(jaxsync.ConfigError, match="grip_spread"):
         TuneConfig(grip_spread=1.0).validate()
 
 
@@ -135,7 +133,7 @@ def test_stratified_batches_hold_each_ranges_ends():
     cfg = TuneConfig(batch=2, task="short")
     tb = training_batch(cfg, 0, base)
     np.testing.assert_allclose(np.sort(np.asarray(tb.contact_timeconst)), [0.015, 0.03])
-    tb_iid = training_batch(dataclasses.replace(cfg, sampling="iid"), 0, base)
+    tb_iid = training_batch(cfg.replace(sampling="iid"), 0, base)
     assert not np.allclose(np.sort(np.asarray(tb_iid.contact_timeconst)), [0.015, 0.03])
     with pytest.raises(jaxsync.ConfigError, match="sampling must be"):
         TuneConfig(sampling="sobol").validate()
@@ -152,10 +150,10 @@ def _fake_validation(g):
 
 
 def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_path):
-    cfg = dataclasses.replace(tuning_program["cfg"], **RESUME)
-    spec, base = tuning_program["spec"], tuning_program["base"]
+    cfg = tuning_program["cfg"].replace(**RESUME)
+    base = tuning_program["base"]
     kw = dict(progress=False, validate=_fake_validation)
-    r_full = tune(model, spec, base, cfg, out=str(tmp_path / "a"), **kw)
+    r_full = tune(model, base, cfg, out=str(tmp_path / "a"), **kw)
     full, hist_full = r_full.gains, r_full.history
     # Ctrl-C during the first iteration's callback (before its validation): a
     # checkpoint is written, then resume to the end
@@ -165,11 +163,11 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        tune(model, spec, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
+        tune(model, base, cfg, out=str(tmp_path / "b"), on_iteration=interrupt, **kw)
     assert (tmp_path / "b" / "checkpoint.npz").exists()
-    r_res = tune(model, spec, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
+    r_res = tune(model, base, cfg, out=str(tmp_path / "b"), resume=True, **kw)
     resumed, hist_res = r_res.gains, r_res.history
-    assert len(hist_res) == len(hist_full) == cfg.iterations
+    assert len(hist_res) == len(hist_full) == cfg.loop.iterations
     for a, b in zip(jax.tree_util.tree_leaves(full), jax.tree_util.tree_leaves(resumed), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # the same records, keys in the same order (history.csv's columns), timing aside
@@ -187,7 +185,7 @@ def test_resume_ends_where_an_uninterrupted_run_ends(model, tuning_program, tmp_
     assert _fake_validation(full) == {k: scores[sel["iteration"]][k] for k in _fake_validation(full)}
     allowed = [v for v in r_full.validation if v["grip_force_error_rel"] <= scores[0]["grip_force_error_rel"]]
     assert sel["settled_peak_resultant_N"] == min(v["settled_peak_resultant_N"] for v in allowed)
-    if sel["iteration"] != cfg.iterations:
+    if sel["iteration"] != cfg.loop.iterations:
         assert _gains.to_dict(r_full.last_gains) != _gains.to_dict(full)
 
 
@@ -211,11 +209,11 @@ def test_gradient_losses_run_the_tree_passes_and_evaluated_ones_mjx(model, monke
     monkeypatch.setattr(_physics, "before_control", recording)
     cfg = TuneConfig(task="short", batch=1)
     spec, base = TuneSpec(), _gains.default_gains()
-    scen = sample_scenarios(jax.random.key(0), 1, training_base(cfg)[0])
+    scen = sample_scenarios(jax.random.key(0), 1, training_base(cfg.training)[0])
     passes = {}
     for differentiated in (True, False):
         seen.clear()
-        loss = make_loss(model, spec, base, cfg, CostWeights(), differentiated=differentiated)
+        loss = make_loss(model, base, cfg, differentiated=differentiated)
         with pytest.raises(Reached):
             jax.eval_shape(loss, spec.init(base), scen)
         passes[differentiated] = seen[:]
@@ -268,19 +266,19 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
     schedule_file = tmp_path / "sched.json"
     schedule_file.write_text('{"gains": {"schedule": {"hold": {"k_rk": 0.1}}}}')
     cases = [
-        (["--lr", "0"], "learning rate must be positive"),
+        (["--lr", "0"], "learning_rate must be positive, got 0.0 (--lr)"),
         (["--batch", "0"], "batch must be a positive integer"),
         (["--tune", "k_rk,foo"], "unknown parameter"),
         (["--freeze", "bar"], "unknown parameter"),
         (["--gains", str(bad)], "k_lk"),
-        (["--optimizer", "nope"], "optimizer must name an optax"),
+        (["--method", "nope"], "or a first-order optax optimiser"),
         (["--out", str(blocker / "x")], "cannot be written"),
         (["--resume", "--out", str(tmp_path / "empty")], "no checkpoint at"),
-        (["--resume", "--out", str(tmp_path / "empty")], "pass --restart instead to start a run there"),
-        (["--validate-every", "-1"], "validate every must be"),
+        (["--resume", "--out", str(tmp_path / "empty")], "restart instead to start a run there"),
+        (["--validate-every", "-1"], "validate_every must be 0 (off) or a positive integer, got -1 (--validate-every)"),
         (["--validation-seed", "1000"], "seeds must differ"),
         (["--popsize", "1", "--method", "cmaes"], "popsize must be at least 2"),
-        (["--gains", str(schedule_file)], "--per-phase"),
+        (["--gains", str(schedule_file)], "tune them per phase (TuneSpec(schedule=True)) (--per-phase)"),
         (["--controller", "classical", "--tune", "k_rk"], "does not use k_rk"),
         (["--controller", "task_space", "--tune", "imp_mass"], "it tunes force_p, force_i"),
     ]
@@ -315,8 +313,8 @@ def fake_tuning(monkeypatch):
 
     monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
 
-    def fake_tune(model, spec, base, cfg, weights=None, *, validate=None, **kw):
-        calls["weights"], calls["cfg"], calls["kw"] = weights, cfg, kw
+    def fake_tune(model, base, cfg, *, validate=None, **kw):
+        calls["weights"], calls["cfg"], calls["kw"] = cfg.problem.weights, cfg, kw
         v0 = {"iteration": 0, **validate(base)}
         last = base._replace(k_rl=0.4)
         # the row's keys in another order than an uninterrupted run's (as a
@@ -351,7 +349,8 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
     out = tmp_path / "run"
     args = parser.parse_args(["tune", "--out", str(out), "--weight", "grip=3", "--iterations", "1"])
     assert args.func(args) == 0
-    assert calls["weights"].grip == 3.0 and calls["cfg"].task == "full" and calls["cfg"].heldout_batch == 16
+    cfg = calls["cfg"]
+    assert calls["weights"].grip == 3.0 and cfg.training.task == "full" and cfg.data.heldout_batch == 16
     summary = json.loads((out / "summary.json").read_text())
     for key in (
         "initial_cost",
@@ -393,8 +392,8 @@ def test_tune_cli_tunes_the_named_controller_under_bounds(tmp_path, fake_tuning)
         ["tune", "--out", str(out), "--iterations", "1", "--controller", "object_impedance", "--max-impact", "6.5"]
     )
     assert args.func(args) == 0
-    cfg = calls["cfg"]
-    assert cfg.controller == "object_impedance" and cfg.max_impact_N == 6.5 and cfg.max_stiffness_N_per_m is None
+    p = calls["cfg"].problem
+    assert p.controller == "object_impedance" and p.max_impact_N == 6.5 and p.max_stiffness_N_per_m is None
     assert calls["evaluator_controller"] == "object_impedance"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"] == "object_impedance"
@@ -432,7 +431,8 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
     for name, text in old.items():
         (out / name).write_text(text)
     for extra, message in [
-        ([], "pass --resume to continue it, --restart to discard it"),
+        ([], "resume to continue it, restart to discard it and start over, or choose another output folder"),
+        ([], "folder (--resume, --restart, --out)"),
         (["--resume", "--restart"], "give one of them"),
     ]:
         assert main(["tune", "--out", str(out), "--iterations", "1", *extra]) == 2, extra
@@ -442,7 +442,7 @@ def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_t
     assert {p.name: p.read_text() for p in out.iterdir()} == old  # nothing touched
     (out / "checkpoint.npz").unlink()  # results without a checkpoint: only --restart
     assert main(["tune", "--out", str(out), "--iterations", "1"]) == 2
-    assert "no checkpoint to --resume from: pass --restart" in capsys.readouterr().err
+    assert "no checkpoint to resume from: restart to discard them" in capsys.readouterr().err
     (out / "checkpoint.npz").write_text("old")
     assert main(["tune", "--out", str(out), "--iterations", "1", "--restart"]) == 0
     assert fake_tuning["kw"]["resume"] is False
@@ -512,7 +512,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
     monkeypatch.setattr(tune_mod, "tqdm", RecordingBar)  # the bar tune() draws
     calls = []
 
-    def fake_traced(loss, model, spec, base, cfg, weights, args, log):
+    def fake_traced(loss, model, base, cfg, args, log):
         def value_and_grad(theta, scenarios):
             calls.append(1)
             if len(calls) == 1:
@@ -524,7 +524,7 @@ def test_eta_leaves_out_the_compiling_first_iteration(model, monkeypatch):
 
     monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
     cfg = TuneConfig(iterations=4, batch=1, validate_every=0, task="short", method="adam")
-    tune(model, TuneSpec(), _gains.default_gains(), cfg, progress=True)
+    tune(model, _gains.default_gains(), cfg, progress=True)
     assert len(calls) == 4
     (eta,) = [e for n, e in etas if n == 2]
     assert eta is not None and eta < 0.75, etas  # 2 iterations left; counting the first: 2 s or more
@@ -624,7 +624,7 @@ def test_tune_oracle_values_on_its_training_batch_and_follows_renewals():
 
     vg = jax.jit(jax.value_and_grad(loss, has_aux=True))
     cfg = TuneConfig(iterations=1, batch=1, task="short", method="lbfgs")
-    o = tune_mod._MethodOracle(loss, lambda: vg, theta, batches[0], cfg, None, batches.get).oracle
+    o = tune_mod._MethodOracle(loss, lambda scen: vg, theta, batches[0], cfg, None, batches.get).oracle
     x = np.array([1.0, 2.0, -0.5])
     for k, want in ((0, 1.0 * 5.25), (1, 3.0 * 5.25)):
         o.use(k)
@@ -679,20 +679,19 @@ def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuni
     two iterations lower the training cost on its fixed batch, every accepted step
     satisfies Armijo's condition, and the checkpoint holds the method's state exactly."""
 
-    cfg = dataclasses.replace(tuning_program["cfg"], iterations=2, checkpoint_every=1, validate_every=0)
-    cfg = dataclasses.replace(cfg, method="lbfgs")
+    cfg = tuning_program["cfg"].replace(iterations=2, checkpoint_every=1, validate_every=0, method="lbfgs")
     spec, base = tuning_program["spec"], tuning_program["base"]
-    r = tune(model, spec, base, cfg, out=str(tmp_path / "l"), progress=False)
+    r = tune(model, base, cfg, out=str(tmp_path / "l"), progress=False)
     h = r.history
     assert [row["iteration"] for row in h] == [0, 1] and all(row["skipped"] == 0 for row in h)
     assert all(row["gradient_calls"] >= 1 for row in h)
     # the fixed batch's cost at the start, from the same program
-    scen = training_batch(cfg, 0, training_base(cfg)[0])
+    scen = training_batch(cfg, 0, training_base(cfg.training)[0])
     (c0, _), _ = tuning_program["value_and_grad"](spec.init(base), scen)
     assert h[0]["cost"] < float(c0) and h[1]["cost"] < h[0]["cost"]
 
     ckpt = str(tmp_path / "l" / "checkpoint.npz")
-    saved = tune_state.resumed_state(ckpt, None, spec, base, None, methods.get("lbfgs"))
+    saved = tune_state.resumed_state(ckpt, None, spec, base, methods.get("lbfgs"))
     mine = r.state.opt_state
     assert saved.iteration == 2
     np.testing.assert_array_equal(saved.opt_state["x"], mine["x"])
@@ -713,7 +712,7 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
     validates and checkpoints the last iterate and returns normally."""
     seen = []
 
-    def fake_traced(loss, model, spec, base, cfg, weights, args, log):
+    def fake_traced(loss, model, base, cfg, args, log):
         theta0 = args[0]
 
         def value_and_grad(theta, scenarios):  # the cost rises along -grad: every trial step fails
@@ -727,16 +726,14 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
 
     monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
     cfg = TuneConfig(iterations=14, batch=1, validate_every=5, task="short", method="lbfgs")
-    r = tune(
-        model, TuneSpec(), _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation
-    )
+    r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation)
     # two failed line searches per batch, 5 batches (the first and 4 fresh ones)
     assert [row["skipped"] for row in r.history] == [1] * 10
     assert [v["iteration"] for v in r.validation] == [0, 5, 10]  # the last iterate validated
     assert (tmp_path / "checkpoint.npz").exists()
     np.testing.assert_array_equal(np.asarray(r.gains.k_rk), np.asarray(_gains.default_gains().k_rk))
     # each batch's first evaluation is the start of its run of calls: 5 distinct batches, in order
-    train_base = training_base(cfg)[0]
+    train_base = training_base(cfg.training)[0]
     expected = [_fingerprint(training_batch(cfg, k, train_base)) for k in range(5)]
     assert len(set(expected)) == 5
     assert list(dict.fromkeys(seen)) == expected

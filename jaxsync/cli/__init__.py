@@ -72,6 +72,29 @@ def main(argv: list[str] | None = None) -> int:
                 _distributed.abandon(rc)
 
 
+FLAGS = {
+    "learning_rate": "--lr",
+    "clip_norm": "--clip",
+    "max_impact_N": "--max-impact",
+    "max_stiffness_N_per_m": "--max-stiffness",
+    "heldout_batch": "--heldout-batch",
+    "spec": "--tune",
+    "frozen": "--freeze",
+    "name": "--method",
+    "weights": "--weight",
+    "gains_path": "--gains",
+}
+"""The command line's flag for a library parameter, where it is not ``--`` and the name with dashes."""
+
+
+def flags_text(err: JaxsyncError) -> str:
+    """' (--resume, --restart)': the flags of the parameters an error names (``JaxsyncError.inputs``)."""
+    if not getattr(err, "inputs", ()):
+        return ""
+    flags = [FLAGS.get(name, "--" + name.replace("_", "-")) for name in err.inputs]
+    return " (" + ", ".join(dict.fromkeys(flags)) + ")"
+
+
 def _run(args: argparse.Namespace) -> int:
     """The command, its errors as one line and an exit status."""
     try:
@@ -81,7 +104,7 @@ def _run(args: argparse.Namespace) -> int:
         print(f"jaxsync {args.command}: {err}", file=sys.stderr)
         return EXIT_DROPPED
     except JaxsyncError as err:
-        print(f"jaxsync {args.command}: error: {err}", file=sys.stderr)
+        print(f"jaxsync {args.command}: error: {err}{flags_text(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         hint = getattr(args, "interrupted_hint", None)

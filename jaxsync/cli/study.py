@@ -43,7 +43,7 @@ def run(args) -> int:
         batch=args.batch,
         method=args.method,
         task=args.task,
-        heldout=args.heldout,
+        heldout_batch=args.heldout,
         validation_batch=args.validation_batch,
         validate_every=args.validate_every,
         bootstrap=args.bootstrap,
@@ -53,8 +53,8 @@ def run(args) -> int:
     n = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)
     print(
         f"study: {', '.join(cfg.controllers)}; bounds x {', '.join(map(str, cfg.bounds))}; seeds "
-        f"{', '.join(map(str, cfg.seeds))}: {n} tuning runs of {cfg.iterations} {cfg.method} iterations, each "
-        f"scored on {cfg.heldout} held-out scenarios",
+        f"{', '.join(map(str, cfg.seeds))}: {n} tuning runs of {cfg.tuning.loop.iterations} "
+        f"{cfg.tuning.method.name} iterations, each scored on {cfg.tuning.data.heldout_batch} held-out scenarios",
         flush=True,
     )
     report = _study.run_study(

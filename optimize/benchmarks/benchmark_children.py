@@ -75,7 +75,7 @@ def _child_tune_step(cfg: dict) -> dict:
         loss, args, _ = small_gradient(cfg["path"], source, visual)
     else:
         loss, args, _ = tuning_loss(cfg["path"], cfg["task"], cfg["batch"], None, source, visual)
-    opt = TuneConfig().optimizer_transform()
+    opt = TuneConfig(method="adam").optimizer_transform()
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
     theta = args[0]
     state = opt.init(theta)

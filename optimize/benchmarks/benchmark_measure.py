@@ -30,9 +30,7 @@ import numpy as np
 
 from jaxsync.control.gains import default_gains
 from jaxsync.optimize.tuning.config import TuneConfig
-from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
-from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.optimize.tuning.scenarios import model_overrides, sample_scenarios, training_base
 from jaxsync.physics.model import load_model
 from jaxsync.physics.sensing import sense
@@ -187,9 +185,9 @@ def tuning_loss(
     model = load(path, source, visual)
     over["scenario"] = model_overrides(model)
     cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
-    base, spec = default_gains(model), TuneSpec()
-    loss = make_loss(model, spec, base, cfg, CostWeights())
-    scen_base, dur = training_base(cfg)
+    base, spec = default_gains(model), cfg.problem.tuned
+    loss = make_loss(model, base, cfg)
+    scen_base, dur = training_base(cfg.training)
     scen = sample_scenarios(jax.random.key(0), batch, scen_base)
     return loss, (spec.init(base), scen), steps_for(dur, model)
 

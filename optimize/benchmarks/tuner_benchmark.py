@@ -40,7 +40,7 @@ from jax.flatten_util import ravel_pytree
 from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning import methods as _methods
-from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.config import Problem, TuneConfig
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
 from jaxsync.optimize.tuning.params import TuneSpec
@@ -72,11 +72,11 @@ class Programs:
     def __init__(self, model, cfg: BenchConfig, base=None, weights: CostWeights | None = None):
         self.cfg = cfg
         base = base if base is not None else _gains.default_gains()
-        tcfg = TuneConfig(batch=cfg.batch, task=cfg.task, truncate_every=None)
         self.spec = PROBLEMS["schedule"]
-        weights = weights or CostWeights()
-        loss = make_loss(model, self.spec, base, tcfg, weights)  # differentiated: jaxsync's tree passes
-        forward = make_loss(model, self.spec, base, tcfg, weights, differentiated=False)  # MJX's passes
+        problem = Problem(spec=self.spec, weights=weights or CostWeights())
+        tcfg = TuneConfig(problem=problem, batch=cfg.batch, task=cfg.task, truncate_every=None)
+        loss = make_loss(model, base, tcfg)  # differentiated: jaxsync's tree passes
+        forward = make_loss(model, base, tcfg, differentiated=False)  # MJX's passes
         theta0 = self.spec.init(base)
         self.x0, unravel = ravel_pytree(theta0)
         self.x0 = np.asarray(self.x0)

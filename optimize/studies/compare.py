@@ -323,7 +323,7 @@ def paper_comparison(
             gains,
             default_gains(model),
             held,
-            cfg.eval_duration,
+            cfg.training.eval_duration,
             n=mujoco_check,
             log=log,
             controller=controllers[-1],

@@ -27,11 +27,9 @@ from jaxsync.io import results as _results
 from jaxsync.optimize.studies import study_report as _report
 from jaxsync.optimize.studies.compare import check_controllers
 from jaxsync.optimize.tuning import loss as _loss
-from jaxsync.optimize.tuning import methods as _methods
 from jaxsync.optimize.tuning import pipeline as _pipeline
 from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning.config import TuneConfig
-from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TuneSpec
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT
 from jaxsync.runtime import interrupt as _interrupt
 
@@ -43,77 +41,93 @@ STUDY_PARTS = ("runs", "defaults", "reference.json", STUDY_FILE, *_report.FILES)
 REFERENCE_CONTROLLER = "classical"  # the bounds are factors of its default compliance
 
 
-@dataclasses.dataclass(frozen=True)
+STUDY_TUNING = TuneConfig(iterations=10, batch=2, heldout_batch=32, validation_batch=8, grip_spread=0.2)
+"""The tuning job every run of a study runs, but for its controller, bounds and seed
+(``jaxsync study``'s defaults: 10 L-BFGS iterations on batches of 2, 32 held-out
+scenarios, the desired grip force +-20 %: 10 N is 8 to 12 N)."""
+
+
+@dataclasses.dataclass(frozen=True, init=False)
 class StudyConfig:
-    """How the study runs (defaults: ``jaxsync study``'s).
+    """How the study runs (defaults: ``jaxsync study``'s): which controllers,
+    bounds and training seeds, and the tuning job each run is (``tuning``,
+    a :class:`TuneConfig` whose controller, bounds and seed each run sets).
+
+    Built like a TuneConfig: ``tuning``'s fields may be given by name.
 
     Example:
       >>> cfg = StudyConfig(controllers=("classical", "synchronous"), seeds=(0,), iterations=2).validate()
+      >>> cfg.tuning.loop.iterations
+      2
     """
 
-    controllers: tuple[str, ...] = CONTROLLERS
-    bounds: tuple[float, ...] = (0.7, 1.0, 1.5)  # x the default classical controller's compliance figures
-    seeds: tuple[int, ...] = (0, 1, 2)  # training seeds, one run each
-    iterations: int = 10
-    batch: int = 2
-    method: str = "lbfgs"
-    task: str = "full"  # the training task ("short": jaxsync.short_task(), for smoke runs)
-    heldout: int = 32
-    heldout_seed: int = 1000
-    validation_batch: int = 8
-    validation_seed: int = 500
-    validate_every: int = 5
-    eval_duration: float = 4.0
-    bootstrap: int = 2000  # resamples of the ratios' 95 % intervals
-    grip_spread: float = 0.2  # the desired grip force +- this share in every scenario (10 N: 8 to 12 N)
-    scenario: tuple = ()  # overrides of every scenario's base (run_study sets a robot file's object)
+    controllers: tuple[str, ...]
+    bounds: tuple[float, ...]  # x the default classical controller's compliance figures
+    seeds: tuple[int, ...]  # training seeds, one run each
+    bootstrap: int  # resamples of the ratios' 95 % intervals
+    tuning: TuneConfig
+
+    def __init__(
+        self,
+        controllers: tuple[str, ...] = CONTROLLERS,
+        bounds: tuple[float, ...] = (0.7, 1.0, 1.5),
+        seeds: tuple[int, ...] = (0, 1, 2),
+        bootstrap: int = 2000,
+        tuning: TuneConfig | None = None,
+        **fields,
+    ):
+        for name, value in (("controllers", tuple(controllers)), ("bounds", tuple(bounds)), ("seeds", tuple(seeds))):
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "bootstrap", bootstrap)
+        object.__setattr__(self, "tuning", (tuning if tuning is not None else STUDY_TUNING).replace(**fields))
+
+    def replace(self, **fields) -> StudyConfig:
+        own = {k: fields.pop(k) for k in ("controllers", "bounds", "seeds", "bootstrap", "tuning") if k in fields}
+        now = {"controllers": self.controllers, "bounds": self.bounds, "seeds": self.seeds}
+        return StudyConfig(**{**now, "bootstrap": self.bootstrap, "tuning": self.tuning, **own}, **fields)
 
     def validate(self) -> StudyConfig:
         check_controllers(self.controllers)
         if not self.bounds or any(not (b > 0 and np.isfinite(b)) for b in self.bounds):
-            raise ConfigError(f"--bounds must be positive factors, e.g. 0.7,1,1.5, got {self.bounds}")
+            raise ConfigError(f"bounds must be positive factors, e.g. 0.7,1,1.5, got {self.bounds}", inputs=("bounds",))
         if len(set(self.bounds)) != len(self.bounds):
-            raise ConfigError(f"--bounds names a factor twice: {self.bounds}")
+            raise ConfigError(f"bounds names a factor twice: {self.bounds}", inputs=("bounds",))
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
-            raise ConfigError(f"--seeds must be distinct training seeds, got {self.seeds}")
-        clash = sorted(set(self.seeds) & {self.heldout_seed, self.validation_seed})
+            raise ConfigError(f"seeds must be distinct training seeds, got {self.seeds}", inputs=("seeds",))
+        d = self.tuning.data
+        clash = sorted(set(self.seeds) & {d.heldout_seed, d.validation_seed})
         if clash:
             raise ConfigError(
-                f"--seeds {clash} equal the held-out ({self.heldout_seed}) or validation ({self.validation_seed}) "
-                "seed: held-out scenarios are never trained on"
+                f"seeds {clash} equal the held-out ({d.heldout_seed}) or validation ({d.validation_seed}) "
+                "seed: held-out scenarios are never trained on",
+                inputs=("seeds",),
             )
         if self.bootstrap < 100:
-            raise ConfigError(f"--bootstrap must be at least 100 resamples, got {self.bootstrap}")
-        if self.method not in _methods.METHODS:
-            raise ConfigError(f"--method must be one of {list(_methods.METHODS)}, got {self.method!r}")
+            raise ConfigError(f"bootstrap must be at least 100 resamples, got {self.bootstrap}", inputs=("bootstrap",))
         for c in self.controllers:
-            self.tune_config(c, self.seeds[0], None).validate()  # the tuner's own checks, named as its
+            self.tune_config(c, self.seeds[0], None).validate()  # the tuner's own checks
         return self
 
     def tune_config(self, controller: str, seed: int, bounds: dict | None) -> TuneConfig:
-        """One run's TuneConfig: the same for every controller but its name and bounds."""
-        return TuneConfig(
-            iterations=self.iterations,
-            batch=self.batch,
-            method=self.method,
-            task=self.task,
+        """One run's TuneConfig: ``tuning`` with its controller (and that
+        controller's own tuned parameters), bounds and seed."""
+        return self.tuning.replace(
+            problem=dataclasses.replace(
+                self.tuning.problem,
+                controller=controller,
+                spec=None,
+                max_impact_N=(bounds or {}).get("max_impact_N"),
+                max_stiffness_N_per_m=(bounds or {}).get("max_stiffness_N_per_m"),
+            ),
             seed=seed,
-            heldout_seed=self.heldout_seed,
-            heldout_batch=self.heldout,
-            validation_seed=self.validation_seed,
-            validation_batch=self.validation_batch,
-            validate_every=self.validate_every,
-            eval_duration=self.eval_duration,
-            scenario=self.scenario,
-            grip_spread=self.grip_spread,
-            controller=controller,
-            max_impact_N=(bounds or {}).get("max_impact_N"),
-            max_stiffness_N_per_m=(bounds or {}).get("max_stiffness_N_per_m"),
         )
 
     def describe(self) -> dict:
-        """Plain JSON (tuples as lists, as they come back from a file)."""
-        return json.loads(json.dumps(dataclasses.asdict(self)))
+        """Plain JSON (tuples as lists, as they come back from a file): the study's
+        own settings and every setting of its tuning job, by name."""
+        flat = self.tuning.settings()
+        own = {"controllers": self.controllers, "bounds": self.bounds, "seeds": self.seeds, "bootstrap": self.bootstrap}
+        return json.loads(json.dumps({**own, **flat}))
 
 
 def bound_name(factor: float) -> str:
@@ -127,7 +141,9 @@ def run_dir(out: str, controller: str, factor: float, seed: int) -> str:
 def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart: bool) -> None:
     path = os.path.join(out, STUDY_FILE)
     if resume and restart:
-        raise ConfigError("--resume continues the study in --out and --restart discards it: give one of them")
+        raise ConfigError(
+            "resume continues the study in out and restart discards it: give one of them", inputs=("resume", "restart")
+        )
     want = {"config": cfg.describe(), "model": model_name}
     if os.path.exists(path):
         with open(path) as f:
@@ -141,16 +157,18 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
                     os.unlink(target)
         elif not resume:
             raise ConfigError(
-                f"output folder {out!r} holds a study: pass --resume to continue it, or --restart to discard it"
+                f"output folder {out!r} holds a study: resume to continue it, or restart to discard it",
+                inputs=("resume", "restart"),
             )
         elif _differences(saved, cfg, model_name):
             diff = _differences(saved, cfg, model_name)
             raise ConfigError(
-                f"--resume: the study in {out!r} was run with other settings ({', '.join(diff)} differ); "
-                "run it with those, or --restart"
+                f"the study in {out!r} was run with other settings ({', '.join(diff)} differ): resume it with "
+                "those, or restart it",
+                inputs=("resume", "restart"),
             )
     elif resume:
-        raise ConfigError(f"--resume: no study in {out!r}")
+        raise ConfigError(f"no study in {out!r} to resume", inputs=("resume",))
     _results.write_json(path, want)
 
 
@@ -178,14 +196,14 @@ def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
         with open(path) as f:
             return json.load(f)
     tcfg = cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None)
-    base = _gains.default_gains(model)
-    evaluate = _loss.make_evaluator(model, cfg.eval_duration, REFERENCE_CONTROLLER)
-    log(f"compliance reference: default {REFERENCE_CONTROLLER} on {cfg.validation_batch} validation scenarios...")
+    base, data = _gains.default_gains(model), tcfg.data
+    evaluate = _loss.make_evaluator(model, tcfg.training.eval_duration, REFERENCE_CONTROLLER)
+    log(f"compliance reference: default {REFERENCE_CONTROLLER} on {data.validation_batch} validation scenarios...")
     ev = _loss.eval_summary(evaluate(base, _scenarios.validation_scenarios(tcfg)))
     k = jax.jit(_loss.compliance_fn(model, REFERENCE_CONTROLLER))(base)
     ref = {
         "controller": REFERENCE_CONTROLLER,
-        "scenarios": f"{cfg.validation_batch} validation scenarios (seed {cfg.validation_seed})",
+        "scenarios": f"{data.validation_batch} validation scenarios (seed {data.validation_seed})",
         "first_impact_peak_N": ev["first_impact_peak_N"],
         "apparent_stiffness_normal_N_per_m": float(k),
     }
@@ -215,8 +233,10 @@ def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
             continue
         _interrupt.check()
         t0 = time.perf_counter()
-        log(f"defaults: {name} on {cfg.heldout} held-out scenarios ({cfg.eval_duration:g} s; compiles first)...")
-        evaluate = _loss.make_evaluator(model, cfg.eval_duration, name)
+        duration = cfg.tuning.training.eval_duration
+        n = cfg.tuning.data.heldout_batch
+        log(f"defaults: {name} on {n} held-out scenarios ({duration:g} s; compiles first)...")
+        evaluate = _loss.make_evaluator(model, duration, name)
         ev = _loss.eval_summary(evaluate(base, held))
         ev.update(_pipeline.stiffness_figures(jax.jit(_loss.compliance_fn(model, name, axis=None))(base)))
         _results.write_json(path, ev)
@@ -241,13 +261,14 @@ def run_study(
     ``report_only``, the report of the runs finished so far (a bound whose
     runs are not all done is left out; nothing is tuned): a study can be
     looked at while another process runs it, or after it was stopped."""
-    cfg = dataclasses.replace(cfg, scenario=tuple(cfg.scenario) or _scenarios.model_overrides(model)).validate()
+    scenario = tuple(cfg.tuning.training.scenario) or _scenarios.model_overrides(model)
+    cfg = cfg.replace(scenario=scenario).validate()
     _results.ensure_writable_dir(out)
     model_name = model_label(model)
     t_start = time.perf_counter()
     if report_only:
         if not os.path.exists(os.path.join(out, STUDY_FILE)):
-            raise ConfigError(f"--report-only: no study in {out!r}")
+            raise ConfigError(f"no study in {out!r} to report on", inputs=("report_only",))
         return _report_so_far(model, cfg, out, model_name, t_start, log)
     with _results.run_lock(out, "study", log=log):
         _prepare(out, cfg, model_name, resume, restart)
@@ -278,7 +299,6 @@ def run_study(
             resuming = os.path.exists(os.path.join(where, CHECKPOINT))
             runs[(controller, factor, seed)] = _pipeline.tune_and_evaluate(
                 model,
-                TuneSpec(tuned=DEFAULT_TUNED_FOR[controller]),
                 base,
                 tcfg,
                 out=where,
@@ -288,7 +308,7 @@ def run_study(
                 options={"study": out, "controller": controller, "bound": factor, "seed": seed},
                 log=lambda m: None,
                 before=_before(defaults[controller], tcfg),
-            )
+            ).to_dict()
             took.append(time.perf_counter() - t0)
             after = runs[(controller, factor, seed)]["heldout_after"]
             log(
@@ -308,14 +328,18 @@ def _report_so_far(model, cfg: StudyConfig, out: str, model_name: str, t_start: 
     diff = _differences(saved, cfg, model_name)
     if diff:
         raise ConfigError(
-            f"--report-only: the study in {out!r} was run with other settings ({', '.join(diff)} differ); name those"
+            f"the study in {out!r} was run with other settings ({', '.join(diff)} differ); name those to report on it",
+            inputs=("report_only",),
         )
     paths = {name: os.path.join(out, "defaults", f"{name}.json") for name in cfg.controllers}
     missing = [n for n, p in paths.items() if not os.path.exists(p)] + (
         [] if os.path.exists(os.path.join(out, "reference.json")) else ["reference"]
     )
     if missing:
-        raise ConfigError(f"--report-only: the study in {out!r} has not scored the defaults yet ({', '.join(missing)})")
+        raise ConfigError(
+            f"the study in {out!r} has not scored the defaults yet ({', '.join(missing)}): nothing to report",
+            inputs=("report_only",),
+        )
     defaults = {}
     for name, p in paths.items():
         with open(p) as f:

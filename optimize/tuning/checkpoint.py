@@ -78,10 +78,10 @@ def load(path: str) -> dict:
         with np.load(path, allow_pickle=False) as f:
             arrays = {k: f[k] for k in f.files}
     except FileNotFoundError:
-        raise ConfigError(f"--resume: no checkpoint at {path}") from None
+        raise ConfigError(f"no checkpoint at {path} to resume from", inputs=("resume",)) from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
         raise ConfigError(
-            f"--resume: {path} is not a jaxsync checkpoint (a numpy .npz of data; it is never unpickled): {err}"
+            f"{path} is not a jaxsync checkpoint (a numpy .npz of data; it is never unpickled): {err}"
         ) from None
     try:
         doc = json.loads(bytes(arrays.pop(DOCUMENT)).decode())
@@ -89,4 +89,4 @@ def load(path: str) -> dict:
             raise ValueError(f"format {doc.get('format')!r}, expected {FORMAT!r}")
         return _decode(doc["state"], arrays)
     except (KeyError, ValueError, TypeError, AttributeError) as err:
-        raise ConfigError(f"--resume: {path} is not a jaxsync checkpoint: {err}") from None
+        raise ConfigError(f"{path} is not a jaxsync checkpoint: {err}", inputs=("resume",)) from None

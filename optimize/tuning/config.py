@@ -1,8 +1,27 @@
-"""How to tune: :class:`TuneConfig`, ``jaxsync tune``'s options as one value."""
+"""How to tune: :class:`TuneConfig`, a tuning job as one value.
+
+A job has five parts, each a frozen dataclass:
+
+- :class:`Problem`: what is tuned (the controller, its parameters, the cost
+  and the compliance bounds);
+- :class:`Training`: the training rollouts (task, durations, start, scenario
+  base, batch size, gradient truncation);
+- :class:`Data`: the seeds and draws of the training, validation and
+  held-out scenarios;
+- :class:`Method`: the optimiser;
+- :class:`Loop`: iterations, checkpoints and validation.
+
+The training loss's compiled program depends on exactly ``problem`` and
+``training`` (:meth:`TuneConfig.program`): ``make_loss`` reads nothing else,
+so a traced program is keyed by those two values and nothing is listed by
+hand. The robot is the ``model`` the job functions take beside the
+configuration.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import optax
@@ -10,105 +29,252 @@ import optax
 from jaxsync._errors import ConfigError
 from jaxsync.control.names import CONTROLLERS
 from jaxsync.optimize.tuning import methods as _methods
-from jaxsync.optimize.tuning.loop import first_order_problem, make_optimizer
+from jaxsync.optimize.tuning.cost import CostWeights
+from jaxsync.optimize.tuning.loop import make_optimizer
+from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TuneSpec
 
 
 @dataclasses.dataclass(frozen=True)
-class TuneConfig:
-    """How to tune (defaults: ``jaxsync tune``'s).
+class Problem:
+    """What is tuned: the controller, its parameters, the cost, the compliance bounds."""
 
-    Example:
-      >>> cfg = TuneConfig(iterations=10, batch=2, task="short").validate()
-    """
-
-    iterations: int = 60
-    batch: int = 4
-    learning_rate: float = 0.05
-    optimizer: str = "adam"
-    schedule: str = "cosine"  # or "constant"
-    clip_norm: float = 1.0
-    seed: int = 0
-    heldout_seed: int = 1000
-    heldout_batch: int = 16
-    train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
-    eval_duration: float = 4.0
-    truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
-    checkpoint_every: int = 5
-    max_bad_steps: int = 3
-    train_start: str = "approach"  # keyframe the training rollouts start from
-    train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
-    scenario: tuple = ()  # (field, value) overrides of every scenario's base: a robot file's object
-    grip_spread: float = 0.0  # the desired grip force randomised +- this share in every sampled scenario
-    task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
-    validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
-    validation_seed: int = 500
-    validation_batch: int = 16
-    method: str = "lbfgs"  # optimize.methods.METHODS (docs/tuning.md: measured best); "adam" is the optax loop
-    popsize: int = 16  # CMA-ES population (methods "cmaes" and "cmaes-lbfgs")
-    sampling: str = "stratified"  # training batches: the ranges' ends (optimize.scenarios) or "iid"
     controller: str = "synchronous"  # jaxsync.control.controller.CONTROLLERS
+    spec: TuneSpec | None = None  # the tuned parameters; None: the controller's own (params.DEFAULT_TUNED_FOR)
+    weights: CostWeights = CostWeights()
     # compliance bounds (docs/metrics.md; None: unbounded): the mean first-impact peak pad force
     # over a batch, N, and the apparent stiffness along the pad normal, N/m
     max_impact_N: float | None = None
     max_stiffness_N_per_m: float | None = None
 
-    def validate(self) -> TuneConfig:
-        if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
-            raise ConfigError(f"learning rate must be positive, got {self.learning_rate}")
-        if not self.clip_norm > 0 or not math.isfinite(self.clip_norm):
-            raise ConfigError(
-                f"clip (the gradient's global-norm bound) must be a positive number, got {self.clip_norm}: "
-                "0 would zero every update and a negative bound reverse the gradient"
-            )
-        for name in ("iterations", "batch", "heldout_batch", "checkpoint_every", "max_bad_steps", "validation_batch"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"{name.replace('_', ' ')} must be a positive integer, got {getattr(self, name)}")
-        if self.validate_every < 0:
-            raise ConfigError(f"validate every must be 0 (off) or a positive integer, got {self.validate_every}")
-        if len({self.seed, self.heldout_seed, self.validation_seed}) < 3:
-            raise ConfigError(
-                f"the training, validation and held-out seeds must differ (got {self.seed}, "
-                f"{self.validation_seed}, {self.heldout_seed}): held-out scenarios are never trained on or selected on"
-            )
-        why = first_order_problem(self.optimizer)
-        if why is not None:
-            raise ConfigError(
-                "optimizer must name an optax optimiser that steps from (updates, state, params) alone, a "
-                f"first-order one (adam, adamw, sgd, lion, rmsprop, ...), got {self.optimizer!r}: {str(why)[:200]}"
-            )
-        if self.truncate_every is not None and (
-            int(self.truncate_every) != self.truncate_every or self.truncate_every < 1
-        ):
-            raise ConfigError(
-                "truncate every must be a positive number of steps (or none: the exact gradient), "
-                f"got {self.truncate_every}"
-            )
-        if self.task not in ("short", "full"):
-            raise ConfigError(f"training task must be 'short' or 'full', got {self.task!r}")
-        if self.method not in _methods.METHODS:
-            raise ConfigError(f"method must be one of {list(_methods.METHODS)}, got {self.method!r}")
-        if self.popsize < 2:
-            raise ConfigError(f"popsize must be at least 2, got {self.popsize}")
-        if self.sampling not in ("stratified", "iid"):
-            raise ConfigError(f"sampling must be 'stratified' or 'iid', got {self.sampling!r}")
-        if not 0.0 <= self.grip_spread < 1.0:
-            raise ConfigError(f"grip spread must be a share in [0, 1), got {self.grip_spread}")
+    @property
+    def tuned(self) -> TuneSpec:
+        """The tuned parameters: ``spec``, or the controller's own."""
+        return self.spec if self.spec is not None else TuneSpec(tuned=DEFAULT_TUNED_FOR[self.controller])
+
+    def validate(self) -> None:
         if self.controller not in CONTROLLERS:
-            raise ConfigError(f"controller must be one of {list(CONTROLLERS)}, got {self.controller!r}")
+            raise ConfigError(
+                f"controller must be one of {list(CONTROLLERS)}, got {self.controller!r}", inputs=("controller",)
+            )
         for name in ("max_impact_N", "max_stiffness_N_per_m"):
             v = getattr(self, name)
             if v is not None and not (v > 0 and math.isfinite(v)):
-                raise ConfigError(f"{name.replace('_', ' ')} must be a positive number (or none: unbounded), got {v}")
+                raise ConfigError(f"{name} must be a positive number (or None: unbounded), got {v}", inputs=(name,))
+        for name, v in self.weights._asdict().items():
+            if not (math.isfinite(v) and v >= 0) or (name == "peak_temperature" and v <= 0):
+                raise ConfigError(
+                    f"cost weight {name} must be a finite number >= 0 (temperature > 0), got {v}", inputs=("weights",)
+                )
+
+
+@dataclasses.dataclass(frozen=True)
+class Training:
+    """The training rollouts: every field shapes the gradient's program."""
+
+    task: str = "full"  # "full": the default task, as held out; "short": jaxsync.short_task() (2 s)
+    train_duration: float = 2.0  # of the "short" task; the "full" task runs eval_duration
+    eval_duration: float = 4.0  # the full task's (validation and held-out scenarios run it too)
+    train_start: str = "approach"  # keyframe the training rollouts start from
+    scenario: tuple = ()  # (field, value) overrides of every scenario's base: a robot file's object
+    train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
+    batch: int = 4  # training scenarios per iteration (per process in a multi-process run)
+    truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
+
+    def validate(self) -> None:
+        if self.task not in ("short", "full"):
+            raise ConfigError(f"task must be 'short' or 'full', got {self.task!r}", inputs=("task",))
+        if self.batch < 1:
+            raise ConfigError(f"batch must be a positive integer, got {self.batch}", inputs=("batch",))
+        for name in ("train_duration", "eval_duration"):
+            v = getattr(self, name)
+            if not (v > 0 and math.isfinite(v)):
+                raise ConfigError(f"{name} must be a positive number of seconds, got {v}", inputs=(name,))
+        t = self.truncate_every
+        if t is not None and (int(t) != t or t < 1):
+            raise ConfigError(
+                f"truncate_every must be a positive number of steps (or None: the exact gradient), got {t}",
+                inputs=("truncate_every",),
+            )
+
+
+@dataclasses.dataclass(frozen=True)
+class Data:
+    """The scenarios' seeds and draws: training (one batch per iteration), validation, held out."""
+
+    seed: int = 0
+    sampling: str = "stratified"  # training batches: the ranges' ends (optimize.scenarios) or "iid"
+    grip_spread: float = 0.0  # the desired grip force randomised +- this share in every sampled scenario
+    validation_seed: int = 500
+    validation_batch: int = 16
+    heldout_seed: int = 1000
+    heldout_batch: int = 16
+
+    def validate(self) -> None:
+        for name in ("validation_batch", "heldout_batch"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {getattr(self, name)}", inputs=(name,))
+        if len({self.seed, self.heldout_seed, self.validation_seed}) < 3:
+            raise ConfigError(
+                f"the training, validation and held-out seeds must differ (got {self.seed}, "
+                f"{self.validation_seed}, {self.heldout_seed}): held-out scenarios are never trained on or selected on",
+                inputs=("seed", "validation_seed", "heldout_seed"),
+            )
+        if self.sampling not in ("stratified", "iid"):
+            raise ConfigError(f"sampling must be 'stratified' or 'iid', got {self.sampling!r}", inputs=("sampling",))
+        if not 0.0 <= self.grip_spread < 1.0:
+            raise ConfigError(f"grip_spread must be a share in [0, 1), got {self.grip_spread}", inputs=("grip_spread",))
+
+
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """The optimiser: ``name`` is one of ``optimize.methods.METHODS`` ("lbfgs",
+    measured best: docs/tuning.md; "cmaes", "cmaes-lbfgs") or a first-order
+    optax optimiser by name ("adam", "sgd", "adamw", ...: a fresh training
+    batch every iteration, steered by ``learning_rate``, ``schedule`` and
+    ``clip_norm``)."""
+
+    name: str = "lbfgs"
+    learning_rate: float = 0.05
+    schedule: str = "cosine"  # or "constant"
+    clip_norm: float = 1.0
+    popsize: int = 16  # CMA-ES population ("cmaes" and "cmaes-lbfgs")
+
+    @property
+    def first_order(self) -> bool:
+        """Whether this is an optax optimiser stepping on a fresh batch every iteration."""
+        return self.name not in _methods.BATCH_METHODS
+
+    def validate(self) -> None:
+        if self.first_order:
+            why = _methods.first_order_problem(self.name)
+            if why is not None:
+                raise ConfigError(
+                    f"method must be one of {list(_methods.BATCH_METHODS)} or a first-order optax optimiser that "
+                    f"steps from (updates, state, params) alone (adam, adamw, sgd, lion, rmsprop, ...), got "
+                    f"{self.name!r}: {str(why)[:200]}",
+                    inputs=("name",),
+                )
+        if self.learning_rate <= 0 or not math.isfinite(self.learning_rate):
+            raise ConfigError(f"learning_rate must be positive, got {self.learning_rate}", inputs=("learning_rate",))
+        if not self.clip_norm > 0 or not math.isfinite(self.clip_norm):
+            raise ConfigError(
+                f"clip_norm (the gradient's global-norm bound) must be a positive number, got {self.clip_norm}: "
+                "0 would zero every update and a negative bound reverse the gradient",
+                inputs=("clip_norm",),
+            )
         if self.schedule not in ("cosine", "constant"):
-            raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}")
+            raise ConfigError(f"schedule must be 'cosine' or 'constant', got {self.schedule!r}", inputs=("schedule",))
+        if self.popsize < 2:
+            raise ConfigError(f"popsize must be at least 2, got {self.popsize}", inputs=("popsize",))
+
+
+@dataclasses.dataclass(frozen=True)
+class Loop:
+    """The loop: its length, checkpoints and validation."""
+
+    iterations: int = 60
+    checkpoint_every: int = 5
+    validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
+    max_bad_steps: int = 3  # non-finite steps in a row that stop the run
+
+    def validate(self) -> None:
+        for name in ("iterations", "checkpoint_every", "max_bad_steps"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"{name} must be a positive integer, got {getattr(self, name)}", inputs=(name,))
+        if self.validate_every < 0:
+            raise ConfigError(
+                f"validate_every must be 0 (off) or a positive integer, got {self.validate_every}",
+                inputs=("validate_every",),
+            )
+
+
+PARTS = {"problem": Problem, "training": Training, "data": Data, "method": Method, "loop": Loop}
+# a part's field by its own name, and Method's name also as "method"
+_FIELD_PART = {f.name: part for part, cls in PARTS.items() for f in dataclasses.fields(cls)}
+_FIELD_PART.pop("name")
+
+
+@dataclasses.dataclass(frozen=True, init=False)
+class TuneConfig:
+    """A tuning job (defaults: ``jaxsync tune``'s), its five parts.
+
+    Built from parts, from any part's fields by name (``method`` names the
+    method), or both; :meth:`replace` the same way.
+
+    Example:
+      >>> cfg = TuneConfig(iterations=10, batch=2, task="short").validate()
+      >>> cfg.loop.iterations, cfg.training.batch, cfg.method.name
+      (10, 2, 'lbfgs')
+      >>> cfg = TuneConfig(problem=Problem(controller="classical"), method=Method("adam", learning_rate=0.02))
+    """
+
+    problem: Problem
+    training: Training
+    data: Data
+    method: Method
+    loop: Loop
+
+    def __init__(self, problem=None, training=None, data=None, method=None, loop=None, **fields):
+        given = {"problem": problem, "training": training, "data": data, "method": method, "loop": loop}
+        if isinstance(method, str):  # the method by name
+            given["method"], fields["name"] = None, method
+        updates: dict[str, dict] = {part: {} for part in PARTS}
+        for name, value in fields.items():
+            part = "method" if name == "name" else _FIELD_PART.get(name)
+            if part is None:
+                raise ConfigError(f"TuneConfig has no setting {name!r}; settings: {sorted(_FIELD_PART)}")
+            updates[part][name] = value
+        for part, cls in PARTS.items():
+            value = given[part] if given[part] is not None else cls()
+            if not isinstance(value, cls):
+                raise ConfigError(f"TuneConfig's {part} must be a {cls.__name__}, got {type(value).__name__}")
+            object.__setattr__(self, part, dataclasses.replace(value, **updates[part]))
+
+    def replace(self, **fields) -> TuneConfig:
+        """This configuration with some parts or fields changed (as the constructor takes them)."""
+        parts = {part: getattr(self, part) for part in PARTS}
+        if isinstance(fields.get("method"), str):  # the method by name
+            fields["name"] = fields.pop("method")
+        for part in PARTS:
+            if part in fields:
+                parts[part] = fields.pop(part)
+        return TuneConfig(**parts, **fields)
+
+    def validate(self) -> TuneConfig:
+        for part in PARTS:
+            getattr(self, part).validate()
         return self
 
+    def program(self) -> tuple[Problem, Training]:
+        """What the training loss's compiled program depends on (and is keyed by)."""
+        return self.problem, self.training
+
+    def to_dict(self) -> dict:
+        """Every part's fields, by part (JSON-ready: the cost weights as a dict, the spec as its description)."""
+        out = {}
+        for part in PARTS:
+            d = {f.name: getattr(getattr(self, part), f.name) for f in dataclasses.fields(PARTS[part])}
+            out[part] = d
+        out["problem"]["weights"] = self.problem.weights._asdict()
+        out["problem"]["spec"] = self.problem.tuned.describe()
+        for k in ("scenario", "train_scenario"):
+            out["training"][k] = [list(x) for x in out["training"][k]]
+        return out
+
+    def settings(self) -> dict:
+        """Every part's fields in one JSON-ready dict, by name (Method's ``name`` as "method")."""
+        flat = {}
+        for part, fields in self.to_dict().items():
+            flat.update({("method" if (part, k) == ("method", "name") else k): v for k, v in fields.items()})
+        return json.loads(json.dumps(flat))
+
     def optimizer_transform(self) -> optax.GradientTransformation:
-        """This configuration's optax optimiser (cosine or constant rate, clipped)."""
+        """The first-order method's optax optimiser (cosine or constant rate, clipped)."""
+        m = self.method
         return make_optimizer(
-            self.learning_rate,
-            optimizer=self.optimizer,
-            schedule=self.schedule,
-            iterations=self.iterations,
-            clip_norm=self.clip_norm,
+            m.learning_rate,
+            optimizer=m.name,
+            schedule=m.schedule,
+            iterations=self.loop.iterations,
+            clip_norm=m.clip_norm,
         )

@@ -8,6 +8,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxsync._errors import ConfigError
 from jaxsync.sim import metrics as _metrics
 
 
@@ -81,3 +82,26 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
 
 def cost(traj, s, w: CostWeights) -> jax.Array:
     return sum(cost_terms(traj, s, w).values())
+
+
+def parse_weights(items) -> CostWeights:
+    """CostWeights from "NAME=VALUE" strings over the defaults (the value checks: ``TuneConfig.validate``).
+
+    Example:
+      >>> parse_weights(["grip=3"]).grip
+      3.0
+    """
+    w = CostWeights()
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in CostWeights._fields:
+            raise ConfigError(
+                f"a cost weight must be NAME=VALUE with NAME one of {list(CostWeights._fields)}, got {item!r}",
+                inputs=("weights",),
+            )
+        try:
+            w = w._replace(**{name: float(value)})
+        except ValueError:
+            raise ConfigError(f"cost weight {name}: not a number: {value!r}", inputs=("weights",)) from None
+    return w

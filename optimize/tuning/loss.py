@@ -19,8 +19,8 @@ from jaxsync.control import compliance as _compliance
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.optimize.tuning.config import TuneConfig
-from jaxsync.optimize.tuning.cost import CostWeights, cost, cost_terms
-from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.cost import cost, cost_terms
+from jaxsync.optimize.tuning.params import TuneSpec  # noqa: F401  (the docstring's example)
 from jaxsync.optimize.tuning.scenarios import training_base
 from jaxsync.physics import step as _physics
 from jaxsync.runtime import programs
@@ -29,28 +29,15 @@ from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.crosscheck import metric_rows
 from jaxsync.sim.rollout import make_rollout
 
-# TuneConfig fields the training loss's program depends on (the rest steer the loop)
-_PROGRAM_FIELDS = (
-    "train_duration",
-    "eval_duration",
-    "truncate_every",
-    "train_start",
-    "train_scenario",
-    "scenario",
-    "task",
-    "batch",
-    "controller",
-    "max_impact_N",
-    "max_stiffness_N_per_m",
-)
 BOUND_WEIGHT = 100.0  # the cost of exceeding a compliance bound by 10 %: 1 (a squared hinge)
 IMPACT_TEMPERATURE = 0.1  # N, of the smooth first-impact peak
 
 
-def make_loss(
-    model, spec: TuneSpec, base: _gains.Gains, cfg: TuneConfig, weights: CostWeights, *, differentiated: bool = True
-):
+def make_loss(model, base: _gains.Gains, cfg: TuneConfig, *, differentiated: bool = True):
     """loss(theta, scenarios) -> (mean cost, mean cost terms), jit- and grad-ready.
+
+    The parameters ``cfg.problem`` tunes, at ``base``'s values for the rest;
+    it reads ``cfg.program()`` alone (the problem and the training rollouts).
 
     ``differentiated=True`` (a loss to take the gradient of) rematerialises the
     rollout's steps and runs jaxsync's tree passes (a smaller program to
@@ -59,26 +46,28 @@ def make_loss(
     same values to rounding.
 
     Example:
-      >>> loss = make_loss(jaxsync.load_model(), TuneSpec(),
-      ...                  jaxsync.default_gains(), TuneConfig(task="short"), CostWeights())
+      >>> loss = make_loss(jaxsync.load_model(), jaxsync.default_gains(), TuneConfig(task="short"))
       >>> value, terms = loss(TuneSpec().init(jaxsync.default_gains()), batch)  # doctest: +SKIP
     """
+    problem, training = cfg.program()
+    spec, weights = problem.tuned, problem.weights
+    max_impact, max_stiffness = problem.max_impact_N, problem.max_stiffness_N_per_m
     fn = make_rollout(
         model,
-        cfg.controller,
-        training_base(cfg)[1],
+        problem.controller,
+        training_base(training)[1],
         remat=differentiated,
         passes="tree" if differentiated else "mjx",
-        truncate_every=cfg.truncate_every,
-        start=cfg.train_start,
+        truncate_every=training.truncate_every,
+        start=training.train_start,
     )
 
-    stiffness = compliance_fn(model, cfg.controller) if cfg.max_stiffness_N_per_m else None
+    stiffness = compliance_fn(model, problem.controller) if max_stiffness else None
 
     def one(gains, s):
         traj = fn(gains, s)
         terms = cost_terms(traj, s, weights)
-        if cfg.max_impact_N:
+        if max_impact:
             terms["impact"] = smooth_impact(traj)
         return cost(traj, s, weights), terms
 
@@ -86,11 +75,11 @@ def make_loss(
         gains = spec.to_gains(theta, base)
         c, terms = jax.vmap(one, in_axes=(None, 0))(gains, scenarios)
         c, terms = c.mean(), jax.tree_util.tree_map(jnp.mean, terms)
-        if cfg.max_impact_N:  # the batch's mean first impact, bounded
-            terms["impact_bound"] = bound_penalty(terms.pop("impact"), cfg.max_impact_N)
+        if max_impact:  # the batch's mean first impact, bounded
+            terms["impact_bound"] = bound_penalty(terms.pop("impact"), max_impact)
             c = c + terms["impact_bound"]
         if stiffness is not None:
-            terms["stiffness_bound"] = bound_penalty(stiffness(gains), cfg.max_stiffness_N_per_m)
+            terms["stiffness_bound"] = bound_penalty(stiffness(gains), max_stiffness)
             c = c + terms["stiffness_bound"]
         return c, terms
 
@@ -156,21 +145,20 @@ def eval_summary(m) -> dict:
     }
 
 
-def traced_value_and_grad(loss, model, spec, base, cfg, weights, args, log):
+def traced_value_and_grad(loss, model, base, cfg, args, log):
     """jit(value_and_grad(loss)), its traced form kept on disk between runs
-    (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss closes over."""
-    # the MJCF file's bytes, or for a robot file what it composes (its arm files, jaxsync's additions)
-    model_hash = model.fingerprint
-    program = {k: v for k, v in dataclasses.asdict(cfg).items() if k in _PROGRAM_FIELDS}
+    (``jaxsync.runtime.cache.traced_on_disk``), keyed by everything the loss
+    closes over: the model, ``base`` and ``cfg.program()``."""
+    problem, training = cfg.program()
     key = repr(
         (
             "tune.value_and_grad",
-            spec.describe(),
+            problem.tuned.describe(),
             _schedule.to_file_dict(base),
-            program,
-            tuple(weights),
+            {**dataclasses.asdict(problem), "spec": None, "weights": tuple(problem.weights)},
+            dataclasses.asdict(training),
             model.path,
-            model_hash,
+            model.fingerprint,  # the MJCF file's bytes, or what a robot file composes
             model.solver,
         )
     )

@@ -18,7 +18,9 @@ the training objective on a fixed batch:
 
 Methods (:data:`METHODS`):
 
-- ``adam``: optax Adam on the exact gradient, global-norm clipped;
+- ``adam`` (and any first-order optax optimiser by name, :class:`FirstOrder`):
+  optax on the exact gradient, global-norm clipped, a fresh batch every
+  iteration in the tuner;
 - ``lbfgs``: limited-memory BFGS (two-loop recursion, memory 10) with a
   backtracking Armijo line search and a cap on the step's length in theta:
   quasi-Newton curvature for a gradient that is steep in a few directions.
@@ -56,8 +58,12 @@ import numpy as np
 import optax
 
 from jaxsync._errors import ConfigError
+from jaxsync.optimize.tuning.loop import apply_update, first_order_problem, make_optimizer
 
-METHODS = ("adam", "lbfgs", "cmaes", "cmaes-lbfgs")
+BATCH_METHODS = ("lbfgs", "cmaes", "cmaes-lbfgs")
+"""The methods that optimise one training batch at a time (a deterministic objective)."""
+METHODS = ("adam", *BATCH_METHODS)
+"""The methods compared in the tuner benchmark: Adam stands for the first-order optax optimisers."""
 
 
 @dataclasses.dataclass
@@ -95,31 +101,35 @@ class Oracle:
         return np.asarray(self.values(np.asarray(X)), dtype=float)
 
 
-# ----------------------------------------------------------------- Adam
+# ----------------------------------------------------------------- first order
 
 
 @dataclasses.dataclass(frozen=True)
-class Adam:
-    learning_rate: float = 0.05
-    clip_norm: float = 1.0
-    needs = ("value_and_grad",)
+class FirstOrder:
+    """A first-order optax optimiser on the exact gradient (default: Adam at
+    0.05, global-norm clipped at 1). A non-finite value or gradient skips the
+    step (the parameters and the optimiser's state are kept). With
+    ``fresh_batches`` the tuner gives it a new training batch every iteration
+    (``oracle.use``): a stochastic gradient method."""
 
-    def _opt(self):
-        return optax.chain(optax.clip_by_global_norm(self.clip_norm), optax.adam(self.learning_rate))
+    optimizer: optax.GradientTransformation = dataclasses.field(
+        default_factory=lambda: make_optimizer(0.05, clip_norm=1.0)
+    )
+    needs = ("value_and_grad",)
+    fresh_batches = True
 
     def init(self, x0, seed: int = 0) -> dict:
         x = np.asarray(x0, dtype=float)
-        return {"x": x, "opt": self._opt().init(x)}
+        return {"x": x, "opt": self.optimizer.init(x)}
 
     def step(self, state, oracle: Oracle):
         f, g = oracle.vg(state["x"])
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 1}
-        if not (np.isfinite(f) and np.all(np.isfinite(g))):
+        u = apply_update(self.optimizer, state["x"], state["opt"], f, g)
+        if not bool(u.finite):
             row["accepted"] = 0
-            return state, row  # skip a non-finite step, as the tuner does
-        upd, opt = self._opt().update(g, state["opt"], state["x"])
-        x = np.asarray(optax.apply_updates(state["x"], upd))
-        return {"x": x, "opt": opt}, row
+            return state, row
+        return {"x": np.asarray(u.params, dtype=float), "opt": u.opt_state}, row
 
     def incumbent(self, state):
         return state["x"]
@@ -129,8 +139,14 @@ class Adam:
 
     def from_data(self, data) -> dict:
         x = np.asarray(data["x"], dtype=float)
-        template = jax.tree_util.tree_structure(self._opt().init(x))
-        return {"x": x, "opt": jax.tree_util.tree_unflatten(template, [jnp.asarray(v) for v in data["opt"]])}
+        template = jax.tree_util.tree_structure(self.optimizer.init(x))
+        leaves = [jnp.asarray(v) for v in data["opt"]]
+        if len(leaves) != template.num_leaves:
+            raise ConfigError(
+                f"the checkpoint's optimiser state has {len(leaves)} arrays, this optimiser's {template.num_leaves}: "
+                "it was written by another optimiser"
+            )
+        return {"x": x, "opt": jax.tree_util.tree_unflatten(template, leaves)}
 
 
 # ----------------------------------------------------------------- L-BFGS
@@ -283,9 +299,9 @@ class CMAES:
         mean, sigma = np.asarray(es.mean, dtype=float), float(es.sigma)
         if not (np.array_equal(mean, np.asarray(data["mean"], dtype=float)) and sigma == float(data["sigma"])):
             raise ConfigError(
-                "--resume: the CMA-ES state replayed from the checkpoint differs from the one saved "
+                "the CMA-ES state replayed from the checkpoint differs from the one saved "
                 f"(mean off by {float(np.max(np.abs(mean - data['mean']))):.3g}, step size {sigma} against "
-                f"{data['sigma']}): another version of the 'cma' package? --restart starts over"
+                f"{data['sigma']}): another version of the 'cma' package? restart the run"
             )
         return {"es": es, "x0": np.asarray(data["x0"], dtype=float), "seed": int(data["seed"]), "told": data["told"]}
 
@@ -324,8 +340,18 @@ class CMAESThenLBFGS:
 
 
 def get(name: str, **options):
-    """A method by name (:data:`METHODS`), with its options."""
-    table = {"adam": Adam, "lbfgs": LBFGS, "cmaes": CMAES, "cmaes-lbfgs": CMAESThenLBFGS}
-    if name not in table:
-        raise ConfigError(f"method must be one of {list(METHODS)}, got {name!r}")
-    return table[name](**options)
+    """A method by name: one of :data:`BATCH_METHODS` with its options, or a
+    first-order optax optimiser (:class:`FirstOrder`; its option
+    ``optimizer``: the optax transformation, default ``optax.<name>`` at 0.05,
+    clipped at 1)."""
+    table = {"lbfgs": LBFGS, "cmaes": CMAES, "cmaes-lbfgs": CMAESThenLBFGS}
+    if name in table:
+        return table[name](**options)
+    why = first_order_problem(name)
+    if why is not None:
+        raise ConfigError(
+            f"method must be one of {list(BATCH_METHODS)} or a first-order optax optimiser (adam, sgd, ...), "
+            f"got {name!r}: {why}"
+        )
+    options.setdefault("optimizer", make_optimizer(0.05, optimizer=name, clip_norm=1.0))
+    return FirstOrder(**options)

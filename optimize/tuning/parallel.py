@@ -41,7 +41,7 @@ def batch_size(per_process: int) -> int:
     total = per_process * jax.process_count()
     if total % jax.device_count():
         raise ConfigError(
-            f"--batch {per_process} per process does not split over this process's {jax.local_device_count()} "
+            f"batch {per_process} per process does not split over this process's {jax.local_device_count()} "
             f"devices: use a multiple of {jax.local_device_count()}"
         )
     return total

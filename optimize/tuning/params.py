@@ -94,9 +94,9 @@ class TuneSpec:
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
         if unknown:
-            raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}")
+            raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}", inputs=("spec",))
         if not self.tuned:
-            raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE))
+            raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE), inputs=("spec", "frozen"))
 
     # --- the shape of one impedance parameter in theta
     def _reduce(self, v: np.ndarray) -> np.ndarray:
@@ -130,8 +130,8 @@ class TuneSpec:
         if isinstance(base, _schedule.Schedule):
             if not self.schedule:
                 raise ConfigError(
-                    "the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; "
-                    "TuneSpec(schedule=True))"
+                    "the base gains are a schedule: tune them per phase (TuneSpec(schedule=True))",
+                    inputs=("per_phase",),
                 )
             per = [self._init_constant(_schedule.phase(base, i)) for i in range(len(_schedule.PHASES))]
             return jax.tree_util.tree_map(lambda *v: jnp.stack(v), *per)
@@ -148,7 +148,8 @@ class TuneSpec:
                 raise ConfigError(
                     f"the starting gains' {name} holds {np.asarray(getattr(base, name)).tolist()}: tuning "
                     f"{', '.join(logs)} needs every {name} > 0 (the impedance is tuned in log space and through its "
-                    f"damping ratio); start from a positive {name}, or --freeze {','.join(logs)}"
+                    f"damping ratio); start from a positive {name}, or freeze {','.join(logs)}",
+                    inputs=("frozen",),
                 )
         for name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
             if (name in self.tuned or (name.startswith("obj") and "obj_damping_ratio" in self.tuned)) and not np.all(
@@ -156,7 +157,8 @@ class TuneSpec:
             ):
                 raise ConfigError(
                     f"the starting gains' {name} holds {np.asarray(getattr(base, name)).tolist()}: tuning it needs "
-                    f"every value > 0 (it is tuned in log space); start from a positive {name}, or --freeze it"
+                    f"every value > 0 (it is tuned in log space); start from a positive {name}, or freeze it",
+                    inputs=("frozen",),
                 )
         theta = {}
         for name in self.tuned:
@@ -182,8 +184,8 @@ class TuneSpec:
         if not self.schedule:
             if isinstance(base, _schedule.Schedule):
                 raise ConfigError(
-                    "the base gains are a schedule: tune them per phase (jaxsync tune --per-phase; "
-                    "TuneSpec(schedule=True))"
+                    "the base gains are a schedule: tune them per phase (TuneSpec(schedule=True))",
+                    inputs=("per_phase",),
                 )
             return self._to_constant(theta, base)
         if not isinstance(base, _schedule.Schedule):
@@ -253,3 +255,32 @@ class TuneSpec:
             "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
             "k_range": [-1, 1],
         }
+
+
+def spec_for(
+    controller: str,
+    tuned=None,
+    frozen=(),
+    *,
+    per_arm: bool = False,
+    isotropic: bool = False,
+    schedule: bool = False,
+) -> TuneSpec:
+    """The TuneSpec of a tuning job: ``tuned`` (names; default: the
+    controller's own, ``DEFAULT_TUNED_FOR``) less ``frozen``.
+
+    Example:
+      >>> spec_for("synchronous", frozen=("imp_mass",)).tuned[:2]
+      ('k_rk', 'k_lk')
+    """
+    if controller not in DEFAULT_TUNED_FOR:
+        raise ConfigError(
+            f"controller must be one of {list(DEFAULT_TUNED_FOR)}, got {controller!r}", inputs=("controller",)
+        )
+    unknown = sorted(set(frozen) - set(TUNABLE))
+    if unknown:
+        raise ConfigError(f"frozen: unknown parameter(s) {unknown}; tunable: {list(TUNABLE)}", inputs=("frozen",))
+    names = tuple(tuned) if tuned else DEFAULT_TUNED_FOR[controller]
+    return TuneSpec(
+        tuned=tuple(n for n in names if n not in frozen), per_arm=per_arm, isotropic=isotropic, schedule=schedule
+    )

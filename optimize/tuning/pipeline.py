@@ -5,7 +5,8 @@ scenarios, tunes (:func:`jaxsync.optimize.tuning.tune.tune`, validation picking 
 iterate), scores the selected gains on the same held-out scenarios, checks
 them on MuJoCo C, and writes the run's folder: ``gains.json`` (selected),
 ``gains_last.json``, ``history.csv``, ``loss.png``, ``heldout_before.json``,
-``summary.json`` (and the loop's checkpoint). It returns the summary.
+``summary.json`` (and the loop's checkpoint). It returns a
+:class:`TuneSummary`, what ``summary.json`` holds.
 """
 
 from __future__ import annotations
@@ -22,15 +23,15 @@ import jax
 from jaxsync._errors import DroppedObjectError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
+from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning import loss as _loss
 from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning import tune as _tune
-from jaxsync.optimize.tuning.cost import CostWeights
-from jaxsync.optimize.tuning.params import TuneSpec, check_tuned
+from jaxsync.optimize.tuning.params import check_tuned
 from jaxsync.optimize.tuning.tune_report import plot_loss
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT, prepare_out
-from jaxsync.physics.model import DualArmModel, identity
+from jaxsync.physics.model import DualArmModel, identity, load_model
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.runtime import interrupt as _interrupt
 from jaxsync.sim import crosscheck as _crosscheck
@@ -70,7 +71,8 @@ def bound_excess(evaluation: dict, cfg) -> float:
     largest of (mean first-impact peak / its bound, apparent normal
     stiffness / its bound) less one; 0 or below when within (or unbounded)."""
     ratios = [-1.0]
-    for bound, key in ((cfg.max_impact_N, "first_impact_peak_N"), (cfg.max_stiffness_N_per_m, STIFF)):
+    p = cfg.problem
+    for bound, key in ((p.max_impact_N, "first_impact_peak_N"), (p.max_stiffness_N_per_m, STIFF)):
         if bound:
             value = evaluation.get(key)
             ratios.append(float("inf") if value is None else value / bound - 1.0)
@@ -113,13 +115,72 @@ def worse_than_start(before: dict, after: dict) -> list[str]:
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class TuneSummary:
+    """What a tuning job gives: the kept gains and every figure ``summary.json`` records.
+
+    ``heldout_before`` and ``heldout_after`` are the held-out evaluations
+    (``optimize.loss.eval_summary``) of the starting and the kept gains on
+    the same scenarios, each with its compliance figures and bounds' verdict.
+    """
+
+    gains: object  # the kept gains (the selected iterate's), as gains.json holds them
+    last_gains: object  # the last iterate's (gains_last.json)
+    config: dict  # TuneConfig.to_dict() of the job
+    controller: str
+    model: dict  # jaxsync.physics.model.identity
+    gains_start: dict
+    scenario_base: dict
+    bounds: dict
+    initial_cost: float | None
+    final_cost: float | None
+    heldout_before: dict
+    heldout_after: dict
+    wall_time_s: float
+    iterations: int
+    skipped_steps: int
+    selected_iteration: int
+    kept_worse_than_start: list  # worse_than_start: on the held-out scenarios, [] when none
+    validation: list
+    options: dict
+    weights: dict
+    tune: dict
+    start_moved_into_bands: list
+    mujoco_check: dict | None
+
+    @property
+    def peak_before(self) -> float | None:
+        """Held-out mean settled peak resultant of the starting gains, N (None: all dropped)."""
+        return self.heldout_before["settled_peak_resultant_N"]
+
+    @property
+    def peak_after(self) -> float | None:
+        """Held-out mean settled peak resultant of the kept gains, N."""
+        return self.heldout_after["settled_peak_resultant_N"]
+
+    @property
+    def grip_error_before(self) -> float | None:
+        return self.heldout_before["grip_force_error_rel"]
+
+    @property
+    def grip_error_after(self) -> float | None:
+        return self.heldout_after["grip_force_error_rel"]
+
+    def to_dict(self) -> dict:
+        """``summary.json``'s dict (the gains objects left out: gains.json holds them)."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("gains", "last_gains")}
+        d["heldout_settled_peak_resultant_N_before"] = self.peak_before
+        d["heldout_settled_peak_resultant_N_after"] = self.peak_after
+        d["heldout_grip_force_error_rel_before"] = self.grip_error_before
+        d["heldout_grip_force_error_rel_after"] = self.grip_error_after
+        return d
+
+
 @_interrupt.deferred()  # Ctrl-C stops at a safe point (between iterations, after tuning)
 def tune_and_evaluate(
     model: DualArmModel,
-    spec: TuneSpec,
     base: _gains.Gains,
     cfg: _tune.TuneConfig,
-    weights: CostWeights | None = None,
     *,
     out: str,
     resume: bool = False,
@@ -129,8 +190,8 @@ def tune_and_evaluate(
     fingerprint: dict | None = None,
     log: Callable[[str], None] = print,
     before: dict | None = None,
-) -> dict | None:
-    """Tune ``base`` and score it before and after; returns ``summary.json``'s dict.
+) -> TuneSummary | None:
+    """Tune ``base`` on ``model`` as ``cfg`` says and score it before and after.
 
     ``out`` is checked before anything is computed: a folder holding a run is
     continued (``resume``) or discarded (``restart``), never overwritten.
@@ -142,19 +203,19 @@ def tune_and_evaluate(
     held-out scenarios), when the caller already has it.
 
     Example:
-      >>> summary = tune_and_evaluate(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(),
+      >>> summary = tune_and_evaluate(jaxsync.load_model(), jaxsync.default_gains(),
       ...                             TuneConfig(iterations=2, task="short"), out="results/tune")  # doctest: +SKIP
-      >>> summary["heldout_settled_peak_resultant_N_after"]  # doctest: +SKIP
+      >>> summary.peak_after  # doctest: +SKIP
     """
-    weights = weights if weights is not None else CostWeights()
-    if not cfg.scenario:  # the model's own object (a robot file's): every scenario's base
-        cfg = dataclasses.replace(cfg, scenario=_scenarios.model_overrides(model))
+    if not cfg.training.scenario:  # the model's own object (a robot file's): every scenario's base
+        cfg = cfg.replace(scenario=_scenarios.model_overrides(model))
     cfg.validate()
-    check_tuned(spec.tuned, cfg.controller)
+    spec = cfg.problem.tuned
+    check_tuned(spec.tuned, cfg.problem.controller)
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
-    run_args = (model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main)
+    run_args = (model, base, cfg, out, resume, mujoco_check, options, fingerprint, say, main)
     if not main:
         _distributed.barrier("tune: output folder ready")
         return _run(*run_args, before)
@@ -175,11 +236,11 @@ def tune_and_evaluate(
             raise
 
 
-def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fingerprint, say, main, given=None):
+def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say, main, given=None):
     t_start = time.perf_counter()
-    evaluate = _loss.make_evaluator(
-        model, cfg.eval_duration, cfg.controller
-    )  # one physics: training, validation and held out
+    spec, weights, controller = cfg.problem.tuned, cfg.problem.weights, cfg.problem.controller
+    data, eval_duration = cfg.data, cfg.training.eval_duration
+    evaluate = _loss.make_evaluator(model, eval_duration, controller)  # one physics: training, validation, held out
     held = _scenarios.heldout_scenarios(cfg)
     before_path = os.path.join(out, HELDOUT_BEFORE)
     before = dict(given) if given is not None else None
@@ -189,13 +250,14 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         with open(before_path) as f:
             before = json.load(f)
     if before is None:
-        say(f"held-out evaluation before tuning ({cfg.heldout_batch} scenarios, {cfg.eval_duration:g} s)...")
+        say(f"held-out evaluation before tuning ({data.heldout_batch} scenarios, {eval_duration:g} s)...")
         before = _loss.eval_summary(evaluate(base, held))
         if before["settled_peak_resultant_N"] is None:  # every held-out scenario dropped (or diverged)
             raise DroppedObjectError(
-                f"the starting gains drop the object (or diverge) in all {cfg.heldout_batch} held-out scenarios "
+                f"the starting gains drop the object (or diverge) in all {data.heldout_batch} held-out scenarios "
                 f"({before['dropped']} dropped, {before['nonfinite']} non-finite): there is no grasp to tune; "
-                "start from gains that hold it (--gains, or the defaults)"
+                "start from gains that hold it (the model's defaults, or other gains)",
+                inputs=("gains_path",),
             )
         _results.write_json(before_path, before)
     moved = spec.moved(base)
@@ -205,17 +267,17 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     say(
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
         + (", per task phase" if spec.schedule else "")
-        + f") with {cfg.method}: {cfg.iterations} iterations, batch {cfg.batch} "
+        + f") with {cfg.method.name}: {cfg.loop.iterations} iterations, batch {cfg.training.batch} "
         + (
             "(the first iteration traces and compiles the gradient: a minute or two on a 2-core CPU, seconds when "
             "the compilation cache holds it; the ETA leaves it out)"
-            if cfg.method != "cmaes"
+            if cfg.method.name != "cmaes"
             else "(the first iteration compiles the population's rollouts; the ETA leaves it out)"
         )
     )
     valid = _scenarios.validation_scenarios(cfg)
 
-    stiffness = jax.jit(_loss.compliance_fn(model, cfg.controller, axis=None))
+    stiffness = jax.jit(_loss.compliance_fn(model, controller, axis=None))
 
     def validate(g):
         out = _loss.eval_summary(evaluate(g, valid))
@@ -223,23 +285,20 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
         out["within_bounds"], out["bound_excess"] = within_bounds(out, cfg), bound_excess(out, cfg)
         return out
 
-    if cfg.validate_every:
+    if cfg.loop.validate_every:
         say(
-            f"validation: {cfg.validation_batch} full-task scenarios (seed {cfg.validation_seed}) every "
-            f"{cfg.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
+            f"validation: {data.validation_batch} full-task scenarios (seed {data.validation_seed}) every "
+            f"{cfg.loop.validate_every} iterations pick the iterate (lowest settled peak with a grip error not "
             "worse than the start's)"
         )
     result = _tune.tune(
         model,
-        spec,
         base,
         cfg,
         out=out,
         resume=resume,
-        # a checkpoint records its controller and its model: an edited robot file is another robot
-        fingerprint={**(fingerprint or {}), "controller": cfg.controller, "model": _identity_text(model)},
-        validate=validate if cfg.validate_every else None,
-        weights=weights,
+        fingerprint=_fingerprint(model, base, cfg, fingerprint),
+        validate=validate if cfg.loop.validate_every else None,
     )
     _interrupt.check()  # the loop's last checkpoint is written: stop before the held-out scoring
     gains, history, selected = result.gains, result.history, result.selected
@@ -257,13 +316,13 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
     worse = worse_than_start(before, after)
     described = spec.describe()
     for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):
-        doc = {"gains": _schedule.to_file_dict(g), "controller": cfg.controller, "model": identity(model)}
+        doc = {"gains": _schedule.to_file_dict(g), "controller": controller, "model": identity(model)}
         doc["tune"] = described
         _results.write_json(os.path.join(out, name), doc)
     check = None
     if mujoco_check:
         n = MUJOCO_CHECK_SCENARIOS
-        say(f"the same gains on MuJoCo C ({min(n, cfg.heldout_batch)} held-out scenarios, the same control law)...")
+        say(f"the same gains on MuJoCo C ({min(n, data.heldout_batch)} held-out scenarios, the same control law)...")
         # MJX's side is the held-out scoring above (the same scenarios and duration), not run again
         mjx_rows = {"before": before.get("per_scenario"), "after": after.get("per_scenario")}
         check = _crosscheck.sim_to_sim(
@@ -271,49 +330,89 @@ def _run(model, spec, base, cfg, weights, out, resume, mujoco_check, options, fi
             gains,
             base,
             held,
-            cfg.eval_duration,
+            eval_duration,
             n=n,
             mjx_rows=mjx_rows,
             log=lambda m: None,
-            controller=cfg.controller,
+            controller=controller,
         )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
         _results.write_csv(os.path.join(out, "history.csv"), cols)
         plot_loss(history, os.path.join(out, "loss.png"), result.validation, selected)
-    summary = {
-        "controller": cfg.controller,
-        "model": identity(model),
-        "gains_start": _schedule.to_file_dict(base),
-        "scenario_base": _scenario.to_dict(_scenario.default_scenario(**dict(cfg.scenario))),
-        "bounds": {
-            "max_impact_N": cfg.max_impact_N,
-            "max_stiffness_N_per_m": cfg.max_stiffness_N_per_m,
+    summary = TuneSummary(
+        gains=gains,
+        last_gains=result.last_gains,
+        config=cfg.to_dict(),
+        controller=controller,
+        model=identity(model),
+        gains_start=_schedule.to_file_dict(base),
+        scenario_base=_scenario.to_dict(_scenario.default_scenario(**dict(cfg.training.scenario))),
+        bounds={
+            "max_impact_N": cfg.problem.max_impact_N,
+            "max_stiffness_N_per_m": cfg.problem.max_stiffness_N_per_m,
             "margin_rel": BOUND_MARGIN,
         },
-        "initial_cost": history[0]["cost"] if history else None,
-        "final_cost": history[-1]["cost"] if history else None,
-        "heldout_settled_peak_resultant_N_before": before["settled_peak_resultant_N"],
-        "heldout_settled_peak_resultant_N_after": after["settled_peak_resultant_N"],
-        "heldout_grip_force_error_rel_before": before["grip_force_error_rel"],
-        "heldout_grip_force_error_rel_after": after["grip_force_error_rel"],
-        "heldout_before": before,
-        "heldout_after": after,
-        "wall_time_s": time.perf_counter() - t_start,
-        "iterations": len(history),
-        "skipped_steps": int(sum(r["skipped"] for r in history)),
-        "selected_iteration": selected["iteration"] if selected is not None else len(history),
-        "kept_worse_than_start": worse,  # worse_than_start: on the held-out scenarios, [] when none
-        "validation": [dict(r) for r in result.validation],
-        "options": options if options is not None else {},
-        "weights": weights._asdict(),
-        "tune": described,
-        "start_moved_into_bands": moved,
-        "mujoco_check": check,
-    }
-    _results.write_json(os.path.join(out, "summary.json"), summary)
+        initial_cost=history[0]["cost"] if history else None,
+        final_cost=history[-1]["cost"] if history else None,
+        heldout_before=before,
+        heldout_after=after,
+        wall_time_s=time.perf_counter() - t_start,
+        iterations=len(history),
+        skipped_steps=int(sum(r["skipped"] for r in history)),
+        selected_iteration=selected["iteration"] if selected is not None else len(history),
+        kept_worse_than_start=worse,
+        validation=[dict(r) for r in result.validation],
+        options=options if options is not None else {},
+        weights=weights._asdict(),
+        tune=described,
+        start_moved_into_bands=moved,
+        mujoco_check=check,
+    )
+    _results.write_json(os.path.join(out, "summary.json"), summary.to_dict())
     _distributed.barrier("tune: results written")
     return summary
+
+
+def _fingerprint(model, base, cfg, given: dict | None) -> dict:
+    """What a resumed run must share with the checkpoint it continues: every
+    setting but the run's length, the starting gains and the model (an edited
+    robot file is another robot), with the caller's ``given``."""
+    settings = {k: v for k, v in cfg.settings().items() if k != "iterations"}
+    own = {**settings, "gains_start": _schedule.to_file_dict(base), "model": _identity_text(model)}
+    return json.loads(json.dumps({**own, **(given or {})}))
+
+
+def run_tune(
+    source: str | None,
+    cfg: _tune.TuneConfig,
+    *,
+    gains_path: str | None = None,
+    any_model: bool = False,
+    model_options: dict | None = None,
+    out: str,
+    resume: bool = False,
+    restart: bool = False,
+    mujoco_check: bool = True,
+    options: dict | None = None,
+    log: Callable[[str], None] = print,
+) -> TuneSummary | None:
+    """``jaxsync tune``'s job: the model from ``source`` (an MJCF or robot
+    file; None: the paper model; ``model_options`` as ``load_model`` takes
+    them), the starting gains from ``gains_path`` (a gains file, refused
+    when written for another model unless ``any_model``) or the model's own
+    defaults, then :func:`tune_and_evaluate`.
+
+    Example:
+      >>> cfg = TuneConfig(iterations=2)
+      >>> summary = run_tune("mjcf/robots/iiwa14_twice.yaml", cfg, out="results/tune")  # doctest: +SKIP
+    """
+    cfg.validate()  # every setting is checked before the model compiles
+    model = load_model(source, **(model_options or {}))
+    base = gains_file.load_for(gains_path, model, any_model) if gains_path else _gains.default_gains(model)
+    return tune_and_evaluate(
+        model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
+    )
 
 
 def _identity_text(model) -> str:

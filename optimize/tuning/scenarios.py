@@ -14,12 +14,12 @@ import jax.numpy as jnp
 from jaxsync.sim import scenario as _scenario
 
 
-def training_base(cfg) -> tuple[_scenario.Scenario, float]:
-    """The training scenario family's base and its rollout duration (``cfg``: a TuneConfig)."""
-    over = {**dict(cfg.scenario), **dict(cfg.train_scenario)}
-    if cfg.task == "full":
-        return _scenario.default_scenario(**over), cfg.eval_duration
-    return _scenario.short_task(**over), cfg.train_duration
+def training_base(training) -> tuple[_scenario.Scenario, float]:
+    """The training scenario family's base and its rollout duration (``training``: a TuneConfig's ``training``)."""
+    over = {**dict(training.scenario), **dict(training.train_scenario)}
+    if training.task == "full":
+        return _scenario.default_scenario(**over), training.eval_duration
+    return _scenario.short_task(**over), training.train_duration
 
 
 def sample_scenarios(
@@ -80,28 +80,30 @@ def sample_scenarios(
 
 
 def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.Scenario:
-    """The training batch of one iteration (seeded by ``cfg.seed`` and the iteration;
-    holding the ranges' ends unless ``cfg.sampling`` is "iid")."""
-    key = jax.random.fold_in(jax.random.key(cfg.seed), iteration)
-    return sample_scenarios(key, cfg.batch, base, stratified=cfg.sampling == "stratified", grip_spread=cfg.grip_spread)
+    """The training batch of one iteration (``cfg``: a TuneConfig; seeded by its
+    ``data.seed`` and the iteration; holding the ranges' ends unless its
+    ``data.sampling`` is "iid")."""
+    d = cfg.data
+    key = jax.random.fold_in(jax.random.key(d.seed), iteration)
+    stratified = d.sampling == "stratified"
+    return sample_scenarios(key, cfg.training.batch, base, stratified=stratified, grip_spread=d.grip_spread)
 
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the held-out seed (never used for training or selection)."""
-    base = _scenario.default_scenario(**dict(cfg.scenario))
-    return sample_scenarios(jax.random.key(cfg.heldout_seed), cfg.heldout_batch, base, grip_spread=cfg.grip_spread)
+    base, d = _scenario.default_scenario(**dict(cfg.training.scenario)), cfg.data
+    return sample_scenarios(jax.random.key(d.heldout_seed), d.heldout_batch, base, grip_spread=d.grip_spread)
 
 
 def validation_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the validation seed: they pick the iterate, the
     held-out ones only score it."""
-    base = _scenario.default_scenario(**dict(cfg.scenario))
-    key = jax.random.key(cfg.validation_seed)
-    return sample_scenarios(key, cfg.validation_batch, base, grip_spread=cfg.grip_spread)
+    base, d = _scenario.default_scenario(**dict(cfg.training.scenario)), cfg.data
+    return sample_scenarios(jax.random.key(d.validation_seed), d.validation_batch, base, grip_spread=d.grip_spread)
 
 
 def model_overrides(model) -> tuple:
-    """A tuning configuration's ``scenario`` for ``model``: its object
+    """A tuning configuration's ``training.scenario`` for ``model``: its object
     (``jaxsync.sim.scenario.model_object``), which the controller also assumes;
     none for the paper model."""
     obj = _scenario.model_object(model)

@@ -5,16 +5,16 @@ the iteration, so a resumed run sees the same batches), take
 ``jax.value_and_grad`` of the mean cost (``cost``) through the batched
 closed-loop rollouts (jaxsync's one physics: MJX's converged solve,
 differentiated implicitly; the exact full-horizon gradient unless
-``truncate_every`` is set), and take one optax
-step on the unconstrained parameters (``params``, ``loop``; a non-finite
-gradient skips the step). Validation scenarios pick the iterate; the loop's
-state is a :class:`TuneState`, checkpointed (``checkpoint``) every few
-iterations and on Ctrl-C.
+``truncate_every`` is set), and take one step of the configured method
+(``methods``: L-BFGS by default, or a first-order optax optimiser) on the
+unconstrained parameters (``params``; a non-finite gradient skips the step).
+Validation scenarios pick the iterate; the loop's state is a
+:class:`TuneState`, checkpointed (``checkpoint``) every few iterations and
+on Ctrl-C.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from collections.abc import Callable
@@ -32,10 +32,7 @@ from jaxsync.io import results as _results
 from jaxsync.optimize.tuning import methods as _methods
 from jaxsync.optimize.tuning import parallel
 from jaxsync.optimize.tuning.config import TuneConfig
-from jaxsync.optimize.tuning.cost import CostWeights
-from jaxsync.optimize.tuning.loop import apply_update
 from jaxsync.optimize.tuning.loss import make_loss, traced_value_and_grad
-from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.optimize.tuning.scenarios import training_base, training_batch
 from jaxsync.optimize.tuning.tune_state import (
     CHECKPOINT,
@@ -58,55 +55,34 @@ class TuneError(JaxsyncError):
 # ------------------------------------------------------------------- the loop
 
 
-def _method_options(cfg: TuneConfig) -> dict:
-    if cfg.method == "cmaes":
-        return {"popsize": cfg.popsize}
-    if cfg.method == "cmaes-lbfgs":
-        return {"cmaes": _methods.CMAES(popsize=cfg.popsize)}
-    return {}
-
-
-def _step(state: TuneState, value_and_grad, opt, scen, cfg: TuneConfig, spec: TuneSpec, base, log):
-    """One iteration: gradient, optax step (skipped if not finite), the history row."""
-    t0 = time.perf_counter()
-    i = state.iteration
-    (value, terms), grad = value_and_grad(state.theta, scen)
-    u = apply_update(opt, state.theta, state.opt_state, value, grad)
-    gnorm, finite = float(u.grad_norm), bool(u.finite)
-    bad = 0 if finite else state.bad + 1
-    if not finite:
-        log(f"iteration {i}: non-finite cost or gradient (cost {float(value)}, |grad| {gnorm}); step skipped")
-        if bad >= cfg.max_bad_steps:
-            g = _schedule.to_file_dict(spec.to_gains(state.theta, base))
-            raise TuneError(
-                f"{bad} non-finite gradients in a row, the last at iteration {i}; stopping. Gains at that point: {g}"
-            )
-    row = {
-        "iteration": i,
-        "cost": float(value),
-        "grad_norm": gnorm,
-        "skipped": int(not finite),
-        "seconds": time.perf_counter() - t0,
-        **{f"term_{k}": float(v) for k, v in terms.items()},
-    }
-    state = state._replace(
-        theta=u.params, opt_state=u.opt_state, iteration=i + 1, bad=bad, history=(*state.history, row)
-    )
-    return state, row
+def method_of(cfg: TuneConfig):
+    """The configuration's method (``optimize.methods``), with its options."""
+    m = cfg.method
+    if m.name == "cmaes":
+        return _methods.get("cmaes", popsize=m.popsize)
+    if m.name == "cmaes-lbfgs":
+        return _methods.get("cmaes-lbfgs", cmaes=_methods.CMAES(popsize=m.popsize))
+    if m.first_order:
+        return _methods.get(m.name, optimizer=cfg.optimizer_transform())
+    return _methods.get(m.name)
 
 
 class _MethodOracle:
-    """The fixed-batch objective of a non-Adam method (``optimize.methods``) over
-    the flat parameters, built on the tuner's traced gradient and, for CMA-ES,
-    one batched forward pass of the population (data-parallel over the run's
-    devices when it has several: ``optimize.parallel``)."""
+    """The training objective of a method (``optimize.methods``) over the flat
+    parameters, on one training batch at a time: the tuner's traced gradient
+    (its cost terms kept for the history) and, for CMA-ES, one batched
+    forward pass of the population (data-parallel over the run's devices when
+    it has several: ``optimize.parallel``)."""
 
     def __init__(self, loss, get_value_and_grad, theta, scen, cfg: TuneConfig, n_total: int | None = None, batch=None):
         _, self.unravel = ravel_pytree(theta)
         self.scen = scen
 
+        self.terms = {}
+
         def vg(x):  # traced (or read from disk) at its first use: CMA-ES alone never needs it
-            (value, _), grad = get_value_and_grad()(self.unravel(jnp.asarray(x)), self.scen)
+            (value, terms), grad = get_value_and_grad(self.scen)(self.unravel(jnp.asarray(x)), self.scen)
+            self.terms = {k: float(v) for k, v in terms.items()}
             return float(value), np.asarray(ravel_pytree(grad)[0])
 
         value = None
@@ -128,7 +104,8 @@ class _MethodOracle:
 
 
 def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfig, spec, base, log):
-    """One iteration of an ``optimize.methods`` method; the history row as Adam's (no cost terms)."""
+    """One iteration of an ``optimize.methods`` method and its history row (a
+    first-order method's with its cost terms, taken at the iterate it stepped from)."""
     t0 = time.perf_counter()
     i = state.iteration
     calls0, pop0, v0 = oracle.oracle.gradient_calls, oracle.oracle.forward_rollouts, oracle.oracle.value_calls
@@ -138,9 +115,13 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
     finite = bool(np.isfinite(r["train_cost"])) and bool(np.all(np.isfinite(x)))
     bad = 0 if finite else state.bad + 1
     if not finite:
-        log(f"iteration {i}: non-finite cost ({cfg.method}: cost {r.get('train_cost')}); no step taken")
-        if bad >= cfg.max_bad_steps:
-            raise TuneError(f"{cfg.method}: {bad} non-finite iterations in a row, the last at iteration {i}")
+        log(f"iteration {i}: non-finite cost or gradient ({cfg.method.name}: cost {r.get('train_cost')}); step skipped")
+        if bad >= cfg.loop.max_bad_steps:
+            g = _schedule.to_file_dict(spec.to_gains(state.theta, base))
+            raise TuneError(
+                f"{cfg.method.name}: {bad} non-finite iterations in a row, the last at iteration {i}; stopping. "
+                f"Gains at that point: {g}"
+            )
     # the method says when it has converged (L-BFGS: no lower cost twice in a
     # row on its last batch; before that it goes on with a fresh one, "renewed")
     stalled = finite and not accepted
@@ -159,8 +140,10 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
         "seconds": time.perf_counter() - t0,
         "gradient_calls": oracle.oracle.gradient_calls - calls0,
         "value_calls": oracle.oracle.value_calls - v0,  # forward-only values (L-BFGS's backtracking)
-        "population_rollouts": (oracle.oracle.forward_rollouts - pop0) * cfg.batch,
+        "population_rollouts": (oracle.oracle.forward_rollouts - pop0) * cfg.training.batch,
     }
+    if getattr(method, "fresh_batches", False):
+        row.update({f"term_{k}": v for k, v in oracle.terms.items()})
     theta = oracle.unravel(jnp.asarray(x)) if np.all(np.isfinite(x)) else state.theta
     state = state._replace(theta=theta, opt_state=mstate, iteration=i + 1, bad=bad, history=(*state.history, row))
     return state, row, converged
@@ -169,10 +152,8 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
 @_interrupt.deferred()  # Ctrl-C stops the loop after an iteration, never lost in a callback
 def tune(
     model,
-    spec: TuneSpec,
     base: _gains.Gains,
     cfg: TuneConfig,
-    weights: CostWeights | None = None,
     *,
     out: str | None = None,
     resume: bool = False,
@@ -182,55 +163,59 @@ def tune(
     on_iteration: Callable | None = None,
     validate: Callable | None = None,
 ) -> TuneResult:
-    """Run the optimisation loop; returns a :class:`TuneResult`.
+    """Tune ``base``'s parameters named by ``cfg.problem`` on ``model``; returns a :class:`TuneResult`.
 
     With ``validate`` (gains -> an evaluation dict, see :func:`select_iterate`)
-    the start and every ``cfg.validate_every`` iterations (and the last) are
-    evaluated, and the returned gains are the selected iterate's; without it,
-    the last iterate's. Checkpoints (``out/checkpoint.npz``, data only) every
-    ``cfg.checkpoint_every`` iterations and on Ctrl-C; ``resume`` continues
-    from the last one and ends where an uninterrupted run with the same seed
-    ends; a checkpoint already in ``out`` is an error unless ``resume`` or
-    ``restart`` (start over, overwriting it) is given (``jaxsync tune``
-    checks the whole folder first: :func:`prepare_out`).
+    the start and every ``cfg.loop.validate_every`` iterations (and the last)
+    are evaluated, and the returned gains are the selected iterate's; without
+    it, the last iterate's. Checkpoints (``out/checkpoint.npz``, data only)
+    every ``cfg.loop.checkpoint_every`` iterations and on Ctrl-C; ``resume``
+    continues from the last one and ends where an uninterrupted run with the
+    same seed ends; a checkpoint already in ``out`` is an error unless
+    ``resume`` or ``restart`` (start over, overwriting it) is given
+    (``jaxsync tune`` checks the whole folder first: :func:`prepare_out`).
     ``on_iteration(i, theta, row)`` is called after each step.
+
+    Every method steps through ``optimize.methods``: a first-order one on a
+    fresh training batch every iteration, the others on one batch at a time
+    (L-BFGS moves on to a fresh one when it has converged on its own).
 
     With more than one JAX device (several GPUs, or a multi-process run:
     ``jaxsync.runtime.distributed``) the loss is data-parallel (``optimize.parallel``):
-    ``cfg.batch`` scenarios per process, sharded over every device, the cost and
+    ``cfg.training.batch`` scenarios per process, sharded over every device, the cost and
     gradient averaged over all of them; every process runs the same optimiser
     steps and process 0 alone writes the checkpoint.
 
     Example:
       >>> cfg = TuneConfig(iterations=2, task="short")
-      >>> result = tune(jaxsync.load_model(), TuneSpec(), jaxsync.default_gains(), cfg)
+      >>> result = tune(jaxsync.load_model(), jaxsync.default_gains(), cfg)
       >>> result.gains.k_rk, result.history[-1]["cost"]  # doctest: +SKIP
     """
     cfg.validate()
-
-    weights = weights if weights is not None else CostWeights()
-    loss = make_loss(model, spec, base, cfg, weights)
-    n_total = parallel.batch_size(cfg.batch) if parallel.active() else None
-    batch_cfg = dataclasses.replace(cfg, batch=n_total) if n_total else cfg  # every process draws the whole batch
+    spec = cfg.problem.tuned
+    loss = make_loss(model, base, cfg)
+    n_total = parallel.batch_size(cfg.training.batch) if parallel.active() else None
+    batch_cfg = cfg.replace(batch=n_total) if n_total else cfg  # every process draws the whole batch
     main = jax.process_index() == 0
     say = tqdm.write if main else (lambda m: None)
-    method = None if cfg.method == "adam" else _methods.get(cfg.method, **_method_options(cfg))
-    opt = cfg.optimizer_transform() if method is None else None
-    train_base = training_base(cfg)[0]
+    method = method_of(cfg)
+    fresh_batches = getattr(method, "fresh_batches", False)
+    iterations = cfg.loop.iterations
+    train_base = training_base(cfg.training)[0]
     ckpt = os.path.join(out, CHECKPOINT) if out else None
     # a cosine learning-rate decay spans the run: its length is part of the state
-    decay = cfg.iterations if method is None and cfg.schedule == "cosine" else None
+    decay = iterations if cfg.method.first_order and cfg.method.schedule == "cosine" else None
     if ckpt and not resume and not restart and os.path.exists(ckpt) and main:
-        prepare_out(out)  # the error naming --resume and --restart
+        prepare_out(out)  # the error naming resume and restart
     if out and main:
         _results.ensure_writable_dir(out)
     write_ckpt = ckpt if main else None  # every process reads a checkpoint to resume; process 0 writes them
     state = (
-        resumed_state(ckpt, fingerprint, spec, base, opt, method, decay)
+        resumed_state(ckpt, fingerprint, spec, base, method, decay)
         if resume
-        else fresh_state(spec, base, opt, method, cfg.seed)
+        else fresh_state(spec, base, method, cfg.data.seed)
     )
-    every = cfg.validate_every if validate is not None else 0
+    every = cfg.loop.validate_every if validate is not None else 0
 
     def progress_bar(first: bool):
         # the run's first iteration traces and compiles the gradient (minutes
@@ -238,7 +223,7 @@ def tune(
         # one whose clock starts then, so that the rate and the ETA come from
         # the iterations after it (not an ETA of minutes for seconds per step)
         return tqdm(
-            total=cfg.iterations,
+            total=iterations,
             initial=state.iteration,
             disable=not (progress and main),
             unit="it",
@@ -248,35 +233,29 @@ def tune(
         )
 
     bar = progress_bar(first=True)
-    value_and_grad = None  # traced at the first step, from its arguments
+    value_and_grad = None  # traced at its first use, from its arguments
+
+    def get_value_and_grad(scen):
+        nonlocal value_and_grad
+        if value_and_grad is None and n_total:
+            value_and_grad = parallel.value_and_grad(loss, n_total)
+        elif value_and_grad is None:
+            value_and_grad = traced_value_and_grad(loss, model, base, cfg, (state.theta, scen), say)
+        return value_and_grad
+
     try:
         start = state.iteration
         if every and not state.validation:
             state = validated(state._replace(iteration=0), validate, spec, base, say)._replace(iteration=start)
-        elif every and (start % every == 0 or start == cfg.iterations) and state.validation[-1]["iteration"] != start:
+        elif every and (start % every == 0 or start == iterations) and state.validation[-1]["iteration"] != start:
             state = validated(state, validate, spec, base, say)  # interrupted between a step and its validation
-        oracle = None
-        for i in range(start, cfg.iterations):
-            # Adam: a fresh batch every iteration; the other methods: one fixed batch (a deterministic objective)
-            scen = training_batch(batch_cfg, i if method is None else 0, train_base)
-
-            def get_value_and_grad(scen=scen, theta=state.theta):
-                nonlocal value_and_grad
-                if value_and_grad is None and n_total:
-                    value_and_grad = parallel.value_and_grad(loss, n_total)
-                elif value_and_grad is None:
-                    value_and_grad = traced_value_and_grad(loss, model, spec, base, cfg, weights, (theta, scen), say)
-                return value_and_grad
-
-            converged = False
-            if method is None:
-                state, row = _step(state, get_value_and_grad(), opt, scen, cfg, spec, base, say)
-            else:
-                if oracle is None:  # CMA-ES's populations only evaluate the loss
-                    forward = make_loss(model, spec, base, cfg, weights, differentiated=False)
-                    fresh = lambda k: training_batch(batch_cfg, k, train_base)  # noqa: E731
-                    oracle = _MethodOracle(forward, get_value_and_grad, state.theta, scen, cfg, n_total, fresh)
-                state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
+        forward = make_loss(model, base, cfg, differentiated=False)  # CMA-ES's populations only evaluate the loss
+        fresh = lambda k: training_batch(batch_cfg, k, train_base)  # noqa: E731
+        oracle = _MethodOracle(forward, get_value_and_grad, state.theta, fresh(0), cfg, n_total, fresh)
+        for i in range(start, iterations):
+            if fresh_batches:  # a first-order method: a fresh batch every iteration
+                oracle.oracle.use(i)
+            state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
             bar.update(1)
             if i == start:
                 bar.close()
@@ -284,21 +263,21 @@ def tune(
             bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")
             if on_iteration is not None:
                 on_iteration(i, state.theta, row)
-            last = converged or i + 1 == cfg.iterations
+            last = converged or i + 1 == iterations
             if every and ((i + 1) % every == 0 or last):
                 state = validated(state, validate, spec, base, say)
-            if (i + 1) % cfg.checkpoint_every == 0 or last:
+            if (i + 1) % cfg.loop.checkpoint_every == 0 or last:
                 save_state(write_ckpt, state, fingerprint, method, decay)
             _interrupt.check()  # a safe point: a Ctrl-C recorded during the iteration stops here
             if converged:
-                say(f"{cfg.method} converged on its batch after {i + 1} iterations: stopped early")
+                say(f"{cfg.method.name} converged on its batch after {i + 1} iterations: stopped early")
                 break
     except KeyboardInterrupt:
         if write_ckpt:
             save_state(write_ckpt, state, fingerprint, method, decay)
             say(
                 f"interrupted: checkpoint saved to {ckpt} after {state.iteration} iterations; "
-                "run again with --resume to continue"
+                "run again with resume to continue"
             )
         raise
     finally:

@@ -1,4 +1,5 @@
-"""The tuning run's plot: the training cost and its terms, and the validation curve."""
+"""A tuning run's report: its plot (the training cost and its terms, and the
+validation curve) and the lines that say what it gave."""
 
 from __future__ import annotations
 
@@ -40,3 +41,67 @@ def plot_loss(history: list[dict], path: str, validation: list[dict] | None = No
     fig.tight_layout()
     _results.save_figure(fig, path)
     plt.close(fig)
+
+
+def summary_lines(summary, out: str) -> list[str]:
+    """What a tuning job gave (a ``pipeline.TuneSummary``), in lines: the
+    held-out figures before and after, the warning when the kept gains score
+    worse than the start, the MuJoCo C check, and the files written in ``out``."""
+    b, a = summary.peak_before, summary.peak_after
+    lines = [
+        f"held-out settled peak resultant: {_num(b, '.5f')} N -> {_num(a, '.5f')} N" + change_text(b, a),
+        f"held-out grip-force error: {_num(summary.grip_error_before, '.4f')} -> "
+        f"{_num(summary.grip_error_after, '.4f')}",
+    ]
+    if summary.kept_worse_than_start:
+        lines.append(worse_text(summary))
+    if summary.mujoco_check is not None:
+        lines.append(mujoco_text(summary.mujoco_check))
+    lines.append(f"results in {out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
+    return lines
+
+
+def worse_text(summary) -> str:
+    """The warning that the kept gains score worse than the start (``kept_worse_than_start``)."""
+    if summary.validation:
+        kept = f"iteration {summary.selected_iteration}, selected by validation"
+    else:
+        kept = "the last iterate: validate_every 0 selects none"
+    return (
+        f"WARNING: the kept gains ({kept}) score worse than the starting gains on the held-out scenarios: "
+        + "; ".join(summary.kept_worse_than_start)
+        + ". gains.json holds them; the starting gains may be the better choice"
+        + ("" if summary.validation else " (validating every N iterations keeps the best validated iterate)")
+    )
+
+
+def mujoco_text(c: dict) -> str:
+    """The MuJoCo C check's line (jaxsync.sim.crosscheck.sim_to_sim's result): both
+    improvement factors, flagged when they disagree or an object was dropped."""
+    head = (
+        f"on {c['scenarios']} held-out scenarios, settled peak before -> after: MJX {_num(c['mjx_before_N'], '.5f')} "
+        f"-> {_num(c['mjx_after_N'], '.5f')} N ({_num(c['factor_mjx'], '.2f')}x), MuJoCo C "
+        f"{_num(c['mujoco_before_N'], '.5f')} -> {_num(c['mujoco_after_N'], '.5f')} N "
+        f"({_num(c['factor_mujoco'], '.2f')}x): "
+    )
+    if c["agree"]:
+        return head + f"agree within {100 * c['tolerance']:.0f} %"
+    why = "; ".join(c.get("problems") or [f"they differ by more than {100 * c['tolerance']:.0f} %"])
+    return head + f"WARNING: MuJoCo C and MJX disagree: {why} (docs/export.md)"
+
+
+def _num(v: float | None, fmt: str) -> str:
+    """``v`` formatted, or 'n/a' (every scenario dropped)."""
+    return "n/a" if v is None else format(v, fmt)
+
+
+def change_text(before: float | None, after: float | None) -> str:
+    """' (2.73x lower)', ' (8.66x higher)' or ' (unchanged)': the factor always
+    above 1 as printed, the direction in words."""
+    if not before or not after:
+        return ""
+    if f"{before / after:.2f}" == "1.00":
+        return " (unchanged)"
+    if after <= before:
+        return f" ({before / after:.2f}x lower)"
+    return f" ({after / before:.2f}x higher)"

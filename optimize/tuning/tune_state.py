@@ -69,12 +69,11 @@ class TuneResult(NamedTuple):
     state: TuneState
 
 
-def fresh_state(spec: TuneSpec, base, opt, method=None, seed: int = 0) -> TuneState:
+def fresh_state(spec: TuneSpec, base, method, seed: int = 0) -> TuneState:
+    """The state a run starts from: ``base``'s parameters, ``method``'s (``optimize.methods``) first state."""
     theta = spec.init(base)
-    if opt is None:  # an optimize.methods method on the flat parameters
-        x0 = np.asarray(ravel_pytree(theta)[0])
-        return TuneState(theta, method.init(x0, seed), 0, 0, (), (), {})
-    return TuneState(theta, opt.init(theta), 0, 0, (), (), {})
+    x0 = np.asarray(ravel_pytree(theta)[0])
+    return TuneState(theta, method.init(x0, seed), 0, 0, (), (), {})
 
 
 def _differences(saved: dict | None, given: dict) -> list[str]:
@@ -87,30 +86,30 @@ def _differences(saved: dict | None, given: dict) -> list[str]:
 
 
 def resumed_state(
-    path: str, fingerprint, spec: TuneSpec, base, opt, method=None, schedule_iterations: int | None = None
+    path: str, fingerprint, spec: TuneSpec, base, method, schedule_iterations: int | None = None
 ) -> TuneState:
-    """The state a checkpoint holds. ``opt``: the optax optimiser (Adam's loop)
-    or None for an ``optimize.methods`` ``method``. ``schedule_iterations``: the
-    run's length where the learning-rate schedule depends on it (a cosine
-    decay): a resumed run of another length would not end where an
-    uninterrupted one ends, and is refused."""
+    """The state a checkpoint holds, ``method``'s (``optimize.methods``)
+    rebuilt from its data. ``schedule_iterations``: the run's length where
+    the learning-rate schedule depends on it (a cosine decay): a resumed run
+    of another length would not end where an uninterrupted one ends, and is
+    refused."""
     saved = checkpoint.load(path)
     if fingerprint is not None and saved.get("fingerprint") != fingerprint:
         diff = "; ".join(_differences(saved.get("fingerprint"), fingerprint))
-        raise ConfigError(f"--resume: {path} was written by a run with other options ({diff}): --restart starts over")
+        raise ConfigError(
+            f"{path} was written by a run with other settings ({diff}): resume it with those, or restart",
+            inputs=("resume", "restart"),
+        )
     was = saved.get("schedule_iterations")
     if schedule_iterations is not None and was is not None and was != schedule_iterations:
         raise ConfigError(
-            f"--resume: --iterations {schedule_iterations}, but the run in {path} decays its learning rate over "
-            f"{was} iterations (--schedule cosine): resume with --iterations {was}, or --restart "
-            "(--schedule constant runs can be extended)"
+            f"iterations {schedule_iterations}, but the run in {path} decays its learning rate over {was} "
+            f"iterations (a cosine schedule): resume it with iterations {was}, or restart (runs with a constant "
+            "schedule can be extended)",
+            inputs=("iterations", "schedule", "restart"),
         )
     theta = jax.tree_util.tree_map(jnp.asarray, saved["theta"])
-    if opt is None:  # an optimize.methods state, rebuilt from its data
-        opt_state = method.from_data(saved["opt_state"])
-    else:
-        template = jax.tree_util.tree_structure(opt.init(theta))
-        opt_state = jax.tree_util.tree_unflatten(template, [jnp.asarray(v) for v in saved["opt_state"]])
+    opt_state = method.from_data(saved["opt_state"])
     return TuneState(
         theta=theta,
         opt_state=opt_state,
@@ -122,16 +121,11 @@ def resumed_state(
     )
 
 
-def save_state(
-    path: str | None, state: TuneState, fingerprint, method=None, schedule_iterations: int | None = None
-) -> None:
+def save_state(path: str | None, state: TuneState, fingerprint, method, schedule_iterations: int | None = None) -> None:
     """Write ``state`` to the checkpoint ``path`` (data only: ``optimize.checkpoint``)."""
     if path:
         d = state._asdict()
-        if method is not None:
-            d["opt_state"] = method.to_data(state.opt_state)
-        else:
-            d["opt_state"] = [np.asarray(v) for v in jax.tree_util.tree_leaves(state.opt_state)]
+        d["opt_state"] = method.to_data(state.opt_state)
         d.update(
             history=list(state.history),
             validation=list(state.validation),
@@ -178,16 +172,19 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
     A folder holding a tuning run is continued (``resume``) or discarded
     (``restart``: its RUN_FILES are removed), never silently overwritten: with
     neither, a checkpoint or an earlier run's results are a ConfigError naming
-    both flags.
+    both.
     """
     if resume and restart:
-        raise ConfigError("--resume continues the run in --out and --restart discards it: give one of them")
+        raise ConfigError(
+            "resume continues the run in out and restart discards it: give one of them", inputs=("resume", "restart")
+        )
     ckpt = os.path.join(out, CHECKPOINT)
     if resume:
         if not os.path.exists(ckpt):
             raise ConfigError(
-                f"--resume: no checkpoint at {ckpt} to continue from: pass --restart instead to start a run there "
-                "(discarding any results it holds), or choose another --out"
+                f"no checkpoint at {ckpt} to resume from: restart instead to start a run there (discarding any "
+                "results it holds), or choose another output folder",
+                inputs=("resume", "restart", "out"),
             )
         return
     found = [f for f in RUN_FILES if os.path.exists(os.path.join(out, f))]
@@ -197,11 +194,13 @@ def prepare_out(out: str, *, resume: bool = False, restart: bool = False) -> Non
         return
     if CHECKPOINT in found:
         raise ConfigError(
-            f"output folder {out!r} holds a tuning run ({', '.join(found)}): pass --resume to continue it, "
-            "--restart to discard it and start over, or choose another --out"
+            f"output folder {out!r} holds a tuning run ({', '.join(found)}): resume to continue it, restart to "
+            "discard it and start over, or choose another output folder",
+            inputs=("resume", "restart", "out"),
         )
     if found:
         raise ConfigError(
             f"output folder {out!r} holds a tuning run's results ({', '.join(found)}) and no checkpoint to "
-            "--resume from: pass --restart to discard them and start over, or choose another --out"
+            "resume from: restart to discard them and start over, or choose another output folder",
+            inputs=("restart", "out"),
         )
