@@ -148,7 +148,7 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
 def _bounded(name: str, arr: np.ndarray, low: float, high: float) -> None:
     for i, v in enumerate(np.atleast_1d(arr)):
         if not low <= v <= high:
-            raise ConfigError(f"{name}[{i}] = {v!r}: allowed [{low!r}, {high!r}] (element_bounds<>)")
+            raise ConfigError(f"{name}[{i}] = {float(v)!r}: allowed [{low!r}, {high!r}] (element_bounds<>)")
 
 
 def make_params(
@@ -232,6 +232,7 @@ def process_wrench_measurements(
     Args: wrench_world (6,) the filter's last output; measured_wrench (6,)
     [force; torque] in the F/T frame; cog_world_rot (3, 3).
     """
+    measured_wrench = jnp.asarray(measured_wrench)
     force = sensor_world_rot @ measured_wrench[:3]  # J 339: rotate only, the
     torque = sensor_world_rot @ measured_wrench[3:]  # torque stays about the sensor's origin
     weight = jnp.zeros(3).at[2].set(-params.cog_force)  # end_effector_weight_, J 132
