@@ -278,6 +278,8 @@ def calculate_admittance_rule(
     one at the reference joints), not integrated: the integrated quantities are
     the joint offsets. Shapes as in ``Kinematics``; wrench_base (6,); dt in s.
     """
+    _check_distro(distro)
+    selected_axes = _check_axes(selected_axes)
     rot_base_control = kinematics.rot_base_control
     rot6 = _block(rot_base_control)
     stiffness, damp = params.stiffness, damping(params)
