@@ -19,6 +19,10 @@ The public face; everything else lives in private modules
   :class:`TuneSpec`, :class:`CostWeights`,
   :func:`make_loss`, :func:`sample_scenarios`, :func:`make_plan`,
   :func:`run_sweep`;
+- the commands' jobs, from what a user names to the files written:
+  :func:`run_comparison` (``jaxsync compare``), :func:`run_sensitivity`
+  (``jaxsync sensitivity``), :func:`run_study` (``jaxsync study``) and
+  :func:`export_gains` (``jaxsync export``), also loaded on first use;
 - set-up, first thing in a script: :func:`set_xla_flags` (XLA's CPU settings,
   before the first JAX computation) and :func:`enable_compilation_cache`
   (JAX's persistent compilation cache).
@@ -93,6 +97,10 @@ _OPTIMIZE = {
     "run_sweep": ("jaxsync.optimize.studies.sweep", "run"),
     "StudyConfig": ("jaxsync.optimize.studies.study", "StudyConfig"),
     "run_study": ("jaxsync.optimize.studies.study", "run_study"),
+    "run_comparison": ("jaxsync.optimize.studies.compare", "run_comparison"),
+    "run_sensitivity": ("jaxsync.optimize.studies.sensitivity", "run_sensitivity"),
+    # not in jaxsync.optimize, but on first use too: ``import jaxsync`` does not import yaml
+    "export_gains": ("jaxsync.io.export_gains", "export_gains"),
 }
 
 
@@ -158,6 +166,10 @@ __all__ = [
     "make_plan",
     "run_study",
     "StudyConfig",
+    # the commands' jobs
+    "export_gains",
+    "run_comparison",
+    "run_sensitivity",
     "run_sweep",
     "sample_scenarios",
     "tune",

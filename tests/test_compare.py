@@ -15,7 +15,9 @@ from conftest import TEST_DURATION
 from PIL import Image
 
 import jaxsync
+from jaxsync._errors import ConfigError
 from jaxsync.cli import main
+from jaxsync.control import gains as _gains
 from jaxsync.control.gains import default_gains
 from jaxsync.io import render as _render
 from jaxsync.io import results as _results
@@ -198,11 +200,12 @@ def test_a_drop_is_marked_not_measured(tmp_path, rollouts, monkeypatch):
     assert marks(figures["forces_synchronous.png"])[0].startswith("settled peak")
 
 
-def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, monkeypatch, capsys):
-    """jaxsync compare with a dropped object: the files are written, exit
-    status 4, no settled peak quoted for the dropped controller; the video
-    (rendering replaced by a stand-in) is listed in the last line. The
-    rollouts are the session's (no compiling)."""
+def test_a_comparison_with_a_drop_lists_the_video_and_says_so(tmp_path, model, rollouts, monkeypatch, capsys):
+    """run_comparison with a dropped object: the files are written, the drop is
+    in the result, no settled peak quoted for the dropped controller; the video
+    (rendering replaced by a stand-in) is listed last. The rollouts are the
+    session's (no compiling). Gains tuned for a controller that is not compared
+    come with a note, said before the rollouts with the stability ratio."""
     trajs = {id(rollouts[n]): n for n in ("classical", "synchronous")}
     monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
     summarize = _metrics.summarize
@@ -215,18 +218,89 @@ def test_compare_cli_exits_4_on_a_drop_and_lists_the_video(tmp_path, rollouts, m
     monkeypatch.setattr(
         _compare, "compare_video", lambda model, results, s, out, speed, **kw: os.path.join(out, "compare.mp4")
     )
-    out = tmp_path / "o"
-    assert main(["compare", "--out", str(out), "--video"]) == 4
+    gains = tmp_path / "gains.json"
+    gains.write_text(json.dumps({"gains": _gains.to_dict(default_gains()), "controller": "task_space"}))
+    out, said = tmp_path / "o", []
+    r = _compare.run_comparison(model, gains=str(gains), out=str(out), video_speed=0.5, say=said.append)
     captured = capsys.readouterr()
     progress = [line for line in captured.err.splitlines() if line.startswith("[1/2] classical: done")]
     assert progress and "dropped the object at t=1.250 s" in progress[0] and "settled peak" not in progress[0]
     assert "(the first run compiles)" not in captured.err
-    assert "resultant_ratio (classical / synchronous): n/a" in captured.out and "dropped at t=1.25 s" in captured.out
-    assert captured.out.strip().splitlines()[-1].endswith("forces_synchronous.png, compare.mp4")
-    assert "exit status 4" in captured.err.strip().splitlines()[-1]
+    assert r.dropped == {"classical": 1.25} and r.unstable == [] and r.sim_to_sim_agree is None
+    table = "\n".join(_compare.table(r.summary))
+    assert "resultant_ratio (classical / synchronous): n/a" in table and "dropped at t=1.25 s" in table
+    assert ", ".join(r.files).endswith("forces_synchronous.png, compare.mp4")
     assert json.loads((out / "summary.json").read_text())["resultant_ratio"] is None
     for f in ("summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png"):
         assert (out / f).stat().st_size > 0
+    assert r.notes == [
+        f"{gains} was tuned for the task_space controller, which is not among the controllers compared "
+        "(classical, synchronous)"
+    ]
+    assert said[0] == f"note: {r.notes[0]}" and said[1].startswith("normal-axis stability ratio")
+    right, left = r.stability_ratio
+    assert f"right {right:.2f}, left {left:.2f}" in said[1] and right == pytest.approx(1.31, abs=0.01)
+
+
+def test_the_comparison_scenario_takes_the_values_given(model):
+    """--object-mass and the rest as run_comparison's overrides: the mass
+    estimate follows the mass, the offset is along the clamping axis, the
+    seed draws the sensor noise."""
+    s = _compare.comparison_scenario(model, seed=3, object_mass=0.8, object_offset=0.008, force_noise=0.2)
+    assert float(s.object_mass) == float(s.mass_estimate) == 0.8 and float(s.force_noise) == 0.2
+    np.testing.assert_array_equal(np.asarray(s.object_offset), [0.0, 0.008, 0.0])
+    np.testing.assert_array_equal(np.asarray(s.noise_key), jax.random.key_data(jax.random.key(3)))
+    assert float(s.grip_force) == float(default_scenario(model).grip_force)
+    with pytest.raises(ConfigError, match="not object_radius"):
+        _compare.run_comparison(model, overrides={"object_radius": 0.2})
+    with pytest.raises(ConfigError, match="^duration must be at least") as err:
+        _compare.run_comparison(model, duration=1.0, say=lambda m: None)
+    assert err.value.parameter == "duration"
+
+
+def _summary(tmp_path, rollouts, dropped: bool = False) -> dict:
+    s = rollouts["scenario"]
+    results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in ("classical", "synchronous")}
+    if dropped:
+        results["classical"] = (results["classical"][0], _dropped(results["classical"][1]))
+    return _compare.write_results(str(tmp_path / "written"), results, s, rollouts["gains"], {}, 1.0)
+
+
+def test_compare_cli_calls_the_job_prints_it_and_exits_by_it(tmp_path, rollouts, monkeypatch, capsys):
+    """jaxsync compare: its flags become run_comparison's arguments (the job
+    replaced by a stand-in that returns what it is given); the table, the files
+    and the video are printed; exit status 4 on a drop, 6 on chatter."""
+    calls = []
+    files = ["summary.json", "series.csv", "forces_classical.png", "forces_synchronous.png", "compare.mp4"]
+    summary = _summary(tmp_path, rollouts, dropped=True)
+    comparison = _compare.Comparison(summary, files, (1.3, 1.3), [], {"classical": 1.25}, [], None)
+
+    def job(model, **kw):
+        calls.append((model, kw))
+        return comparison
+
+    monkeypatch.setattr(_compare, "run_comparison", job)
+    out = tmp_path / "o"
+    argv = ["compare", "--out", str(out), "--video", "--object-offset", "0.008", "--seed", "3"]
+    assert main(argv) == 4
+    captured = capsys.readouterr()
+    ((model, kw),) = calls
+    assert model is None and kw["gains"] is None and not kw["any_model"] and kw["visual"]
+    assert kw["overrides"] == {"object_mass": None, "grip_force": None, "object_offset": 0.008, "force_noise": None}
+    assert (kw["seed"], kw["duration"], kw["out"], kw["backend"]) == (3, 4.0, str(out), "mjx")
+    assert kw["controllers"] == ("classical", "synchronous") and kw["video_speed"] == 0.5
+    assert kw["mujoco_check"] is None and kw["options"]["object_offset"] == 0.008 and "func" not in kw["options"]
+    assert "resultant_ratio (classical / synchronous): n/a" in captured.out and "dropped at t=1.25 s" in captured.out
+    assert captured.out.strip().splitlines()[-1].endswith("forces_synchronous.png, compare.mp4")
+    last = captured.err.strip().splitlines()[-1]
+    assert "the classical controller dropped the object at t=1.250 s" in last and "exit status 4" in last
+    comparison = _compare.Comparison(_summary(tmp_path, rollouts), files[:4], (1.3, 1.3), [], {}, ["synchronous"], None)
+    comparison.summary["synchronous"]["force_chatter_N"] = 2.5
+    assert main(["compare", "--out", str(out), "--controllers", "synchronous,classical", "--no-visual"]) == 6
+    assert calls[-1][1]["controllers"] == ("synchronous", "classical") and not calls[-1][1]["visual"]
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "the synchronous controller's pad forces chattered (RMS change per step 2.5 N > 1 N)" in last
+    assert "exit status 6" in last
 
 
 def test_compile_watch_tells_compiling_from_a_cache_read():
@@ -285,10 +359,11 @@ def test_sim_to_sim_check_mjx_beside_mujoco_c(model, rollouts, shared_rollout, m
     assert not lost["agree"] and lost["factor_mujoco"] is None and "dropped" in _crosscheck.sim_to_sim_table(lost)[-1]
 
 
-def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monkeypatch, capsys):
-    """compare --mujoco-check: the check's table is printed, summary.json records it,
-    and a disagreement ends in a one-line WARNING and exit status 5 (the rollouts
-    are the session's, the check a stand-in: no compiling)."""
+def test_comparison_mujoco_check_records_a_disagreement(tmp_path, model, rollouts, monkeypatch):
+    """run_comparison(mujoco_check=N): the check runs on tune's held-out scenarios
+    and horizon, its table shows both engines' factors, summary.json records it,
+    and the result says whether the engines agree (the rollouts are the session's,
+    the check a stand-in: no compiling)."""
     monkeypatch.setattr(_compare, "rollout", lambda model, gains, s, *, controller, **kw: rollouts[controller])
     row = lambda peak: [{"settled_peak_resultant_N": peak, "grip_force_error_rel": 0.003, "lost": False}]  # noqa: E731
     per = {"mjx_before": row(0.01), "mjx_after": row(0.001), "mujoco_before": row(0.01), "mujoco_after": row(0.004)}
@@ -300,13 +375,38 @@ def test_compare_mujoco_check_cli_flags_a_disagreement(tmp_path, rollouts, monke
 
     monkeypatch.setattr(_crosscheck, "sim_to_sim", fake)
     out = tmp_path / "o"
+    quiet = {"say": lambda m: None, "log": lambda m: None}
+    r = _compare.run_comparison(model, out=str(out), mujoco_check=4, **quiet)
+    assert seen == {"n": 4, "duration": 4.0, "count": 16}  # tune's held-out scenarios and horizon
+    text = "\n".join(_crosscheck.sim_to_sim_table(r.summary["sim_to_sim"], "the default gains"))
+    assert "10.00x" in text and "2.50x" in text and "WARNING: sim-to-sim check failed" in text
+    assert r.sim_to_sim_agree is False and r.dropped == {}
+    assert json.loads((out / "summary.json").read_text())["sim_to_sim"]["agree"] is False
+    per["mujoco_after"] = row(0.00105)  # 5 % apart: within the tolerance
+    r = _compare.run_comparison(model, out=str(out), mujoco_check=2, **quiet)
+    assert seen["n"] == 2 and r.sim_to_sim_agree is True
+    assert "agree within 10 %" in "\n".join(_crosscheck.sim_to_sim_table(r.summary["sim_to_sim"]))
+
+
+def test_compare_cli_prints_the_mujoco_check_and_exits_5_on_a_disagreement(tmp_path, rollouts, monkeypatch, capsys):
+    """compare --mujoco-check: the check's table is printed, and a disagreement
+    ends in a one-line WARNING and exit status 5 (the job replaced by a stand-in)."""
+    row = lambda peak: [{"settled_peak_resultant_N": peak, "grip_force_error_rel": 0.003, "lost": False}]  # noqa: E731
+    per = {"mjx_before": row(0.01), "mjx_after": row(0.001), "mujoco_before": row(0.01), "mujoco_after": row(0.004)}
+    summary, calls = _summary(tmp_path, rollouts), []
+
+    def job(model, **kw):
+        calls.append(kw["mujoco_check"])
+        summary["sim_to_sim"] = check = _crosscheck.sim_to_sim_verdict(per, 1, 4.0)
+        return _compare.Comparison(summary, ["summary.json"], (1.3, 1.3), [], {}, [], check["agree"])
+
+    monkeypatch.setattr(_compare, "run_comparison", job)
+    out = tmp_path / "o"
     assert main(["compare", "--out", str(out), "--mujoco-check"]) == 5
     captured = capsys.readouterr()
-    assert seen == {"n": 4, "duration": 4.0, "count": 16}  # tune's held-out scenarios and horizon
     assert "10.00x" in captured.out and "2.50x" in captured.out and "WARNING: sim-to-sim check failed" in captured.out
     last = captured.err.strip().splitlines()[-1]
     assert last.startswith("jaxsync compare: WARNING: the MuJoCo C check failed") and "exit status 5" in last
-    assert json.loads((out / "summary.json").read_text())["sim_to_sim"]["agree"] is False
     per["mujoco_after"] = row(0.00105)  # 5 % apart: within the tolerance
     assert main(["compare", "--out", str(out), "--mujoco-check", "2"]) == 0
-    assert seen["n"] == 2 and "agree within 10 %" in capsys.readouterr().out
+    assert calls == [4, 2] and "agree within 10 %" in capsys.readouterr().out

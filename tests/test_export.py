@@ -16,6 +16,7 @@ from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
+from jaxsync.io.export_gains import Exported, export_gains
 
 
 def _tuned_like():
@@ -146,3 +147,29 @@ def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
     assert out.count("note: ") == 1 and "the same gains" in out
     tiny = _gains.default_gains()._replace(imp_mass=_gains.default_gains().imp_mass.at[0, 1].multiply(1.005))
     assert _export.notes(tiny) == []  # a spread under 1 % is no news
+
+
+def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path, capsys):
+    """export_gains: the files, whose gains, their kind, the read-back and the
+    ros2 notes as a value; gains tuned for a controller that ros2_controllers'
+    admittance controller cannot run are refused in the job's words (the
+    command's: --gains), and nothing is written."""
+    src = tmp_path / "g.json"
+    src.write_text(json.dumps({"gains": _gains.to_dict(_gains.default_gains()), "controller": "task_space"}))
+    with pytest.raises(ConfigError, match=r"^gains .* was tuned for the task_space controller.*yaml or json") as err:
+        export_gains(str(src), "ros2-admittance", str(tmp_path / "r"))
+    assert err.value.parameter == "gains"
+    rc = main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "r")])
+    assert rc == 2 and f"--gains {src} was tuned for the task_space controller" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+    r = export_gains(str(src), "yaml", str(tmp_path / "y"))  # yaml carries any controller's gains
+    assert r == Exported([str(tmp_path / "y" / "gains.yaml")], "constant gains", str(src), True, [])
+    r = export_gains(_tuned_like(), "ros2-admittance", str(tmp_path / "t"))
+    assert r.same and r.origin == "the given gains" and len(r.notes) == 1 and len(r.paths) == 3
+    r = export_gains(None, "json", str(tmp_path / "d"))
+    assert r.origin == "the default gains of the paper model" and r.same
+    with pytest.raises(ConfigError, match="^command_interfaces must name position") as err:
+        export_gains(None, "ros2-admittance", str(tmp_path / "e"), command_interfaces=["effort"])
+    with pytest.raises(ConfigError, match="^fmt must be one of") as err:
+        export_gains(None, "urdf", str(tmp_path / "e"))
+    assert err.value.parameter == "fmt" and not (tmp_path / "e").exists()

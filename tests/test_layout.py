@@ -132,3 +132,46 @@ def test_the_project_speaks_of_itself_as_it_is():
             if pattern.search(line) and path.name != "test_layout.py":
                 found.append(f"{path.relative_to(ROOT)}:{i}: {line.strip()[:80]}")
     assert not found, found
+
+
+# each command that only parses: the jaxsync names it may import besides jaxsync.cli._common, its
+# job's module (whole) or single names it prints ("module:name")
+PARSE_ONLY = {
+    "jaxsync.cli.compare": (
+        "jaxsync.optimize.studies.compare",
+        "jaxsync.sim.crosscheck:sim_to_sim_table",
+        "jaxsync.sim.metrics:CHATTER_THRESHOLD_N",
+    ),
+    "jaxsync.cli.export": (
+        "jaxsync.io.export_gains:export_gains",
+        "jaxsync.io.export:COMMAND_INTERFACES",
+        "jaxsync.io.export:DISTROS",
+        "jaxsync.io.export:FORMATS",
+    ),
+    "jaxsync.cli.sensitivity": ("jaxsync.optimize.studies.sensitivity",),
+}
+
+
+def _jaxsync_names(path: pathlib.Path):
+    """Each jaxsync import of ``path``: a module's name, or "module:name" for a name from a module."""
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            yield from (a.name for a in node.names if a.name.startswith("jaxsync"))
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("jaxsync"):
+            for a in node.names:
+                whole = f"{node.module}.{a.name}"
+                yield whole if whole in MODULES else f"{node.module}:{a.name}"
+
+
+@pytest.mark.parametrize("command", sorted(PARSE_ONLY))
+def test_a_command_parses_calls_one_job_and_prints(command):
+    """The command imports its job and what it prints, nothing that computes
+    (no model loading, no gains files): a Python user gets the job whole."""
+    beyond = [
+        name
+        for name in _jaxsync_names(MODULES[command])
+        if name not in PARSE_ONLY[command] and not name.startswith("jaxsync.cli._common")
+    ]
+    assert not beyond, f"{command} imports more than its job and what it prints: {beyond}"
+    text = MODULES[command].read_text()
+    assert "load_model" not in text and "gains_file" not in text and "default_gains" not in text

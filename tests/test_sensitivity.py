@@ -12,11 +12,22 @@ import pytest
 from jax.flatten_util import ravel_pytree
 
 import jaxsync
+from jaxsync._errors import ConfigError
 from jaxsync.cli import main
 from jaxsync.control import gains as _gains
-from jaxsync.optimize.studies.sensitivity import METRICS, elasticities, metrics_function, sensitivity
+from jaxsync.control import schedule as _schedule
+from jaxsync.optimize.studies import sensitivity as _sensitivity
+from jaxsync.optimize.studies.sensitivity import (
+    METRICS,
+    Sensitivity,
+    SensitivityRun,
+    elasticities,
+    metrics_function,
+    run_sensitivity,
+    sensitivity,
+    table,
+)
 from jaxsync.optimize.tuning.scenarios import sample_scenarios
-from jaxsync.physics import model as _model
 
 DURATION = 1.7  # the short task's shortest horizon with a settled window
 BATCH = 2
@@ -71,21 +82,71 @@ def test_elasticity_scaling():
 
 
 @pytest.mark.slow
-def test_command_writes_table_csv_json_and_chart(model, computed, tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(_model, "load_model", lambda *a, **k: model)  # the fixture's compiled program
+def test_job_writes_table_csv_json_and_chart(model, computed, tmp_path):
     out = tmp_path / "sens"
-    argv = ["sensitivity", "--task", "short", "--duration", str(DURATION), "--batch", str(BATCH), "--out", str(out)]
-    assert main(argv) == 0
+    r = run_sensitivity(model, task="short", duration=DURATION, batch=BATCH, out=str(out), log=lambda m: None)
     _, s = computed
-    r = json.loads((out / "sensitivity.json").read_text())
-    assert [row["gain"] for row in r["rows"]] == s.names
-    np.testing.assert_array_equal([r["metrics"][m] for m in r["metrics"]], s.values)
-    np.testing.assert_array_equal([row["elasticity_settled_peak_resultant_N"] for row in r["rows"]], s.elasticity[0])
+    res = json.loads((out / "sensitivity.json").read_text())
+    assert [row["gain"] for row in res["rows"]] == s.names
+    np.testing.assert_array_equal([res["metrics"][m] for m in res["metrics"]], s.values)
+    np.testing.assert_array_equal([row["elasticity_settled_peak_resultant_N"] for row in res["rows"]], s.elasticity[0])
     header = (out / "sensitivity.csv").read_text().splitlines()[0].split(",")
     assert header[:2] == ["gain", "value"] and len(header) == 2 + 2 * 3
     assert (out / "sensitivity.png").stat().st_size > 10_000
+    assert "imp_stiffness[right,z]" in table(r.sensitivity) and "sensitivity.png" in r.files
+    np.testing.assert_array_equal(r.sensitivity.elasticity, s.elasticity)
+
+
+def test_command_calls_the_job_and_prints_its_table(tmp_path, monkeypatch, capsys):
+    """jaxsync sensitivity: its flags become run_sensitivity's arguments (the job
+    replaced by a stand-in), and the table and the files are printed."""
+    names = ["k_rk", "imp_stiffness[right,z]"]
+    s = Sensitivity(names, np.array([0.5, 300.0]), np.ones(3), np.zeros((3, 2)), np.full((3, 2), 0.25))
+    calls = []
+
+    def job(model, **kw):
+        calls.append((model, kw))
+        return SensitivityRun(s, ["sensitivity.csv", "sensitivity.json", "sensitivity.png"], 12.0)
+
+    monkeypatch.setattr(_sensitivity, "run_sensitivity", job)
+    out = tmp_path / "sens"
+    argv = ["sensitivity", "--task", "short", "--duration", str(DURATION), "--batch", str(BATCH), "--out", str(out)]
+    assert main([*argv, "--gains", "g.json", "--any-model", "--controller", "classical", "--seed", "5"]) == 0
+    ((model, kw),) = calls
+    assert model is None and kw.pop("log") is not None
+    assert kw == {
+        "gains": "g.json",
+        "any_model": True,
+        "visual": True,
+        "task": "short",
+        "duration": DURATION,
+        "batch": BATCH,
+        "seed": 5,
+        "controller": "classical",
+        "out": str(out),
+    }
     text = capsys.readouterr().out
-    assert "imp_stiffness[right,z]" in text and "sensitivity.png" in text
+    assert "imp_stiffness[right,z]" in text and "sensitivity.png" in text and "(12 s)" in text
+    assert main(["sensitivity", "--out", str(out)]) == 0
+    assert calls[-1][1]["task"] == "full" and calls[-1][1]["duration"] is None  # the job's default for the task
+
+
+def test_job_defaults_and_its_errors_in_its_own_words(model, tmp_path):
+    """run_sensitivity names its parameters in what it refuses, before writing anything."""
+    with pytest.raises(ConfigError, match="^duration must be at least 1.7 s for the short task") as err:
+        run_sensitivity(model, task="short", duration=1.0, out=str(tmp_path / "o"))
+    assert err.value.parameter == "duration"
+    with pytest.raises(ConfigError, match="^task must be one of full, short"):
+        run_sensitivity(model, task="long", out=str(tmp_path / "o"))
+    schedule = _schedule.constant(_gains.default_gains())
+    with pytest.raises(ConfigError, match="^gains must be constant gains"):
+        run_sensitivity(model, gains=schedule, out=str(tmp_path / "o"))
+    path = tmp_path / "schedule.json"
+    path.write_text(json.dumps({"gains": _schedule.to_file_dict(schedule)}))
+    with pytest.raises(ConfigError, match="the sensitivity study takes constant gains"):
+        run_sensitivity(model, gains=str(path), out=str(tmp_path / "o"))
+    assert not (tmp_path / "o").exists()
+    assert _sensitivity.TASK_DURATION == {"full": 4.0, "short": 2.0}
 
 
 @pytest.mark.parametrize(

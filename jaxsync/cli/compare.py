@@ -13,89 +13,52 @@ from jaxsync.cli._common import (
     add_gains_argument,
     add_model_argument,
     controller_list,
+    flag_words,
     model_options,
     model_source,
     positive,
 )
 
 
-def scenario_from_args(args: argparse.Namespace, model=None):
-    # imported here, not at the top: `jaxsync --help` stays fast
-    import jax
-    import numpy as np
-
-    from jaxsync.sim.scenario import default_scenario
-
-    overrides = {}
-    if args.object_mass is not None:
-        overrides["object_mass"] = args.object_mass
-    if args.grip_force is not None:
-        overrides["grip_force"] = args.grip_force
-    if args.object_offset is not None:
-        overrides["object_offset"] = [0.0, args.object_offset, 0.0]
-    if args.force_noise is not None:
-        overrides["force_noise"] = args.force_noise
-    overrides["noise_key"] = np.asarray(jax.random.key_data(jax.random.key(args.seed)))
-    if "object_mass" in overrides:
-        overrides["mass_estimate"] = overrides["object_mass"]
-    return default_scenario(model, **overrides)
-
-
 def run(args: argparse.Namespace) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
-    from jaxsync.control import gains as _gains
-    from jaxsync.io import gains_file
     from jaxsync.optimize.studies import compare as _compare
-    from jaxsync.physics.inertia import pad_apparent_inertia
-    from jaxsync.physics.model import load_model
-    from jaxsync.sim import crosscheck as _crosscheck
+    from jaxsync.sim.crosscheck import sim_to_sim_table
     from jaxsync.sim.metrics import CHATTER_THRESHOLD_N
 
-    model = load_model(model_source(args), solver="accurate", **model_options(args))
-    gains = gains_file.load_for(args.gains, model, args.any_model) if args.gains else _gains.default_gains(model)
-    tuned_for = gains_file.controller_of(args.gains) if args.gains else None
-    if tuned_for is not None and tuned_for not in args.controllers:
-        print(
-            f"note: {args.gains} was tuned for the {tuned_for} controller, which is not among "
-            f"{', '.join(args.controllers)} (--controllers)"
+    with flag_words():
+        r = _compare.run_comparison(
+            model_source(args),
+            gains=args.gains,
+            any_model=args.any_model,
+            **model_options(args),
+            overrides={k: getattr(args, k) for k in _compare.SCENARIO_OVERRIDES},
+            seed=args.seed,
+            duration=args.duration,
+            out=args.out,
+            backend=args.backend,
+            controllers=tuple(args.controllers),
+            video_speed=args.video_speed if args.video else None,
+            mujoco_check=args.mujoco_check,
+            options={k: v for k, v in vars(args).items() if k not in ("func",)},
         )
-    ratio = _gains.stability_ratio(gains, pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
-    print(
-        f"normal-axis stability ratio (M + B dt + K dt^2) / apparent inertia: right {ratio[0]:.2f}, left "
-        f"{ratio[1]:.2f} (above 1 stable against a stiff contact; docs/robots.md)"
-    )
-    scenario = scenario_from_args(args, model)
-    _compare.check_duration(scenario, args.duration)
-    summary, files = _compare.paper_comparison(
-        model,
-        gains,
-        scenario,
-        args.out,
-        duration=args.duration,
-        backend=args.backend,
-        options={k: v for k, v in vars(args).items() if k not in ("func",)},
-        video_speed=args.video_speed if args.video else None,
-        mujoco_check=args.mujoco_check,
-        controllers=tuple(args.controllers),
-    )
-    for line in _compare.table(summary):
+    for line in _compare.table(r.summary):
         print(line)
-    check = summary.get("sim_to_sim")
+    check = r.summary.get("sim_to_sim")
     if check is not None:
-        for line in _crosscheck.sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
+        for line in sim_to_sim_table(check, "these gains" if args.gains else "the default gains"):
             print(line)
-    print(f"results in {args.out}: {', '.join(files)}")
-    dropped = {n: t for n in _compare.controllers_of(summary) if (t := _compare.drop_time(summary[n])) is not None}
-    if dropped:
+    print(f"results in {args.out}: {', '.join(r.files)}")
+    if r.dropped:
         print(
             "jaxsync compare: "
-            + "; ".join(f"the {n} controller dropped the object at t={t:.3f} s" for n, t in dropped.items())
+            + "; ".join(f"the {n} controller dropped the object at t={t:.3f} s" for n, t in r.dropped.items())
             + ": the settled metrics of a dropped object do not apply and there is no resultant ratio "
             f"(exit status {EXIT_DROPPED})",
             file=sys.stderr,
         )
         return EXIT_DROPPED
-    if check is not None and not check["agree"]:
+    if r.sim_to_sim_agree is False:
         print(
             "jaxsync compare: WARNING: the MuJoCo C check failed: "
             + "; ".join(check["problems"])
@@ -103,14 +66,14 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return EXIT_SIM_TO_SIM
-    unstable = _compare.chattering(summary)
-    if unstable:
+    if r.unstable:
         print(
             "jaxsync compare: WARNING: "
             + "; ".join(
-                f"the {n} controller's pad forces chattered (RMS change per step {summary[n]['force_chatter_N']:.3g} N"
-                f" > {CHATTER_THRESHOLD_N:g} N): unstable at these gains, its force metrics mean little"
-                for n in unstable
+                f"the {n} controller's pad forces chattered (RMS change per step "
+                f"{r.summary[n]['force_chatter_N']:.3g} N > {CHATTER_THRESHOLD_N:g} N): unstable at these gains, "
+                "its force metrics mean little"
+                for n in r.unstable
             )
             + f" (exit status {EXIT_UNSTABLE}; docs/metrics.md)",
             file=sys.stderr,

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import time
-
 from jaxsync.cli._common import (
     add_controller_argument,
     add_gains_argument,
     add_model_argument,
+    flag_words,
     model_options,
     model_source,
     positive,
@@ -16,37 +15,24 @@ from jaxsync.cli._common import (
 
 def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
-    from jaxsync.control import gains as _gains
-    from jaxsync.io import gains_file
     from jaxsync.optimize.studies import sensitivity as sens
-    from jaxsync.physics.model import load_model
-    from jaxsync.sim.scenario import default_scenario, short_task
 
-    # every input is checked before anything is written
-    model = load_model(model_source(args), **model_options(args))
-    if args.gains:
-        gains_file.check_model(args.gains, model, args.any_model)
-    gains = gains_file.load_constant(args.gains, "jaxsync sensitivity") if args.gains else _gains.default_gains(model)
-    base = short_task(model) if args.task == "short" else default_scenario(model)
-    duration = args.duration if args.duration is not None else (2.0 if args.task == "short" else 4.0)
-    sens.check_duration(base, duration, "--duration", f"the {args.task} task")
-    where = "the gains of " + args.gains if args.gains else "the default gains"
-    t0 = time.perf_counter()
-    s = sens.study(
-        model,
-        gains,
-        base,
-        batch=args.batch,
-        seed=args.seed,
-        duration=duration,
-        out=args.out,
-        at=where,
-        log=lambda m: print(m, flush=True),
-        controller=args.controller,
-    )
-    print(sens.table(s))
-    dt = time.perf_counter() - t0
-    print(f"results in {args.out}: sensitivity.csv, sensitivity.json, sensitivity.png ({dt:.0f} s)")
+    with flag_words():
+        r = sens.run_sensitivity(
+            model_source(args),
+            gains=args.gains,
+            any_model=args.any_model,
+            **model_options(args),
+            task=args.task,
+            duration=args.duration,
+            batch=args.batch,
+            seed=args.seed,
+            controller=args.controller,
+            out=args.out,
+            log=lambda m: print(m, flush=True),
+        )
+    print(sens.table(r.sensitivity))
+    print(f"results in {args.out}: {', '.join(r.files)} ({r.seconds:.0f} s)")
     return 0
 
 

@@ -96,6 +96,17 @@ def load_for(path: str | os.PathLike, model, any_model: bool = False):
     return load(path)
 
 
+def load_or_default(gains, model, any_model: bool = False):
+    """The gains a job runs: ``model``'s defaults for None, a gains file
+    (:func:`load_for`: refused when tuned on another model), or gains or a
+    schedule as given."""
+    if gains is None:
+        return _gains.default_gains(model)
+    if isinstance(gains, str | os.PathLike):
+        return load_for(gains, model, any_model)
+    return gains
+
+
 def load_constant(path: str | os.PathLike, command: str) -> Gains:
     """:func:`load`, for a command that takes constant gains only (a schedule is a ConfigError naming it)."""
     g = load(path)

@@ -407,6 +407,14 @@ def load_model(path: str | os.PathLike | None = None, solver: str = "accurate", 
     )
 
 
+def as_model(model, solver: str = "accurate", *, visual: bool = True) -> DualArmModel:
+    """``model`` itself when it is a :class:`DualArmModel`, else :func:`load_model`
+    of it (an MJCF or robot file; None: the paper model): what a job takes."""
+    if isinstance(model, DualArmModel):
+        return model
+    return load_model(model, solver, visual=visual)
+
+
 def identity(model: DualArmModel) -> dict:
     """Which model this is, as results, gains files and checkpoints record it:
     its name, its file (a robot file, or the MJCF) and its fingerprint."""

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -13,12 +14,14 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import compliance as _compliance
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.controller import CONTROLLERS
-from jaxsync.control.gains import default_gains
+from jaxsync.control.gains import default_gains, stability_ratio
+from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies.compare_video import compare_video
 from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning.config import TuneConfig
-from jaxsync.physics.model import identity
+from jaxsync.physics.inertia import pad_apparent_inertia
+from jaxsync.physics.model import as_model, identity
 from jaxsync.runtime.cache import compile_watch
 from jaxsync.runtime.gl import select_gl_backend
 from jaxsync.sim import crosscheck as _crosscheck
@@ -50,9 +53,10 @@ def check_duration(scenario, duration: float) -> None:
     """The rollout must reach the end of the settling time, where the settled window starts."""
     if duration < min_duration(scenario):
         raise ConfigError(
-            f"--duration must be at least {min_duration(scenario):.2f} s for this scenario "
+            f"duration must be at least {min_duration(scenario):.2f} s for this scenario "
             f"(the hold phase starts at {float(sum(_scenario.phase_times(scenario)[2:])):.2f} s "
-            f"and is measured after a {float(scenario.settle_time):.2f} s settling time), got {duration}"
+            f"and is measured after a {float(scenario.settle_time):.2f} s settling time), got {duration}",
+            parameter="duration",
         )
 
 
@@ -341,3 +345,140 @@ def stiffness_of(model, controller: str, gains) -> dict | None:
     dt = float(model.mj_model.opt.timestep)
     k = jax.jit(lambda g: _compliance.apparent_stiffness(controller, g, pos, rot, dt))(gains)
     return {axis: float(v) for axis, v in k.items()}
+
+
+# ------------------------------------------------------ the job from its inputs
+
+SCENARIO_OVERRIDES = ("object_mass", "grip_force", "object_offset", "force_noise")
+
+
+def comparison_scenario(
+    model=None,
+    *,
+    seed: int = 0,
+    object_mass: float | None = None,
+    grip_force: float | None = None,
+    object_offset: float | None = None,
+    force_noise: float | None = None,
+):
+    """``model``'s task (``default_scenario``) with the values given: the object's
+    mass, kg (the controllers' mass estimate follows it), the desired grip force
+    f_d, N, where the object starts off the nominal grasp centre along the
+    clamping axis, m, the wrist force noise std, N; the sensor noise drawn from ``seed``."""
+    overrides = {}
+    if object_mass is not None:
+        overrides["object_mass"] = object_mass
+    if grip_force is not None:
+        overrides["grip_force"] = grip_force
+    if object_offset is not None:
+        overrides["object_offset"] = [0.0, object_offset, 0.0]
+    if force_noise is not None:
+        overrides["force_noise"] = force_noise
+    overrides["noise_key"] = np.asarray(jax.random.key_data(jax.random.key(seed)))
+    if "object_mass" in overrides:
+        overrides["mass_estimate"] = overrides["object_mass"]
+    return _scenario.default_scenario(model, **overrides)
+
+
+class Comparison(NamedTuple):
+    """What :func:`run_comparison` measured and wrote."""
+
+    summary: dict  # summary.json's content
+    files: list[str]  # written to the output folder
+    stability_ratio: tuple[float, float]  # right, left: (M + B dt + K dt^2) / apparent inertia, normal axis
+    notes: list[str]  # about the inputs (gains tuned for a controller that is not compared)
+    dropped: dict[str, float]  # controller: when it dropped the object, s
+    unstable: list[str]  # controllers whose pad forces chattered in the settled window
+    sim_to_sim_agree: bool | None  # the MuJoCo C check's verdict; None without the check
+
+
+def run_comparison(
+    model=None,
+    *,
+    gains=None,
+    any_model: bool = False,
+    visual: bool = True,
+    overrides: dict | None = None,
+    seed: int = 0,
+    duration: float = 4.0,
+    out: str = "results/compare",
+    backend: str = "mjx",
+    controllers: tuple[str, ...] = PAPER,
+    video_speed: float | None = None,
+    mujoco_check: int | None = None,
+    options: dict | None = None,
+    say=print,
+    log=lambda msg: print(msg, file=sys.stderr, flush=True),
+) -> Comparison:
+    """``jaxsync compare``'s job from what a user names: :func:`paper_comparison`
+    on ``model``'s task.
+
+    ``model``: a loaded model, or the MJCF or robot file to load (None: the
+    paper model; ``visual`` False leaves a robot's meshes out). ``gains``: a
+    gains file (refused when it was tuned on another model, unless
+    ``any_model``), gains or a schedule; None: the model's defaults.
+    ``overrides``: :func:`comparison_scenario`'s values by name (``seed`` draws
+    the sensor noise). ``say`` gets the lines to read before the rollouts:
+    each note and the normal-axis stability ratio. ``options``: what
+    summary.json records as the run's options (this call's, by default).
+    """
+    unknown = sorted(set(overrides or {}) - set(SCENARIO_OVERRIDES))
+    if unknown:
+        raise ConfigError(f"overrides may set {', '.join(SCENARIO_OVERRIDES)}, not {', '.join(unknown)}")
+    model = as_model(model, visual=visual)
+    from_file = isinstance(gains, str | os.PathLike)
+    g = gains_file.load_or_default(gains, model, any_model)
+    tuned_for = gains_file.controller_of(gains) if from_file else None
+    notes = []
+    if tuned_for is not None and tuned_for not in controllers:
+        notes.append(
+            f"{gains} was tuned for the {tuned_for} controller, which is not among the controllers compared "
+            f"({', '.join(controllers)})"
+        )
+    ratio = stability_ratio(g, pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
+    for note in notes:
+        say(f"note: {note}")
+    say(
+        f"normal-axis stability ratio (M + B dt + K dt^2) / apparent inertia: right {ratio[0]:.2f}, left "
+        f"{ratio[1]:.2f} (above 1 stable against a stiff contact; docs/robots.md)"
+    )
+    scenario = comparison_scenario(model, seed=seed, **(overrides or {}))
+    check_duration(scenario, duration)
+    if options is None:
+        options = {
+            "model": model.path,
+            "gains": str(gains) if from_file else None,
+            "any_model": any_model,
+            **{k: (overrides or {}).get(k) for k in SCENARIO_OVERRIDES},
+            "seed": seed,
+            "duration": duration,
+            "out": out,
+            "backend": backend,
+            "controllers": list(controllers),
+            "video_speed": video_speed,
+            "mujoco_check": mujoco_check,
+        }
+    summary, files = paper_comparison(
+        model,
+        g,
+        scenario,
+        out,
+        duration=duration,
+        backend=backend,
+        options=options,
+        video_speed=video_speed,
+        mujoco_check=mujoco_check,
+        controllers=tuple(controllers),
+        log=log,
+    )
+    dropped = {n: t for n in controllers_of(summary) if (t := drop_time(summary[n])) is not None}
+    check = summary.get("sim_to_sim")
+    return Comparison(
+        summary,
+        files,
+        (float(ratio[0]), float(ratio[1])),
+        notes,
+        dropped,
+        chattering(summary),
+        None if check is None else bool(check["agree"]),
+    )

@@ -30,14 +30,15 @@ from jax.flatten_util import ravel_pytree
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
+from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning.cost import smooth_metrics
 from jaxsync.optimize.tuning.scenarios import sample_scenarios
-from jaxsync.physics.model import identity
+from jaxsync.physics.model import as_model, identity
 from jaxsync.runtime import programs
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.rollout import make_rollout
-from jaxsync.sim.scenario import min_duration
+from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
 SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll")  # elasticity per unit k, not per log k
@@ -237,7 +238,8 @@ def check_duration(base, duration: float, name: str = "duration", task: str = "t
     if duration < min_duration(base):
         raise ConfigError(
             f"{name} must be at least {min_duration(base):g} s for {task} (its settled "
-            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}"
+            f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}",
+            parameter=name,
         )
 
 
@@ -272,3 +274,72 @@ def study(
         out, s, gains, batch=batch, seed=seed, duration=duration, seconds=seconds, scenario=base, model=identity(model)
     )
     return s
+
+
+TASKS = ("full", "short")  # default_scenario, short_task
+TASK_DURATION = {"full": 4.0, "short": 2.0}  # s, the default rollout of each
+
+
+class SensitivityRun(NamedTuple):
+    """What :func:`run_sensitivity` computed and wrote."""
+
+    sensitivity: Sensitivity
+    files: list[str]  # written to the output folder
+    seconds: float  # wall time of the whole job
+
+
+def run_sensitivity(
+    model=None,
+    *,
+    gains=None,
+    any_model: bool = False,
+    visual: bool = True,
+    task: str = "full",
+    duration: float | None = None,
+    batch: int = 8,
+    seed: int = 0,
+    controller: str = "synchronous",
+    out: str = "results/sensitivity",
+    log=print,
+) -> SensitivityRun:
+    """``jaxsync sensitivity``'s job from what a user names: :func:`study` on
+    ``model``'s full task (``default_scenario``) or its short one (``short_task``).
+
+    ``model``: a loaded model, or the MJCF or robot file to load (None: the
+    paper model; ``visual`` False leaves a robot's meshes out). ``gains``: a
+    file of constant gains (refused when it was tuned on another model, unless
+    ``any_model``) or :class:`~jaxsync.Gains`; None: the model's defaults.
+    ``duration``: the rollout, s (None: 4 for the full task, 2 for the short one).
+    Every input is checked before ``out`` is written.
+    """
+    if task not in TASKS:
+        raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {task!r}", parameter="task")
+    model = as_model(model, visual=visual)
+    from_file = isinstance(gains, str | os.PathLike)
+    if from_file:
+        gains_file.check_model(gains, model, any_model)
+        g = gains_file.load_constant(gains, "the sensitivity study")
+    else:
+        g = gains if gains is not None else _gains.default_gains(model)
+        if not isinstance(g, _gains.Gains):
+            raise ConfigError(
+                "gains must be constant gains: the sensitivity study takes no schedule", parameter="gains"
+            )
+    base = short_task(model) if task == "short" else default_scenario(model)
+    duration = duration if duration is not None else TASK_DURATION[task]
+    check_duration(base, duration, "duration", f"the {task} task")
+    t0 = time.perf_counter()
+    s = study(
+        model,
+        g,
+        base,
+        batch=batch,
+        seed=seed,
+        duration=duration,
+        out=out,
+        at="the gains of " + str(gains) if from_file else "the default gains" if gains is None else "the given gains",
+        log=log,
+        controller=controller,
+    )
+    files = ["sensitivity.csv", "sensitivity.json", "sensitivity.png"]
+    return SensitivityRun(s, files, time.perf_counter() - t0)
