@@ -31,15 +31,7 @@ class ModelStructureError(ModelError):
 
 
 class ConfigError(JaxsyncError):
-    """A gain, scenario or option value outside what is allowed.
-
-    ``parameter``: the keyword argument at fault, when the message starts with
-    its name (the command line re-words it as its flag: ``jaxsync.cli._common``).
-    """
-
-    def __init__(self, message: str = "", *, parameter: str | None = None):
-        super().__init__(message)
-        self.parameter = parameter
+    """A gain, scenario or option value outside what is allowed."""
 
 
 class DroppedObjectError(JaxsyncError):

@@ -255,7 +255,7 @@ def test_the_comparison_scenario_takes_the_values_given(model):
         _compare.run_comparison(model, overrides={"object_radius": 0.2})
     with pytest.raises(ConfigError, match="^duration must be at least") as err:
         _compare.run_comparison(model, duration=1.0, say=lambda m: None)
-    assert err.value.parameter == "duration"
+    assert err.value.inputs == ("duration",)
 
 
 def _summary(tmp_path, rollouts, dropped: bool = False) -> dict:

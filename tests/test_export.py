@@ -158,7 +158,7 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
     src.write_text(json.dumps({"gains": _gains.to_dict(_gains.default_gains()), "controller": "task_space"}))
     with pytest.raises(ConfigError, match=r"^gains .* was tuned for the task_space controller.*yaml or json") as err:
         export_gains(str(src), "ros2-admittance", str(tmp_path / "r"))
-    assert err.value.parameter == "gains"
+    assert err.value.inputs == ("gains",)
     rc = main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "r")])
     assert rc == 2 and f"--gains {src} was tuned for the task_space controller" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
@@ -172,4 +172,4 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
         export_gains(None, "ros2-admittance", str(tmp_path / "e"), command_interfaces=["effort"])
     with pytest.raises(ConfigError, match="^fmt must be one of") as err:
         export_gains(None, "urdf", str(tmp_path / "e"))
-    assert err.value.parameter == "fmt" and not (tmp_path / "e").exists()
+    assert err.value.inputs == ("fmt",) and not (tmp_path / "e").exists()

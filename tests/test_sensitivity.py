@@ -135,7 +135,7 @@ def test_job_defaults_and_its_errors_in_its_own_words(model, tmp_path):
     """run_sensitivity names its parameters in what it refuses, before writing anything."""
     with pytest.raises(ConfigError, match="^duration must be at least 1.7 s for the short task") as err:
         run_sensitivity(model, task="short", duration=1.0, out=str(tmp_path / "o"))
-    assert err.value.parameter == "duration"
+    assert err.value.inputs == ("duration",)
     with pytest.raises(ConfigError, match="^task must be one of full, short"):
         run_sensitivity(model, task="long", out=str(tmp_path / "o"))
     schedule = _schedule.constant(_gains.default_gains())

@@ -82,7 +82,8 @@ FLAGS = {
     "frozen": "--freeze",
     "name": "--method",
     "weights": "--weight",
-    "gains_path": "--gains",
+    "distro": "--ros-distro",
+    "fmt": "--format",
 }
 """The command line's flag for a library parameter, where it is not ``--`` and the name with dashes."""
 
@@ -101,7 +102,7 @@ def _run(args: argparse.Namespace) -> int:
         _setup_jax(args)
         return args.func(args)
     except DroppedObjectError as err:
-        print(f"jaxsync {args.command}: {err}", file=sys.stderr)
+        print(f"jaxsync {args.command}: {err}{flags_text(err)}", file=sys.stderr)
         return EXIT_DROPPED
     except JaxsyncError as err:
         print(f"jaxsync {args.command}: error: {err}{flags_text(err)}", file=sys.stderr)

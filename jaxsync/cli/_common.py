@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 
-from jaxsync._errors import ConfigError
 from jaxsync.control.names import CONTROLLERS as CONTROLLER_NAMES
 
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
@@ -116,18 +114,3 @@ def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="join a multi-process run that JAX detects from the cluster's environment (SLURM, Open MPI, ...)",
     )
-
-
-@contextlib.contextmanager
-def flag_words(**flags: str):
-    """Re-word a library ConfigError that starts with a keyword argument's name
-    (``err.parameter``) with the command's flag for it: ``duration`` becomes
-    ``--duration``; ``flags`` names the flags not spelt ``--`` + the name with dashes."""
-    try:
-        yield
-    except ConfigError as err:
-        name, text = err.parameter, str(err)
-        if not name or not text.startswith(name):
-            raise
-        flag = flags.get(name, "--" + name.replace("_", "-"))
-        raise ConfigError(flag + text[len(name) :], parameter=name) from err

@@ -13,7 +13,6 @@ from jaxsync.cli._common import (
     add_gains_argument,
     add_model_argument,
     controller_list,
-    flag_words,
     model_options,
     model_source,
     positive,
@@ -26,22 +25,21 @@ def run(args: argparse.Namespace) -> int:
     from jaxsync.sim.crosscheck import sim_to_sim_table
     from jaxsync.sim.metrics import CHATTER_THRESHOLD_N
 
-    with flag_words():
-        r = _compare.run_comparison(
-            model_source(args),
-            gains=args.gains,
-            any_model=args.any_model,
-            **model_options(args),
-            overrides={k: getattr(args, k) for k in _compare.SCENARIO_OVERRIDES},
-            seed=args.seed,
-            duration=args.duration,
-            out=args.out,
-            backend=args.backend,
-            controllers=tuple(args.controllers),
-            video_speed=args.video_speed if args.video else None,
-            mujoco_check=args.mujoco_check,
-            options={k: v for k, v in vars(args).items() if k not in ("func",)},
-        )
+    r = _compare.run_comparison(
+        model_source(args),
+        gains=args.gains,
+        any_model=args.any_model,
+        **model_options(args),
+        overrides={k: getattr(args, k) for k in _compare.SCENARIO_OVERRIDES},
+        seed=args.seed,
+        duration=args.duration,
+        out=args.out,
+        backend=args.backend,
+        controllers=tuple(args.controllers),
+        video_speed=args.video_speed if args.video else None,
+        mujoco_check=args.mujoco_check,
+        options={k: v for k, v in vars(args).items() if k not in ("func",)},
+    )
     for line in _compare.table(r.summary):
         print(line)
     check = r.summary.get("sim_to_sim")

@@ -2,23 +2,22 @@
 
 from __future__ import annotations
 
-from jaxsync.cli._common import add_gains_argument, add_model_argument, flag_words, model_options, model_source
+from jaxsync.cli._common import add_gains_argument, add_model_argument, model_options, model_source
 from jaxsync.io.export import COMMAND_INTERFACES, DISTROS, FORMATS
 from jaxsync.io.export_gains import export_gains
 
 
 def run(args) -> int:
-    with flag_words(distro="--ros-distro", fmt="--format"):
-        r = export_gains(
-            args.gains,
-            args.format,
-            args.out,
-            model=model_source(args),
-            **model_options(args),
-            distro=args.ros_distro,
-            command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
-            any_model=args.any_model,
-        )
+    r = export_gains(
+        args.gains,
+        args.format,
+        args.out,
+        model=model_source(args),
+        **model_options(args),
+        distro=args.ros_distro,
+        command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
+        any_model=args.any_model,
+    )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if r.same else "DIFFERENT gains"))
     for line in r.notes:

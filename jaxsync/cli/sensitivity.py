@@ -6,7 +6,6 @@ from jaxsync.cli._common import (
     add_controller_argument,
     add_gains_argument,
     add_model_argument,
-    flag_words,
     model_options,
     model_source,
     positive,
@@ -17,20 +16,19 @@ def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
     from jaxsync.optimize.studies import sensitivity as sens
 
-    with flag_words():
-        r = sens.run_sensitivity(
-            model_source(args),
-            gains=args.gains,
-            any_model=args.any_model,
-            **model_options(args),
-            task=args.task,
-            duration=args.duration,
-            batch=args.batch,
-            seed=args.seed,
-            controller=args.controller,
-            out=args.out,
-            log=lambda m: print(m, flush=True),
-        )
+    r = sens.run_sensitivity(
+        model_source(args),
+        gains=args.gains,
+        any_model=args.any_model,
+        **model_options(args),
+        task=args.task,
+        duration=args.duration,
+        batch=args.batch,
+        seed=args.seed,
+        controller=args.controller,
+        out=args.out,
+        log=lambda m: print(m, flush=True),
+    )
     print(sens.table(r.sensitivity))
     print(f"results in {args.out}: {', '.join(r.files)} ({r.seconds:.0f} s)")
     return 0

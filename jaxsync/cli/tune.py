@@ -46,9 +46,9 @@ def run(args) -> int:
     summary = pipeline.run_tune(
         model_source(args),
         config_from_args(args),
-        gains_path=args.gains,
+        gains=args.gains,
         any_model=args.any_model,
-        model_options=model_options(args),
+        **model_options(args),
         out=args.out,
         resume=args.resume,
         restart=args.restart,

@@ -245,13 +245,13 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
     from jaxsync.physics.inertia import arm_joint_ids  # noqa: PLC0415
 
     if distro not in DISTROS:
-        raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", parameter="distro")
+        raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", inputs=("distro",))
     bad = [c for c in command_interfaces if c not in COMMAND_INTERFACES]
     if bad or not command_interfaces:
         raise ConfigError(
             f"command_interfaces must name position and/or velocity (the joint commands the admittance "
             f"controller writes), got {list(command_interfaces)}",
-            parameter="command_interfaces",
+            inputs=("command_interfaces",),
         )
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
@@ -450,7 +450,7 @@ def export(gains, fmt: str, out: str, target: Ros2Target | None = None) -> list[
     """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written.
     ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default)."""
     if fmt not in FORMATS:
-        raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", parameter="fmt")
+        raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", inputs=("fmt",))
     if fmt == "ros2-admittance":
         if target is None:
             from jaxsync.physics.model import load_mj_model  # noqa: PLC0415 -- only this format needs a model

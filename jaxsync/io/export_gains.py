@@ -61,7 +61,7 @@ def export_gains(
             f"gains {gains} was tuned for the {tuned_for} controller, which ros2_controllers' admittance "
             f"controller cannot run (it is a per-arm admittance: the {' and '.join(ROS2_CONTROLLERS)} laws, the "
             "latter with synchronisation.yaml); export it as yaml or json",
-            parameter="gains",
+            inputs=("gains",),
         )
     target, loaded = None, None
     if model is not None or fmt == "ros2-admittance" or gains is None:

@@ -56,7 +56,7 @@ def check_duration(scenario, duration: float) -> None:
             f"duration must be at least {min_duration(scenario):.2f} s for this scenario "
             f"(the hold phase starts at {float(sum(_scenario.phase_times(scenario)[2:])):.2f} s "
             f"and is measured after a {float(scenario.settle_time):.2f} s settling time), got {duration}",
-            parameter="duration",
+            inputs=("duration",),
         )
 
 

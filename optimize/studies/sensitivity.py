@@ -239,7 +239,7 @@ def check_duration(base, duration: float, name: str = "duration", task: str = "t
         raise ConfigError(
             f"{name} must be at least {min_duration(base):g} s for {task} (its settled "
             f"window starts at {min_duration(base) - 0.2:g} s), got {duration:g}",
-            parameter=name,
+            inputs=(name,),
         )
 
 
@@ -313,7 +313,7 @@ def run_sensitivity(
     Every input is checked before ``out`` is written.
     """
     if task not in TASKS:
-        raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {task!r}", parameter="task")
+        raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {task!r}", inputs=("task",))
     model = as_model(model, visual=visual)
     from_file = isinstance(gains, str | os.PathLike)
     if from_file:
@@ -323,7 +323,7 @@ def run_sensitivity(
         g = gains if gains is not None else _gains.default_gains(model)
         if not isinstance(g, _gains.Gains):
             raise ConfigError(
-                "gains must be constant gains: the sensitivity study takes no schedule", parameter="gains"
+                "gains must be constant gains: the sensitivity study takes no schedule", inputs=("gains",)
             )
     base = short_task(model) if task == "short" else default_scenario(model)
     duration = duration if duration is not None else TASK_DURATION[task]

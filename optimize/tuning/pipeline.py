@@ -31,7 +31,7 @@ from jaxsync.optimize.tuning import tune as _tune
 from jaxsync.optimize.tuning.params import check_tuned
 from jaxsync.optimize.tuning.tune_report import plot_loss
 from jaxsync.optimize.tuning.tune_state import CHECKPOINT, prepare_out
-from jaxsync.physics.model import DualArmModel, identity, load_model
+from jaxsync.physics.model import DualArmModel, as_model, identity
 from jaxsync.runtime import distributed as _distributed
 from jaxsync.runtime import interrupt as _interrupt
 from jaxsync.sim import crosscheck as _crosscheck
@@ -257,7 +257,7 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
                 f"the starting gains drop the object (or diverge) in all {data.heldout_batch} held-out scenarios "
                 f"({before['dropped']} dropped, {before['nonfinite']} non-finite): there is no grasp to tune; "
                 "start from gains that hold it (the model's defaults, or other gains)",
-                inputs=("gains_path",),
+                inputs=("gains",),
             )
         _results.write_json(before_path, before)
     moved = spec.moved(base)
@@ -384,32 +384,32 @@ def _fingerprint(model, base, cfg, given: dict | None) -> dict:
 
 
 def run_tune(
-    source: str | None,
-    cfg: _tune.TuneConfig,
+    model=None,
+    cfg: _tune.TuneConfig | None = None,
     *,
-    gains_path: str | None = None,
+    gains=None,
     any_model: bool = False,
-    model_options: dict | None = None,
-    out: str,
+    visual: bool = True,
+    out: str = "results/tune",
     resume: bool = False,
     restart: bool = False,
     mujoco_check: bool = True,
     options: dict | None = None,
     log: Callable[[str], None] = print,
 ) -> TuneSummary | None:
-    """``jaxsync tune``'s job: the model from ``source`` (an MJCF or robot
-    file; None: the paper model; ``model_options`` as ``load_model`` takes
-    them), the starting gains from ``gains_path`` (a gains file, refused
-    when written for another model unless ``any_model``) or the model's own
-    defaults, then :func:`tune_and_evaluate`.
+    """``jaxsync tune``'s job: ``model`` (a model, an MJCF or robot file, or
+    None: the paper model), starting from ``gains`` (a gains file, refused
+    when tuned on another model unless ``any_model``; gains; None: the
+    model's own defaults), tuned as ``cfg`` says (None: ``TuneConfig()``),
+    then :func:`tune_and_evaluate`.
 
     Example:
       >>> cfg = TuneConfig(iterations=2)
       >>> summary = run_tune("mjcf/robots/iiwa14_twice.yaml", cfg, out="results/tune")  # doctest: +SKIP
     """
-    cfg.validate()  # every setting is checked before the model compiles
-    model = load_model(source, **(model_options or {}))
-    base = gains_file.load_for(gains_path, model, any_model) if gains_path else _gains.default_gains(model)
+    cfg = (cfg if cfg is not None else _tune.TuneConfig()).validate()  # checked before the model compiles
+    model = as_model(model, visual=visual)
+    base = gains_file.load_or_default(gains, model, any_model)
     return tune_and_evaluate(
         model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
     )
