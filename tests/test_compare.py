@@ -100,7 +100,8 @@ def test_compare_rejects_bad_input(tmp_path, capsys):
     bad_gains = tmp_path / "g.json"
     bad_gains.write_text('{"k_rk": 3}')
     cases = [
-        (["--duration", "1.0"], "--duration must be at least"),
+        (["--duration", "1.0"], "duration must be at least 2.70 s for this scenario"),
+        (["--duration", "1.0"], "got 1.0 (--duration)"),
         (["--duration", "-2"], "must be positive"),
         (["--object-mass", "0"], "must be positive"),
         (["--object-offset", "0.5"], "object_offset"),

@@ -160,7 +160,7 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
         export_gains(str(src), "ros2-admittance", str(tmp_path / "r"))
     assert err.value.inputs == ("gains",)
     rc = main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "r")])
-    assert rc == 2 and f"--gains {src} was tuned for the task_space controller" in capsys.readouterr().err
+    assert rc == 2 and f"gains {src} was tuned for the task_space controller" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
     r = export_gains(str(src), "yaml", str(tmp_path / "y"))  # yaml carries any controller's gains
     assert r == Exported([str(tmp_path / "y" / "gains.yaml")], "constant gains", str(src), True, [])

@@ -153,7 +153,8 @@ def test_job_defaults_and_its_errors_in_its_own_words(model, tmp_path):
     "extra, message",
     [
         (["--batch", "0"], "--batch"),
-        (["--task", "short", "--duration", "1.0"], "--duration must be at least 1.7 s"),
+        (["--task", "short", "--duration", "1.0"], "duration must be at least 1.7 s"),
+        (["--task", "short", "--duration", "1.0"], "(--duration)"),
         (["--gains", "/nonexistent/gains.json"], "gains"),
     ],
 )
