@@ -137,7 +137,9 @@ def test_the_paper_models_files_load_too_and_bad_options_are_named(tmp_path, cap
     assert params["kinematics"]["base"] == "torso" and params["kinematics"]["tip"] == "r_ee"
     rc = main(["export", "--format", "ros2-admittance", "--out", str(tmp_path / "x"), "--command-interfaces", "effort"])
     err = capsys.readouterr().err
-    assert rc == 2 and "command_interfaces must name position and/or velocity" in err and "(--command-interfaces)" in err
+    assert (
+        rc == 2 and "command_interfaces must name position and/or velocity" in err and "(--command-interfaces)" in err
+    )
     rc = main(["export", "--format", "yaml", "--out", str(tmp_path / "y")])
     assert rc == 0 and "from the default gains of the paper model" in capsys.readouterr().out
     assert gains_file.same_gains(gains_file.load(str(tmp_path / "y" / "gains.yaml")), jaxsync.default_gains())

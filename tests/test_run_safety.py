@@ -19,20 +19,20 @@ import numpy as np
 import pytest
 from conftest import fake_heldout_metrics
 
-from jaxsync._errors import ConfigError
+from jaxsync._errors import ConfigError, DroppedObjectError, JaxsyncError
 from jaxsync.cli import main
 from jaxsync.control.gains import default_gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies import sweep
 from jaxsync.optimize.studies.sweep_spec import parse_param
-from jaxsync.optimize.tuning import checkpoint, methods, tune_state
+from jaxsync.optimize.tuning import checkpoint, methods, pipeline, tune_state
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import tune as tune_mod
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.optimize.tuning.methods import Oracle
 from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.optimize.tuning.tune import TuneResult, method_of
-from jaxsync.optimize.tuning.tune_report import change_text
+from jaxsync.optimize.tuning.tune_report import change_text, summary_lines
 
 QUICK = ["--iterations", "1", "--no-mujoco-check"]
 
@@ -205,17 +205,25 @@ def stand_ins(monkeypatch):
     return calls
 
 
-def test_tune_holds_its_folder_and_a_second_run_is_refused(tmp_path, stand_ins, capsys):
+def _run_tune(model, out, gains=None, **settings):
+    """``jaxsync tune``'s job (``pipeline.run_tune``) on the stand-ins: one
+    iteration, no MuJoCo C check; returns the summary and the lines it logged."""
+    said = []
+    cfg = TuneConfig(**{"iterations": 1, **settings})
+    summary = pipeline.run_tune(model, cfg, gains=gains, out=str(out), mujoco_check=False, log=said.append)
+    return summary, "\n".join(said)
+
+
+def test_tune_holds_its_folder_and_a_second_run_is_refused(model, tmp_path, stand_ins):
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), *QUICK]) == 0
+    _run_tune(model, out)
     assert stand_ins["locked"] and not (out / _results.LOCK).exists()
     other = tmp_path / "busy"
     other.mkdir()
     (other / _results.LOCK).write_text(json.dumps({"pid": os.getppid(), "host": socket.gethostname()}))
     stand_ins["evaluated"] = 0
-    assert main(["tune", "--out", str(other), *QUICK]) == 2
-    err = capsys.readouterr().err
-    assert "in use by another jaxsync" in err and "Traceback" not in err
+    with pytest.raises(JaxsyncError, match="in use by another jaxsync"):
+        _run_tune(model, other)
     assert stand_ins["evaluated"] == 0  # refused before any rollout
     assert sorted(p.name for p in other.iterdir()) == [_results.LOCK]  # the other run's lock left alone
 
@@ -229,50 +237,49 @@ def test_a_sweep_into_a_folder_in_use_is_refused(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == [_results.LOCK]
 
 
-def test_a_start_that_drops_the_object_everywhere_stops_before_tuning(tmp_path, stand_ins, capsys):
+def test_a_start_that_drops_the_object_everywhere_stops_before_tuning(model, tmp_path, stand_ins):
     stand_ins["metrics"] = stand_ins["metrics"]._replace(dropped=np.ones(2, bool))
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), *QUICK]) == 4
-    err = capsys.readouterr().err
-    assert "drop the object" in err and "held-out scenarios" in err
-    assert "Traceback" not in err and "internal error" not in err
+    with pytest.raises(DroppedObjectError, match="drop the object .* held-out scenarios") as err:
+        _run_tune(model, out)
+    assert err.value.inputs == ("gains",)  # the command line names --gains
     assert "cfg" not in stand_ins  # the budget is not spent
-    assert not out.exists()  # the folder this run created, with nothing of value, is gone
+    assert list(out.iterdir()) == []  # nothing of value written, nothing to block the next run
 
 
 @pytest.mark.parametrize(
-    "flags, message",
+    "settings, message",
     [
-        (["--method", "polyak_sgd"], "steps from (updates, state, params) alone"),
-        (["--method", "tree_utils"], "'tree_utils'"),
-        (["--truncate-every", "-5"], "truncate_every must be a positive number of steps"),
+        ({"method": "polyak_sgd"}, "steps from (updates, state, params) alone"),
+        ({"method": "tree_utils"}, "'tree_utils'"),
+        ({"truncate_every": -5}, "truncate_every must be a positive number of steps"),
     ],
 )
-def test_options_are_checked_before_any_work(tmp_path, stand_ins, capsys, flags, message):
+def test_options_are_checked_before_any_work(model, tmp_path, stand_ins, settings, message):
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), *QUICK, *flags]) == 2
-    err = capsys.readouterr().err
-    assert message in err and len(err.strip().splitlines()) == 1, err
+    with pytest.raises(ConfigError) as err:
+        _run_tune(model, out, **settings)
+    assert message in str(err.value) and len(str(err.value).splitlines()) == 1
     assert stand_ins["evaluated"] == 0 and not out.exists()
 
 
-def test_a_run_that_fails_leaves_no_results_that_block_the_corrected_command(tmp_path, stand_ins, monkeypatch):
+def test_a_run_that_fails_leaves_no_results_that_block_the_corrected_command(model, tmp_path, stand_ins, monkeypatch):
     def broken(*a, **k):
         raise RuntimeError("a bug")
 
     monkeypatch.setattr(tune_mod, "tune", broken)
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), *QUICK]) == 3
-    assert not out.exists()  # heldout_before.json was of no value without a run behind it
+    with pytest.raises(RuntimeError, match="a bug"):
+        _run_tune(model, out)
+    assert list(out.iterdir()) == []  # heldout_before.json was of no value without a run behind it
 
 
-def test_the_start_moved_into_the_bands_is_said(tmp_path, stand_ins, capsys):
+def test_the_start_moved_into_the_bands_is_said(model, tmp_path, stand_ins):
     gains = tmp_path / "g.json"
     g = {k: np.asarray(v).tolist() for k, v in default_gains()._asdict().items()}
     gains.write_text(json.dumps({**g, "k_rk": 1.0}))
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), "--gains", str(gains), *QUICK]) == 0
-    said = capsys.readouterr().out
+    summary, said = _run_tune(model, out, gains=str(gains))
     assert "moved into the tuning bands: k_rk: 1 -> 0.999" in said
     assert json.loads((out / "summary.json").read_text())["start_moved_into_bands"] == ["k_rk: 1 -> 0.999"]
 
@@ -300,9 +307,9 @@ def test_an_unchanged_score_says_unchanged():
     assert change_text(0.0102, 0.01) == " (1.02x lower)"
 
 
-def test_kept_gains_worse_than_the_start_are_said(tmp_path, stand_ins, monkeypatch, capsys):
-    """--validate-every 0 keeps the last iterate, whatever it scores: the
-    summary and the printed output say when it is worse than the start."""
+def test_kept_gains_worse_than_the_start_are_said(model, tmp_path, stand_ins, monkeypatch):
+    """validate_every 0 keeps the last iterate, whatever it scores: the
+    summary and its lines say when it is worse than the start."""
     stand_in = tune_mod.tune
 
     def worse_after(*a, **k):
@@ -313,16 +320,16 @@ def test_kept_gains_worse_than_the_start_are_said(tmp_path, stand_ins, monkeypat
 
     monkeypatch.setattr(tune_mod, "tune", worse_after)
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), "--validate-every", "0", *QUICK]) == 0
-    said = capsys.readouterr().out
+    summary, _ = _run_tune(model, out, validate_every=0)
+    said = "\n".join(summary_lines(summary, str(out)))
     assert "WARNING: the kept gains (the last iterate: validate_every 0 selects none) score worse" in said
     assert "settled peak resultant 0.01500 -> 0.08250 N (5.50x)" in said
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kept_worse_than_start"] == ["settled peak resultant 0.01500 -> 0.08250 N (5.50x)"]
 
 
-def test_kept_gains_no_worse_than_the_start_say_nothing(tmp_path, stand_ins, capsys):
+def test_kept_gains_no_worse_than_the_start_say_nothing(model, tmp_path, stand_ins):
     out = tmp_path / "run"
-    assert main(["tune", "--out", str(out), "--validate-every", "0", *QUICK]) == 0
-    assert "WARNING" not in capsys.readouterr().out
+    summary, _ = _run_tune(model, out, validate_every=0)
+    assert not any("WARNING" in line for line in summary_lines(summary, str(out)))
     assert json.loads((out / "summary.json").read_text())["kept_worse_than_start"] == []

@@ -18,15 +18,18 @@ from conftest import TEST_DURATION, fake_heldout_metrics
 import jaxsync
 from jaxsync.cli import build_parser, main
 from jaxsync.control import gains as _gains
-from jaxsync.optimize.tuning import checkpoint, methods, scenarios, tune_state
+from jaxsync.io import results as _results
+from jaxsync.optimize.tuning import checkpoint, methods, pipeline, scenarios, tune_state
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import tune as tune_mod
+from jaxsync.optimize.tuning.config import Problem
+from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
 from jaxsync.optimize.tuning.methods import LBFGS, Oracle
 from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
 from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
-from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text
+from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text, summary_lines
 from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.physics import step as _physics
 from jaxsync.sim import crosscheck as _crosscheck
@@ -302,7 +305,7 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
 @pytest.fixture
 def fake_tuning(monkeypatch):
     """The optimisation loop and the held-out rollouts replaced by stand-ins
-    (both are tested above; compiling them for a CLI test would cost minutes).
+    (both are tested above; compiling them for a test of the job would cost minutes).
     Returns the dict the fake loop records its arguments in."""
     fake_metrics = fake_heldout_metrics()
     calls = {}
@@ -342,15 +345,23 @@ def fake_tuning(monkeypatch):
     return calls
 
 
-def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
-    """The command's plumbing (files, summary keys, selected vs last gains)."""
+def _run_tune(model, out, cfg=None, **kw):
+    """``jaxsync tune``'s job (``pipeline.run_tune``) with one iteration and no MuJoCo C check unless told."""
+    cfg = cfg if cfg is not None else TuneConfig(iterations=1)
+    return pipeline.run_tune(model, cfg, out=str(out), **{"mujoco_check": False, "log": lambda m: None, **kw})
+
+
+def test_tune_job_writes_its_results(model, tmp_path, fake_tuning):
+    """The job's plumbing (files, summary keys, selected vs last gains)."""
     calls = fake_tuning
-    parser = build_parser()
     out = tmp_path / "run"
-    args = parser.parse_args(["tune", "--out", str(out), "--weight", "grip=3", "--iterations", "1"])
-    assert args.func(args) == 0
+    cfg = TuneConfig(problem=Problem(weights=CostWeights(grip=3.0)), iterations=1)
+    summary = _run_tune(model, out, cfg, mujoco_check=True, options={"weight": ["grip=3"]})
     cfg = calls["cfg"]
     assert calls["weights"].grip == 3.0 and cfg.training.task == "full" and cfg.data.heldout_batch == 16
+    assert summary.peak_before == pytest.approx(0.015) and summary.to_dict() == json.loads(
+        (out / "summary.json").read_text()
+    )
     summary = json.loads((out / "summary.json").read_text())
     for key in (
         "initial_cost",
@@ -365,10 +376,11 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
         "selected_iteration",
         "validation",
         "weights",
+        "config",
     ):
         assert key in summary, key
     assert summary["heldout_settled_peak_resultant_N_before"] == pytest.approx(0.015)
-    assert summary["options"]["weight"] == ["grip=3"]
+    assert summary["options"]["weight"] == ["grip=3"] and summary["config"]["problem"]["weights"]["grip"] == 3.0
     # the MuJoCo C check ran (a stand-in here) and is recorded beside MJX's figures
     assert calls["mujoco_check"] == 4 and summary["mujoco_check"]["factor_mujoco"] == pytest.approx(0.5)
     assert summary["mujoco_check"]["mjx_before_N"] == pytest.approx(0.015) and summary["mujoco_check"]["agree"] is False
@@ -383,15 +395,12 @@ def test_tune_cli_writes_its_results(tmp_path, fake_tuning):
     assert header == "iteration,cost,grad_norm,skipped,seconds,term_grip"
 
 
-def test_tune_cli_tunes_the_named_controller_under_bounds(tmp_path, fake_tuning):
-    """--controller reaches the loop, the evaluator and every file; --max-* the bounds."""
+def test_tune_job_tunes_the_named_controller_under_bounds(model, tmp_path, fake_tuning):
+    """The problem's controller reaches the loop, the evaluator and every file; its bounds the loop."""
     calls = fake_tuning
     out = tmp_path / "run"
-    parser = build_parser()
-    args = parser.parse_args(
-        ["tune", "--out", str(out), "--iterations", "1", "--controller", "object_impedance", "--max-impact", "6.5"]
-    )
-    assert args.func(args) == 0
+    problem = Problem(controller="object_impedance", max_impact_N=6.5)
+    _run_tune(model, out, TuneConfig(problem=problem, iterations=1))
     p = calls["cfg"].problem
     assert p.controller == "object_impedance" and p.max_impact_N == 6.5 and p.max_stiffness_N_per_m is None
     assert calls["evaluator_controller"] == "object_impedance"
@@ -404,6 +413,55 @@ def test_tune_cli_tunes_the_named_controller_under_bounds(tmp_path, fake_tuning)
     assert summary["heldout_before"]["first_impact_peak_N"] == pytest.approx(6.5)
     assert summary["heldout_before"]["within_bounds"] is True
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] > 1e3
+
+
+def test_tune_cli_parses_into_one_job_and_prints_it(tmp_path, monkeypatch, capsys):
+    """jaxsync tune is its flags read into a TuneConfig, one call of
+    pipeline.run_tune and the summary's lines; a library error comes out as
+    one line naming the flags, exit 2, with no folder left behind."""
+    got = {}
+
+    def job(model, cfg, **kw):
+        got.update(model=model, cfg=cfg, **kw)
+        return None  # another process than the first of a multi-process run: nothing to print
+
+    monkeypatch.setattr(pipeline, "run_tune", job)
+    argv = ["tune", "--out", str(tmp_path / "o"), "--weight", "grip=3", "--iterations", "1", "--method", "sgd"]
+    argv += ["--controller", "object_impedance", "--max-impact", "6.5", "--freeze", "imp_mass", "--lr", "0.01"]
+    assert main(argv) == 0
+    cfg = got["cfg"]
+    assert cfg.problem.weights.grip == 3.0 and cfg.problem.controller == "object_impedance"
+    assert cfg.problem.max_impact_N == 6.5 and cfg.problem.max_stiffness_N_per_m is None
+    assert cfg.problem.tuned.tuned == ("imp_stiffness", "imp_damping_ratio", *OBJECT)
+    assert (cfg.method.name, cfg.method.learning_rate, cfg.loop.iterations) == ("sgd", 0.01, 1)
+    assert (cfg.training.task, cfg.data.heldout_batch, cfg.loop.validate_every) == ("full", 16, 5)
+    assert got["model"] is None and got["gains"] is None and got["options"]["weight"] == ["grip=3"]
+    assert capsys.readouterr().out == ""
+
+    def refused(model, cfg, *, out, **kw):
+        _results.ensure_writable_dir(out)  # the job made the folder, then refused
+        raise jaxsync.ConfigError("resume and restart: give one of them", inputs=("resume", "restart"))
+
+    monkeypatch.setattr(pipeline, "run_tune", refused)
+    assert main(["tune", "--out", str(tmp_path / "r"), "--resume", "--restart"]) == 2
+    err = capsys.readouterr().err
+    assert err == "jaxsync tune: error: resume and restart: give one of them (--resume, --restart)\n"
+    assert not (tmp_path / "r").exists()
+    for flags, message in [
+        (["--weight", "grip"], "NAME=VALUE"),
+        (["--freeze", "bar"], "unknown parameter(s) ['bar']"),
+    ]:  # read before the job is called
+        assert main(["tune", "--out", str(tmp_path / "x"), *flags]) == 2
+        assert message in capsys.readouterr().err
+
+
+def test_the_summary_is_said_in_lines(model, tmp_path, fake_tuning):
+    out = tmp_path / "run"
+    summary = _run_tune(model, out, mujoco_check=True)
+    lines = summary_lines(summary, str(out))
+    assert lines[0] == "held-out settled peak resultant: 0.01500 N -> 0.01500 N (unchanged)"
+    assert lines[1] == "held-out grip-force error: 0.0050 -> 0.0050"
+    assert "WARNING: MuJoCo C and MJX disagree" in lines[2] and lines[-1].startswith(f"results in {out}: gains.json")
 
 
 def test_vector_gains_round_trip_through_the_parametrisation():
@@ -421,30 +479,30 @@ def test_vector_gains_round_trip_through_the_parametrisation():
         assert np.all((zeta > ZETA_MIN) & (zeta < ZETA_MAX))
 
 
-def test_a_folder_holding_a_run_needs_resume_or_restart(tmp_path, capsys, fake_tuning):
-    """A checkpoint in --out without --resume is refused (naming --resume and
-    --restart), before anything is evaluated or written; --restart starts over
-    and leaves none of the old run's files behind."""
+def test_a_folder_holding_a_run_needs_resume_or_restart(model, tmp_path, fake_tuning):
+    """A checkpoint in the output folder without resume is refused (naming
+    resume and restart), before anything is evaluated or written; restart
+    starts over and leaves none of the old run's files behind."""
     out = tmp_path / "run"
     out.mkdir()
     old = {"checkpoint.npz": "old", "gains.json": '{"gains": {"k_rl": 0.1}}', "summary.json": "{}"}
     for name, text in old.items():
         (out / name).write_text(text)
-    for extra, message in [
-        ([], "resume to continue it, restart to discard it and start over, or choose another output folder"),
-        ([], "folder (--resume, --restart, --out)"),
-        (["--resume", "--restart"], "give one of them"),
-    ]:
-        assert main(["tune", "--out", str(out), "--iterations", "1", *extra]) == 2, extra
-        err = capsys.readouterr().err
-        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    for extra, message, inputs in [
+        ({}, "resume to continue it, restart to discard it and start over, or choose another output folder",
+         ("resume", "restart", "out")),
+        ({"resume": True, "restart": True}, "give one of them", ("resume", "restart")),
+    ]:  # fmt: skip
+        with pytest.raises(jaxsync.ConfigError, match=message) as err:
+            _run_tune(model, out, **extra)
+        assert err.value.inputs == inputs
         assert "cfg" not in fake_tuning  # refused before tuning
     assert {p.name: p.read_text() for p in out.iterdir()} == old  # nothing touched
-    (out / "checkpoint.npz").unlink()  # results without a checkpoint: only --restart
-    assert main(["tune", "--out", str(out), "--iterations", "1"]) == 2
-    assert "no checkpoint to resume from: restart to discard them" in capsys.readouterr().err
+    (out / "checkpoint.npz").unlink()  # results without a checkpoint: only restart
+    with pytest.raises(jaxsync.ConfigError, match="no checkpoint to resume from: restart to discard them"):
+        _run_tune(model, out)
     (out / "checkpoint.npz").write_text("old")
-    assert main(["tune", "--out", str(out), "--iterations", "1", "--restart"]) == 0
+    _run_tune(model, out, restart=True)
     assert fake_tuning["kw"]["resume"] is False
     assert not (out / "checkpoint.npz").exists()  # the old run's (the stand-in loop writes none)
     assert json.loads((out / "gains.json").read_text())["gains"]["k_rl"] == 0.5
