@@ -782,7 +782,17 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
 
         return value_and_grad
 
+    def fake_forward(model, base, cfg, *, differentiated=True):  # the same cost, for the trials taken on values
+        theta0 = cfg.problem.tuned.init(base)
+
+        def loss(theta, scenarios):
+            pairs = zip(jax.tree_util.tree_leaves(theta), jax.tree_util.tree_leaves(theta0), strict=True)
+            return 1.0 + sum(jax.numpy.sum((a - b) ** 2) for a, b in pairs), {}
+
+        return loss
+
     monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
+    monkeypatch.setattr(tune_mod, "make_loss", fake_forward)  # no rollout is compiled
     cfg = TuneConfig(iterations=14, batch=1, validate_every=5, task="short", method="lbfgs")
     r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path), progress=False, validate=_fake_validation)
     # two failed line searches per batch, 5 batches (the first and 4 fresh ones)
