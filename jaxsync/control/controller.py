@@ -216,6 +216,45 @@ def step(
     return jnp.concatenate(taus), state, info
 
 
+def step_position(
+    options: ControllerOptions | ControllerSwitch,
+    gains: Gains,
+    state: ControllerState,
+    arms: tuple[ArmState, ArmState],
+    ref: Reference,
+    dt: float,
+    command: jax.Array,
+) -> tuple[jax.Array, ControllerState, ControlInfo]:
+    """One control period on position-controlled arms: the same offsets as
+    :func:`step`, then each arm's joint position command integrated toward its
+    compliant target (``jaxsync.control.joint_space.command_rate``).
+
+    Args: as :func:`step`, and ``command`` (2 n,) the last joint position
+    commands (right arm's n, then left's). Returns the next commands (2 n,),
+    the new state and info.
+    """
+    (off, off_vel, _), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
+    n = command.shape[0] // 2
+    out = []
+    for i in range(2):
+        q_cmd = command[i * n : (i + 1) * n]
+        rate = _joint_space.command_rate(
+            arms[i],
+            q_cmd,
+            ref.pad_pos[i] + off[i, :3],
+            _so3.exp(off[i, 3:]) @ ref.pad_rot[i],
+            ref.pad_vel[i] + off_vel[i],
+            ref.q_rest[i],
+            gains.kp_pos,
+            gains.kd_pos,
+            gains.kp_null,
+            gains.kd_null,
+        )
+        out.append(q_cmd + dt * rate)
+    info = ControlInfo(offset=off, delta=delta, force_error=force_error)
+    return jnp.concatenate(out), state, info
+
+
 def _impedance_filters(gains, state, ref, force_error, dt):
     return _impedance.step(
         state.impedance, gains.imp_mass, gains.imp_damping, gains.imp_stiffness, ref.pad_rot, force_error, dt

@@ -60,3 +60,51 @@ def torques(
     posture = kp_null * (q_rest - arm.q) - kd_null * arm.qd
     ddq = pinv @ (ddx - arm.jac_dot_qd) + null @ posture
     return arm.mass @ ddq + arm.bias - arm.jac.T @ wrench
+
+
+# Damping of the joint-command least squares (J^T J + alpha I)^-1 J^T: the
+# default ``kinematics.alpha`` of ros2_controllers' admittance controller
+# (kinematics_interface_kdl, jazzy), so that jaxsync's position commands are
+# made as the deployed controller makes them.
+COMMAND_ALPHA = 0.01
+
+
+def command_rate(
+    arm: ArmState,
+    command: jax.Array,
+    pos_ref: jax.Array,
+    rot_ref: jax.Array,
+    vel_ref: jax.Array,
+    q_rest: jax.Array,
+    kp: jax.Array,
+    kd: jax.Array,
+    kp_null: jax.Array,
+    kd_null: jax.Array,
+    alpha: float = COMMAND_ALPHA,
+) -> jax.Array:
+    """dq_cmd/dt (n,): the joint position command's rate on a position-controlled arm.
+
+        v      = dx_ref + lambda (x_ref - x),         lambda = kp / kd * 2 = 40 1/s at the defaults
+        dq_cmd = J# v + (I - J# J) mu (q_rest - q_cmd),  J# = (J^T J + alpha I)^-1 J^T,  mu = kp_null / kd_null
+
+    The inner position loop of the torque stack (eq. 18: (s + 40)^2 with the
+    default kp, kd) becomes a first-order loop of the same bandwidth
+    lambda on the measured pad pose x: integrated (``q_cmd += dt dq_cmd``)
+    it has integral action, so the pad reaches x_ref though the servo sags
+    under load. The damped least squares is the admittance rule's (alpha =
+    ``kinematics.alpha``). A 7-joint arm's seventh joint: the null space of J
+    (J# J is not quite a projector with alpha > 0; it is where J has no
+    component) turns the command toward the rest posture at rate mu
+    (kp_null / kd_null = 5 1/s at the defaults), as the torque stack's
+    null-space term does; a 6-joint arm has none.
+
+    Args: command (n,) the last joint command; pos_ref (3,), rot_ref (3, 3),
+    vel_ref (6,) the compliant target; q_rest (n,). Returns (n,) rad/s.
+    """
+    err = jnp.concatenate([pos_ref - arm.pad_pos, _so3.rotation_error(rot_ref, arm.pad_rot)])
+    v = vel_ref + (2.0 * kp / kd) * err
+    jac = arm.jac
+    n = jac.shape[1]
+    dls = jnp.linalg.solve(jac.T @ jac + alpha * jnp.eye(n), jac.T)
+    null = jnp.eye(n) - dls @ jac
+    return dls @ v + null @ ((kp_null / kd_null) * (q_rest - command))

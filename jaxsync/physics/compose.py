@@ -92,6 +92,9 @@ class Composed:
     joint_names: dict[str, tuple[str, ...]]  # the robot's own joint names per arm ("right", "left")
     links: dict[str, dict[str, str]]  # per arm, the robot's own body names: "base" (of the chain), "tip" (flange)
     torque_limits: dict[str, tuple[float, ...]]
+    # per arm, each joint's (stiffness, damping) of the file's own position
+    # actuator (N m/rad, N m s/rad), None where some joint has none
+    position_servos: dict[str, tuple[tuple[float, float], ...] | None]
     to_task: tuple[np.ndarray, np.ndarray]  # (R, t): p_task = R @ p_robot + t
     notes: list[str]
 
@@ -226,6 +229,34 @@ def _limits(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) ->
     return tuple(out)
 
 
+def _position_servos(m: mujoco.MjModel, jids: list[int]) -> tuple[tuple[float, float], ...] | None:
+    """Each joint's position servo as the file writes it: an actuator on the
+    joint with a fixed gain kp and an affine bias (0, -kp, -kv), MuJoCo's
+    ``<position>`` (or the ``<general>`` that spells it out). Through a gear g
+    the joint sees stiffness g^2 kp and damping g^2 kv. None if a joint has none."""
+    out = []
+    for j in jids:
+        found = None
+        for a in range(m.nu):
+            gain, bias = m.actuator_gainprm[a], m.actuator_biasprm[a]
+            if (
+                _drives(m, a, [j])
+                and m.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
+                and m.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_AFFINE
+                and gain[0] > 0
+                and bias[0] == 0
+                and np.isclose(bias[1], -gain[0])
+                and bias[2] <= 0
+            ):
+                g2 = float(m.actuator_gear[a, 0]) ** 2
+                found = (g2 * float(gain[0]), -g2 * float(bias[2]))
+                break
+        if found is None:
+            return None
+        out.append(found)
+    return tuple(out)
+
+
 def _is_below(m: mujoco.MjModel, b: int, ancestor: int) -> bool:
     while b not in (0, ancestor):
         b = int(m.body_parentid[b])
@@ -333,7 +364,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
             scene.delete(it)
     # names and limits, read on the robot as given (robot frame)
     m0 = _compile(scene, robot.path)
-    joint_names, limits, jids_all, links = {}, {}, set(), {}
+    joint_names, limits, jids_all, links, servos = {}, {}, set(), {}, {}
     for a, arm in zip(ARM_NAMES, robot.arms, strict=True):
         prefix = frames[a][1]
         label = f"{robot.path}: arms.{a}"
@@ -357,6 +388,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
                                   f"'{arm.joints[k]}' is not below '{arm.joints[k - 1]}'")  # fmt: skip
         joint_names[a] = tuple(arm.joints)
         limits[a] = _limits(m0, arm, prefix, jids, label)
+        servos[a] = _position_servos(m0, jids)
         name = lambda b: mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_BODY, b) or "world"  # noqa: E731
         base = name(int(m0.body_parentid[bodies[0]]))
         links[a] = {"base": base.removeprefix(prefix) if base != "world" else "world"}
@@ -434,7 +466,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
     scene.add_pair(name="stand_object", geomname1="object", geomname2="stand", **STAND_PAIR)
     robot_names.record(scene, {a: {"joints": list(arm.joints), "prefix": frames[a][1], "ros_prefix": arm.ros_prefix}
                                for a, arm in zip(ARM_NAMES, robot.arms, strict=True)})  # fmt: skip
-    return Composed(scene, robot, joint_names, links, limits, (R, t), notes)
+    return Composed(scene, robot, joint_names, links, limits, servos, (R, t), notes)
 
 
 def model_file(robot: Robot) -> str:

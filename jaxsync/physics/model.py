@@ -250,6 +250,8 @@ class RobotScene:
     to_task: dict
     spec: object = dataclasses.field(repr=False)
     fingerprint: str = ""
+    servo: dict | None = None  # the robot file's ``servo:`` (jaxsync.physics.robot)
+    position_servos: dict | None = None  # per arm, the MJCF's own position servos (jaxsync.physics.compose)
 
     def summary(self) -> dict:
         """What composing the robot file decided, as plain data (no MjSpec)."""
@@ -366,7 +368,11 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, Robot
         poses=poses,
         to_task={"R": composed.to_task[0].tolist(), "t": composed.to_task[1].tolist()},
         spec=composed.spec,
-        fingerprint=hashlib.sha256(composed.spec.to_xml().encode()).hexdigest(),
+        fingerprint=hashlib.sha256(
+            (composed.spec.to_xml() + (repr(sorted(robot.servo.items())) if robot.servo else "")).encode()
+        ).hexdigest(),
+        servo=robot.servo,
+        position_servos=composed.position_servos,
     )
     return m, scene
 

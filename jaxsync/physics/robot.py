@@ -19,8 +19,12 @@ the arm's ROS export, e.g. ``right_``, as multi-arm ros2_control descriptions
 prefix each arm). ``flange`` names a site or a body whose +z axis points out
 of the flange, away from the arm. Optional at the top: ``clamp_axis`` ([x, y, z], horizontal: the
 line the pads close along, from the right pad towards the left; default:
-the horizontal direction from the right arm's base to the left arm's) and
-``stand`` (true: a stand under the object, the default).
+the horizontal direction from the right arm's base to the left arm's),
+``stand`` (true: a stand under the object, the default) and ``servo`` (each
+joint's position servo, for ``actuation="position"``: ``{stiffness: [...],
+damping: [...]}``, N m/rad and N m s/rad per joint, or ``{bandwidth: HZ,
+damping_ratio: 1.0}``; without it the servo is the MJCF's own position
+actuators, ``jaxsync.physics.servo``).
 
 :func:`load_robot` validates everything it can without compiling the MJCF
 (the composer, ``jaxsync.physics.compose``, checks the rest against the
@@ -40,7 +44,8 @@ from jaxsync._errors import ConfigError
 
 SCHEMA_VERSION = 1
 ARM_NAMES = ("right", "left")
-_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand"}
+_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo"}
+_SERVO_FORMS = ({"stiffness", "damping"}, {"bandwidth", "damping_ratio"})
 _ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
 _ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _OBJECT_KEYS = {"position", "radius", "mass"}
@@ -74,6 +79,7 @@ class Robot:
     model: str | None = None  # absolute path of the bimanual MJCF
     clamp_axis: tuple[float, float, float] | None = None
     stand: bool = True
+    servo: dict | None = None  # {"stiffness": (n,), "damping": (n,)} or {"bandwidth": Hz, "damping_ratio": z}
 
     @property
     def arms(self) -> tuple[ArmSpec, ArmSpec]:
@@ -242,9 +248,37 @@ def load_robot(path: str | os.PathLike) -> Robot:
     stand = doc.get("stand", True)
     if not isinstance(stand, bool):
         raise ConfigError(f"{_where(path, 'stand')} must be true or false, got {stand!r}")
+    servo = _servo(doc["servo"], len(right.joints), path) if "servo" in doc else None
+    if servo is not None and len(left.joints) != len(right.joints):
+        raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
     return Robot(
-        name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand
-    )
+        name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand,
+        servo,
+    )  # fmt: skip
+
+
+def _servo(doc, n: int, path: str) -> dict:
+    """``servo``: per-joint stiffness and damping, or a bandwidth (both arms alike)."""
+    forms = "{stiffness: [N m/rad per joint], damping: [N m s/rad per joint]} or {bandwidth: Hz, damping_ratio: z}"
+    if not isinstance(doc, dict) or ("stiffness" in doc) == ("bandwidth" in doc):
+        raise ConfigError(f"{_where(path, 'servo')} must be {forms}, got {doc!r}")
+    form = _SERVO_FORMS[0] if "stiffness" in doc else _SERVO_FORMS[1]
+    _unknown(doc, form, path, "servo")
+    if "stiffness" in doc:
+        if "damping" not in doc:
+            raise ConfigError(f"{_where(path, 'servo')}: missing 'damping' (N m s/rad, one per joint)")
+        kp = _numbers(doc["stiffness"], n, path, "servo.stiffness", "N m/rad, one per joint")
+        kv = _numbers(doc["damping"], n, path, "servo.damping", "N m s/rad, one per joint")
+        if min(kp) <= 0 or min(kv) < 0:
+            raise ConfigError(f"{_where(path, 'servo')}: stiffness must be > 0 and damping >= 0, got {kp}, {kv}")
+        return {"stiffness": kp, "damping": kv}
+    out = {}
+    for key, default, lo, hi, unit in (("bandwidth", None, 0.1, 500.0, "Hz"), ("damping_ratio", 1.0, 0.05, 10.0, "")):
+        v = doc.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
+            raise ConfigError(f"{_where(path, 'servo.' + key)} must be a number in [{lo}, {hi}] {unit}, got {v!r}")
+        out[key] = float(v)
+    return out
 
 
 def is_robot_file(path) -> bool:

@@ -91,14 +91,31 @@ def noise(s: Scenario, c: Consts, step: jax.Array) -> jax.Array:
     return n * (mask[:, 0] * s.force_noise + mask[:, 1] * s.torque_noise)
 
 
-def control(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt):
-    """Plan, desired wrench and one controller step, the torque clipped to the actuators' range."""
+def _planned(gains, s, c: Consts, pad_start, t):
     normals = jnp.asarray(c.pad_rot[:, :, 2])
     pl = _scenario.plan(s, t, pad_start, normals)
-    ref = reference(s, c, pl)
     gains = _schedule.at(
         gains, jnp.stack(_scenario.phase_times(s)), t
     )  # constant gains pass through; a schedule blends its phases
+    return gains, reference(s, c, pl), pl
+
+
+def control(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt):
+    """Plan, desired wrench and one controller step, the torque clipped to the actuators' range."""
+    gains, ref, pl = _planned(gains, s, c, pad_start, t)
     tau, cstate, info = _controller.step(options, gains, cstate, arms, ref, dt)
     tau = jnp.clip(tau, -c.torque_limit, c.torque_limit)
     return tau, cstate, info, pl
+
+
+def control_position(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt, command):
+    """Plan, desired wrench and one controller step on position-controlled
+    arms: the next joint position commands (2 n,)."""
+    gains, ref, pl = _planned(gains, s, c, pad_start, t)
+    command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command)
+    return command, cstate, info, pl
+
+
+def initial_command(model: DualArmModel, c: Consts) -> np.ndarray:
+    """(2 n,) the arms' joint positions at the start: the first position command."""
+    return np.asarray(c.qpos0)[[i for a in model.index.arms for i in a.qpos_adr]]

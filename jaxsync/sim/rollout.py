@@ -24,6 +24,7 @@ from jaxsync.physics import step as _physics
 from jaxsync.physics.model import DualArmModel
 from jaxsync.physics.sensing import sense
 from jaxsync.runtime import programs
+from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import closed_loop as _closed_loop
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim import trajectory as _trajectory
@@ -43,6 +44,7 @@ def make_rollout(
     truncate_every: int | None = None,
     start: str = START_KEY,
     passes: str = "mjx",
+    actuation: str = "torque",
 ):
     """Build ``fn(gains, scenario) -> Trajectory`` for one static configuration.
 
@@ -67,6 +69,9 @@ def make_rollout(
         jaxsync's vectorised passes (the same values to rounding, a far
         smaller program to differentiate and compile: gradient programs pass
         ``remat=True, passes="tree"``).
+      actuation: "torque" (joint torque motors) or "position" (joint
+        position commands through the robot's servo, delayed by the
+        scenario's ``delay``: ``jaxsync.sim.actuation``).
 
     Example:
       >>> fn = make_rollout(jaxsync.load_model(), "synchronous", duration=2.0)
@@ -76,7 +81,7 @@ def make_rollout(
       (B, 1000, 2, 3)
     """
     options = ControllerOptions(kind=controller, cross_term=cross_term)
-    core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes)
+    core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes, actuation)
 
     def fn(gains: Gains, s: Scenario) -> Trajectory:
         return core(gains, s, options)
@@ -87,7 +92,9 @@ def make_rollout(
     return fn
 
 
-def _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes="mjx"):
+def _controlled_rollout(
+    model, duration, control_substeps, remat, truncate_every, start, passes="mjx", actuation="torque"
+):
     """``fn(gains, scenario, options) -> Trajectory``: ``options`` a static
     :class:`ControllerOptions` (closed over by :func:`make_rollout`) or a
     traced :class:`~jaxsync.control.controller.ControllerSwitch` (one program for
@@ -106,13 +113,20 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
     if n_steps < 1:
         raise ConfigError(f"duration must be at least one control period ({dt} s), got {duration}")
     consts = _closed_loop.consts(model, start)
+    position = _actuation.check(actuation) == "position"
+    pc = _actuation.position_consts(model) if position else None
+    q0 = _closed_loop.initial_command(model, consts)
     index = model.index
     unroll = model.solver_unroll
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
 
     def fn(gains: Gains, s: Scenario, options) -> Trajectory:
         mx = _scenario.apply_to_model(model.mjx_model, s, index)
+        if position:  # the servo's damping, MuJoCo's joint damping
+            for name, where, value in _actuation.model_updates(pc, s.servo_scale):
+                mx = mx.replace(**{name: getattr(mx, name).at[where].set(value)})
         d0 = d_template.replace(qpos=_closed_loop.initial_qpos(model, consts, s))
+        limit = jnp.asarray(consts.torque_limit)
 
         def body(carry, k):
             state, pad_start = carry
@@ -124,7 +138,7 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
                     ),
                     state,
                 )
-            d, cstate = state
+            d, cstate, held = state
             t = k * dt
             d = _physics.before_control(mx, d, passes)
             # the pads where the task starts, read at the first step: the
@@ -135,11 +149,27 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
             noisy = d.replace(sensordata=d.sensordata + _closed_loop.noise(s, consts, k))
             sensed = sense(mx, noisy, index, passes)
             arms = (sensed.right, sensed.left)
-            tau, cstate, info, pl = _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
-            ctrl = tau[consts.act_order]
-            d = _physics.after_control(mx, d, ctrl, unroll)
-            for _ in range(control_substeps - 1):
-                d = _physics.after_control(mx, _physics.before_control(mx, d, passes), ctrl, unroll)
+            if position:
+                command, buffer = held
+                command, cstate, info, pl = _closed_loop.control_position(
+                    options, gains, s, consts, cstate, arms, pad_start, t, dt, command
+                )
+                buffer = _actuation.push(buffer, command)
+                acting, acting_vel = _actuation.acting(buffer, _actuation.delay_steps(s), dt)
+                held = (command, buffer)
+                for sub in range(control_substeps):
+                    if sub:
+                        d = _physics.before_control(mx, d, passes)
+                    tau, motor = _actuation.servo_torque(
+                        pc, d.qpos, d.qvel, d.qfrc_bias, acting, acting_vel, s.servo_scale, limit
+                    )
+                    d = _physics.after_control(mx, d, motor[consts.act_order], unroll)
+            else:
+                tau, cstate, info, pl = _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
+                ctrl = tau[consts.act_order]
+                d = _physics.after_control(mx, d, ctrl, unroll)
+                for _ in range(control_substeps - 1):
+                    d = _physics.after_control(mx, _physics.before_control(mx, d, passes), ctrl, unroll)
             forces = jnp.stack([_physics.contact_force_on(mx, d, a.contact_id, a.object_is_geom1) for a in index.arms])
             row = _trajectory.row(
                 t,
@@ -155,11 +185,12 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
                 cstate,
                 limit=consts.torque_limit,
             )
-            return ((d, cstate), pad_start), row
+            return ((d, cstate, held), pad_start), row
 
         if remat:  # the solve's outputs are kept: the backward pass does not solve again
             body = jax.checkpoint(body, policy=_physics.REMAT_POLICY)
-        init = ((d0, _controller.init()), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
+        held = (jnp.asarray(q0), _actuation.initial_buffer(q0)) if position else ()
+        init = ((d0, _controller.init(), held), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
         _, traj = jax.lax.scan(body, init, jnp.arange(n_steps))
         return traj
 
@@ -169,9 +200,9 @@ def _controlled_rollout(model, duration, control_substeps, remat, truncate_every
 
 
 @programs.memoize(maxsize=32)
-def _jitted(model, duration, control_substeps):
-    """``rollout()``'s program: one for both controllers and every cross term."""
-    return jax.jit(_controlled_rollout(model, duration, control_substeps, False, None, START_KEY))
+def _jitted(model, duration, control_substeps, actuation="torque"):
+    """``rollout()``'s program: one for every controller and cross term."""
+    return jax.jit(_controlled_rollout(model, duration, control_substeps, False, None, START_KEY, actuation=actuation))
 
 
 def rollout(
@@ -184,6 +215,7 @@ def rollout(
     control_substeps: int = 1,
     cross_term: str = "squeeze",
     backend: str = "mjx",
+    actuation: str = "torque",
 ) -> Trajectory:
     """Run one closed-loop rollout (or a batch: vmap ``make_rollout`` instead).
 
@@ -201,7 +233,8 @@ def rollout(
     """
     if backend == "mjx":
         switch = ControllerSwitch.of(ControllerOptions(kind=controller, cross_term=cross_term))
-        fn = _jitted(model, float(duration), int(control_substeps))
+        stack = () if _actuation.check(actuation) == "torque" else (actuation,)  # the torque stack's key as ever
+        fn = _jitted(model, float(duration), int(control_substeps), *stack)
         # one program whatever the arguments' origin: strong dtypes (a Python
         # number is weak-typed) and committed to this process's device (an
         # array that a computation on the model's committed arrays returned is
@@ -218,6 +251,7 @@ def rollout(
             duration=duration,
             control_substeps=control_substeps,
             cross_term=cross_term,
+            actuation=actuation,
         )
     raise ConfigError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
 

@@ -18,6 +18,7 @@ from jaxsync.control.controller import ControllerOptions
 from jaxsync.control.gains import Gains
 from jaxsync.physics.model import DualArmModel
 from jaxsync.physics.sensing import ArmState, compensate_wrist_wrench
+from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import closed_loop as _closed_loop
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim import trajectory as _trajectory
@@ -84,6 +85,7 @@ def rollout_mujoco(
     duration: float = 4.0,
     control_substeps: int = 1,
     cross_term: str = "squeeze",
+    actuation: str = "torque",
 ) -> Trajectory:
     """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment.
 
@@ -101,6 +103,15 @@ def rollout_mujoco(
     m.opt.solver, m.opt.cone = model.mj_model.opt.solver, model.mj_model.opt.cone
     idx = model.index
     _scenario.apply_to_mj_model(m, scenario, idx)
+    position = _actuation.check(actuation) == "position"
+    if position:  # the servo's damping, MuJoCo's joint damping (jaxsync.sim.actuation)
+        pc = _actuation.position_consts(model)
+        scale = float(scenario.servo_scale)
+        for name, where, value in _actuation.model_updates(pc, scale):
+            getattr(m, name)[where] = value
+        command = jnp.asarray(_closed_loop.initial_command(model, consts))
+        buffer = _actuation.initial_buffer(command)
+        delay = int(_actuation.delay_steps(scenario))
     d = mujoco.MjData(m)
     d.qpos[:] = np.asarray(_closed_loop.initial_qpos(model, consts, scenario))
     mujoco.mj_forward(m, d)
@@ -114,6 +125,13 @@ def rollout_mujoco(
     @jax.jit
     def control(gains, s, cstate, arms, k):
         return _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, k * dt, dt)
+
+    @jax.jit
+    def control_position(gains, s, cstate, arms, k, command, buffer):
+        command, cstate, info, pl = _closed_loop.control_position(
+            options, gains, s, consts, cstate, arms, pad_start, k * dt, dt, command
+        )
+        return command, _actuation.push(buffer, command), cstate, info, pl
 
     noise = jax.jit(lambda s, k: _closed_loop.noise(s, consts, k))
     cstate = _controller.init()
@@ -133,13 +151,25 @@ def rollout_mujoco(
             )
             for a in idx.arms
         )
-        tau, cstate, info, pl = control(gains, scenario, cstate, arms, k)
         qpos, qvel = d.qpos.copy(), d.qvel.copy()
         va = idx.object_dof_adr
-        d.ctrl[:] = np.asarray(tau)[consts.act_order]
-        mujoco.mj_step2(m, d)
-        for _ in range(control_substeps - 1):
-            mujoco.mj_step(m, d)
+        if position:
+            command, buffer, cstate, info, pl = control_position(gains, scenario, cstate, arms, k, command, buffer)
+            acting, acting_vel = (np.asarray(x) for x in _actuation.acting(buffer, delay, dt))
+            for sub in range(control_substeps):
+                if sub:
+                    mujoco.mj_step1(m, d)
+                tau, motor = _actuation.servo_torque(
+                    pc, d.qpos, d.qvel, d.qfrc_bias, acting, acting_vel, scale, consts.torque_limit, np
+                )
+                d.ctrl[:] = motor[consts.act_order]
+                mujoco.mj_step2(m, d)
+        else:
+            tau, cstate, info, pl = control(gains, scenario, cstate, arms, k)
+            d.ctrl[:] = np.asarray(tau)[consts.act_order]
+            mujoco.mj_step2(m, d)
+            for _ in range(control_substeps - 1):
+                mujoco.mj_step(m, d)
         obj_pos = qpos[idx.object_qpos_adr : idx.object_qpos_adr + 3]
         forces = _pad_forces_c(m, d, idx)
         rows.append(

@@ -19,6 +19,7 @@ from jaxsync._errors import ConfigError
 GRAVITY = np.array([0.0, 0.0, -9.81])
 STAND_TOP_Z = 0.8  # the stand's plane, mjcf/dual_arm.xml
 NOMINAL_XY = np.array([0.65, 0.0])
+MAX_DELAY = 8  # control periods a position command can wait (the command buffer's length - 1)
 
 
 class Scenario(NamedTuple):
@@ -38,6 +39,11 @@ class Scenario(NamedTuple):
     friction: pad-object sliding friction coefficient.
     force_noise, torque_noise: N, N m; std of white noise on each wrist-sensor axis.
     noise_key: a jax PRNG key (raw uint32 (2,)) for the sensor noise.
+    delay: whole control periods between a joint position command and the
+      servo acting on it (position-controlled arms only; 0 to
+      ``MAX_DELAY``, a float holding a whole number).
+    servo_scale: factor on the joint servos' stiffness and damping
+      (position-controlled arms only; 1: as the robot states them).
     """
 
     object_mass: jax.Array
@@ -56,6 +62,8 @@ class Scenario(NamedTuple):
     force_noise: jax.Array
     torque_noise: jax.Array
     noise_key: jax.Array
+    delay: jax.Array
+    servo_scale: jax.Array
 
 
 def model_object(model) -> dict:
@@ -95,6 +103,8 @@ def default_scenario(model=None, /, **overrides) -> Scenario:
         force_noise=0.1,
         torque_noise=0.005,
         noise_key=np.asarray(jax.random.key_data(jax.random.key(0))),
+        delay=0.0,
+        servo_scale=1.0,
     )
     unknown = set(overrides) - set(values)
     if unknown:
@@ -149,11 +159,16 @@ def validate(s: Scenario) -> Scenario:
         "friction": (0.05, 3.0),
         "force_noise": (0.0, 10.0),
         "torque_noise": (0.0, 1.0),
+        "delay": (0.0, MAX_DELAY),
+        "servo_scale": (0.1, 10.0),
     }
     for name, (lo, hi) in checks.items():
         v = np.asarray(getattr(s, name))
         if not np.all((v >= lo) & (v <= hi)):
             raise ConfigError(f"scenario '{name}' must lie in [{lo}, {hi}], got {v.tolist()}")
+    delay = np.asarray(s.delay)
+    if not np.all(delay == np.round(delay)):
+        raise ConfigError(f"scenario 'delay' must be whole control periods, got {delay.tolist()}")
     off = np.asarray(s.object_offset)
     if off.shape[-1:] != (3,) or not np.all(np.abs(off) <= 0.03):
         raise ConfigError(f"scenario 'object_offset' must be (3,) metres within +-0.03, got {off.tolist()}")

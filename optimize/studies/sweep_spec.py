@@ -29,7 +29,9 @@ PER_ARM_GAINS = ("imp_mass", "imp_damping", "imp_stiffness")
 AXIS_GAINS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")  # (6,): one per axis
 SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS + AXIS_GAINS)
 VECTOR_FIELDS = ("object_offset", "lift")
-SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",))
+# the position stack's fields (delay, servo scale) mean nothing to the torque-driven rollouts a sweep runs
+POSITION_FIELDS = ("delay", "servo_scale")
+SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",) + POSITION_FIELDS)
 PHASE_FIELDS = ("t_close", "t_squeeze", "t_carry", "settle_time")
 
 

@@ -1,0 +1,152 @@
+"""How the arms are driven: joint torques, or joint position commands through a servo.
+
+``"torque"``: each joint a torque motor; the controller's joint-space law
+(``jaxsync.control.joint_space.torques``) acts within the same physics step.
+
+``"position"``: what a position-controlled arm runs (ros2_control's position
+command interfaces). Each control period the controller turns its Cartesian
+targets into joint position commands (``jaxsync.control.joint_space.
+command_rate``, integrated); a command waits ``Scenario.delay`` control
+periods in a buffer; the robot's own servo (``jaxsync.physics.servo``)
+tracks the command it holds on every physics substep. The servo's damping
+is MuJoCo's joint damping (integrated implicitly), set per scenario with
+``Scenario.servo_scale``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync._errors import ConfigError
+from jaxsync.physics.servo import servo_of
+from jaxsync.sim.scenario import MAX_DELAY
+
+ACTUATIONS = ("torque", "position")
+
+
+def check(actuation: str) -> str:
+    if actuation not in ACTUATIONS:
+        raise ConfigError(f"actuation must be one of {list(ACTUATIONS)}, got {actuation!r}", inputs=("actuation",))
+    return actuation
+
+
+class PositionConsts(NamedTuple):
+    """The position stack's constants, in the torque vector's order (right arm's n, then left's)."""
+
+    stiffness: np.ndarray  # (2 n,) N m/rad
+    damping: np.ndarray  # (2 n,) N m s/rad
+    dof_adr: np.ndarray  # (2 n,)
+    qpos_adr: np.ndarray  # (2 n,)
+    joint_damping: np.ndarray  # (2 n,) the model's own joint damping, N m s/rad
+    actuator_ids: np.ndarray  # (2 n,) the joints' torque motors
+
+
+def position_consts(model) -> PositionConsts:
+    servo = servo_of(model)
+    dofs = np.array([i for a in model.index.arms for i in a.dof_adr])
+    return PositionConsts(
+        stiffness=servo.stiffness.reshape(-1),
+        damping=servo.damping.reshape(-1),
+        dof_adr=dofs,
+        qpos_adr=np.array([i for a in model.index.arms for i in a.qpos_adr]),
+        joint_damping=np.asarray(model.mj_model.dof_damping)[dofs].copy(),
+        actuator_ids=np.array([i for a in model.index.arms for i in a.actuator_ids]),
+    )
+
+
+UNCLAMPED = 1e9  # N m: the motors' control range while the servo clips its own torque
+
+
+def model_updates(pc: PositionConsts, servo_scale) -> tuple:
+    """(field, index, value) entries (``jaxsync.sim.scenario._model_updates``'s
+    form, for either engine): the joint damping the servo adds, and the
+    motors' control range opened (the servo clips its torque itself, before
+    the part that cancels the implicit damping, :func:`servo_torque`)."""
+    return (
+        ("dof_damping", (pc.dof_adr,), pc.joint_damping + servo_scale * pc.damping),
+        ("actuator_ctrlrange", (pc.actuator_ids, 0), -UNCLAMPED),
+        ("actuator_ctrlrange", (pc.actuator_ids, 1), UNCLAMPED),
+    )
+
+
+def servo_torque(pc: PositionConsts, qpos, qvel, qfrc_bias, command, command_vel, servo_scale, limit, xp=jnp):
+    """The servo's torque, clipped to the joint's limit, and the motor torque
+    that applies it beside the implicit joint damping, both (2 n,):
+
+        tau   = clip(s (k (q_cmd - q) + b (dq_cmd - dq)) + c, +-limit)
+        motor = tau + s b dq
+
+    ``s`` the scenario's servo scale. MuJoCo adds -s b dq' (the damping at the
+    step's end velocity, implicit), so the joint gets tau to first order in
+    dt and the damping stays stable at any gain. The servo's damping acts on
+    the velocity error dq_cmd - dq: the command carries its velocity, as
+    ros2_control's position-based controllers write one beside the position
+    (without it a servo lags b / k dq behind a moving command and holds b dq
+    against it)."""
+    q, dq = qpos[pc.qpos_adr], qvel[pc.dof_adr]
+    tau = servo_scale * (pc.stiffness * (command - q) + pc.damping * (command_vel - dq)) + qfrc_bias[pc.dof_adr]
+    tau = xp.clip(tau, -limit, limit)
+    return tau, tau + servo_scale * pc.damping * dq
+
+
+def delay_steps(s) -> jax.Array:
+    """The scenario's delay as an index into the command buffer."""
+    return jnp.clip(jnp.round(s.delay), 0, MAX_DELAY).astype(jnp.int32)
+
+
+def push(buffer: jax.Array, command: jax.Array) -> jax.Array:
+    """(MAX_DELAY + 2, 2 n): the newest command first, the oldest dropped."""
+    return jnp.concatenate([command[None], buffer[:-1]])
+
+
+def acting(buffer: jax.Array, delay, dt: float):
+    """The command the servo holds after ``delay`` periods, and its velocity
+    (the difference with the one before it over the control period ``dt``)."""
+    command = buffer[delay]
+    return command, (command - buffer[delay + 1]) / dt
+
+
+def initial_buffer(q0) -> jax.Array:
+    return jnp.broadcast_to(jnp.asarray(q0), (MAX_DELAY + 2, *jnp.shape(q0)))
+
+
+def substeps_for_rate(model, control_rate: float | None) -> int:
+    """Physics steps per control period for ``control_rate`` Hz (None: every step).
+
+    Raises ConfigError unless the rate divides the model's physics rate."""
+    if control_rate is None:
+        return 1
+    step = float(model.mj_model.opt.timestep)
+    physics = 1.0 / step
+    if not (isinstance(control_rate, (int, float)) and control_rate > 0):
+        raise ConfigError(
+            f"control_rate must be a positive number of Hz, got {control_rate!r}", inputs=("control_rate",)
+        )
+    n = physics / float(control_rate)
+    if n < 1 - 1e-9 or abs(n - round(n)) > 1e-6:
+        rates = ", ".join(f"{physics / k:g}" for k in range(1, 5))
+        raise ConfigError(
+            f"control_rate {control_rate:g} Hz must divide the physics rate {physics:g} Hz "
+            f"(timestep {step:g} s): e.g. {rates}",
+            inputs=("control_rate",),
+        )
+    return int(round(n))
+
+
+def parse_delay(text) -> tuple[int, int]:
+    """``"N"`` or ``"lo:hi"`` control periods -> (lo, hi), 0 <= lo <= hi <= MAX_DELAY."""
+    parts = str(text).split(":")
+    try:
+        lo, hi = (int(parts[0]), int(parts[-1])) if len(parts) in (1, 2) else (None, None)
+    except ValueError:
+        lo = hi = None
+    if lo is None or not 0 <= lo <= hi <= MAX_DELAY:
+        raise ConfigError(
+            f"delay must be whole control periods N or a range lo:hi within 0..{MAX_DELAY}, got {text!r}",
+            inputs=("delay",),
+        )
+    return lo, hi

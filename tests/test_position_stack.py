@@ -1,0 +1,237 @@
+"""Position-controlled arms: the joint servo, the command delay, the control
+rate, where a robot's servo comes from, and a rollout on the paper model."""
+
+from __future__ import annotations
+
+import os
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import TEST_DURATION, fast_scenario
+
+import jaxsync
+from jaxsync._errors import ConfigError
+from jaxsync.physics import servo as _servo
+from jaxsync.physics.robot import load_robot
+from jaxsync.sim import actuation as _actuation
+from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.scenario import MAX_DELAY
+
+ROBOTS = os.path.join(os.path.dirname(__file__), "..", "mjcf", "robots")
+
+ONE_JOINT = """
+<mujoco>
+  <option timestep="{dt}" integrator="Euler" gravity="0 0 0"/>
+  <worldbody>
+    <body>
+      <joint name="j" type="hinge" axis="0 0 1"/>
+      <inertial pos="0 0 0" mass="1" diaginertia="{inertia} {inertia} {inertia}"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="j"/></actuator>
+</mujoco>
+"""
+
+
+def _one_joint_servo(stiffness, damping, limit, command, steps, dt=0.001, inertia=0.5):
+    """MuJoCo C, one free hinge: the servo's two parts as a rollout applies them."""
+    m = mujoco.MjModel.from_xml_string(ONE_JOINT.format(dt=dt, inertia=inertia))
+    pc = _actuation.PositionConsts(
+        stiffness=np.array([stiffness]),
+        damping=np.array([damping]),
+        dof_adr=np.array([0]),
+        qpos_adr=np.array([0]),
+        joint_damping=np.zeros(1),
+        actuator_ids=np.array([0]),
+    )
+    for name, where, value in _actuation.model_updates(pc, 1.0):
+        getattr(m, name)[where] = value
+    d = mujoco.MjData(m)
+    q, tau_out = [], []
+    for _ in range(steps):
+        mujoco.mj_step1(m, d)
+        tau, motor = _actuation.servo_torque(
+            pc, d.qpos, d.qvel, d.qfrc_bias, np.array([command]), np.zeros(1), 1.0, np.array([limit]), np
+        )
+        d.ctrl[:] = motor
+        mujoco.mj_step2(m, d)
+        q.append(d.qpos[0])
+        tau_out.append(tau[0])
+    return np.array(q), np.array(tau_out)
+
+
+def test_the_servo_tracks_a_step_as_its_second_order_loop():
+    """k = I w^2, b = 2 I w: the critically damped response 1 - (1 + w t) e^(-w t)."""
+    inertia, w, dt = 0.5, 2 * np.pi * 10.0, 0.001
+    q, _ = _one_joint_servo(inertia * w * w, 2 * inertia * w, 1e6, 0.1, 300, dt, inertia)
+    t = dt * np.arange(1, 301)
+    closed = 0.1 * (1 - (1 + w * t) * np.exp(-w * t))
+    assert np.max(np.abs(q - closed)) < 0.1 * 0.03
+    assert q.max() < 0.1 * 1.01  # critically damped: no overshoot beyond the integrator's rounding
+
+
+def test_the_servo_clips_its_torque_and_stays_stable_at_any_damping():
+    """The torque limit holds what the joint gets (a ramp at limit / I), and a
+    damping far beyond the explicit bound (dt b / I = 40) still settles."""
+    inertia, dt, limit = 0.5, 0.001, 2.0
+    q, tau = _one_joint_servo(1e5, 0.0, limit, 1.0, 100, dt, inertia)
+    assert np.all(np.abs(tau) <= limit + 1e-12)
+    t = dt * np.arange(1, 101)
+    # semi-implicit Euler of qdd = limit / I: q_k = (limit / I) dt^2 k (k + 1) / 2
+    np.testing.assert_allclose(q, limit / inertia * dt * t * (t / dt + 1) / 2, rtol=1e-9)
+    q, _ = _one_joint_servo(200.0, 2e4, 1e6, 0.1, 3000, dt, inertia)
+    # overdamped: the slow pole k / b = 0.01 1/s, q ~ 0.1 (1 - e^(-k t / b)), rising without oscillation
+    np.testing.assert_allclose(q[-1], 0.1 * (1 - np.exp(-200.0 / 2e4 * 3.0)), rtol=0.02)
+    assert np.all(np.diff(q) >= -1e-12)
+
+
+def test_motor_torque_is_the_servo_torque_plus_the_cancelled_damping():
+    pc = _actuation.PositionConsts(
+        np.array([100.0, 50.0]), np.array([10.0, 4.0]), np.arange(2), np.arange(2), np.zeros(2), np.arange(2)
+    )
+    qpos, qvel, bias = np.array([0.1, -0.2]), np.array([0.5, 1.0]), np.array([1.0, -2.0])
+    cmd, cmd_vel, limit = np.array([0.2, -0.1]), np.array([0.0, 2.0]), np.array([1e3, 3.0])
+    tau, motor = _actuation.servo_torque(pc, qpos, qvel, bias, cmd, cmd_vel, 1.3, limit, np)
+    want = 1.3 * (pc.stiffness * (cmd - qpos) + pc.damping * (cmd_vel - qvel)) + bias
+    np.testing.assert_allclose(tau, np.clip(want, -limit, limit))
+    assert tau[1] == 3.0  # clipped
+    np.testing.assert_allclose(motor - tau, 1.3 * pc.damping * qvel)
+
+
+def test_a_command_acts_delay_periods_later_with_its_velocity():
+    dt = 0.002
+    q0 = jnp.zeros(2)
+    buffer = _actuation.initial_buffer(q0)
+    assert buffer.shape == (MAX_DELAY + 2, 2)
+    commands = [jnp.full(2, 0.01 * (k + 1) ** 2) for k in range(12)]
+    for k, c in enumerate(commands):
+        buffer = _actuation.push(buffer, c)
+        for delay in (0, 1, 3, MAX_DELAY):
+            acting, vel = _actuation.acting(buffer, delay, dt)
+            j = k - delay
+            want = commands[j] if j >= 0 else q0
+            before = commands[j - 1] if j >= 1 else q0
+            np.testing.assert_array_equal(acting, want)
+            np.testing.assert_allclose(vel, (want - before) / dt)
+
+
+def test_control_rate_sets_the_substeps_and_refuses_rates_that_do_not_divide(model):
+    assert _actuation.substeps_for_rate(model, None) == 1
+    assert _actuation.substeps_for_rate(model, 500) == 1
+    assert _actuation.substeps_for_rate(model, 250.0) == 2
+    for bad in (1000, 300, 0, -5):
+        with pytest.raises(ConfigError, match="control_rate") as err:
+            _actuation.substeps_for_rate(model, bad)
+        assert err.value.inputs == ("control_rate",)
+    with pytest.raises(ConfigError, match="divide the physics rate 500 Hz"):
+        _actuation.substeps_for_rate(model, 1000)
+
+
+@pytest.mark.parametrize(("text", "want"), [("0", (0, 0)), ("2", (2, 2)), ("0:3", (0, 3)), (f"{MAX_DELAY}", (8, 8))])
+def test_delay_reads_a_number_or_a_range(text, want):
+    assert _actuation.parse_delay(text) == want
+
+
+@pytest.mark.parametrize("bad", ["-1", "3:1", "a", "1:2:3", f"0:{MAX_DELAY + 1}", "1.5"])
+def test_delay_refuses_what_is_not_whole_periods_in_range(bad):
+    with pytest.raises(ConfigError, match=f"within 0..{MAX_DELAY}"):
+        _actuation.parse_delay(bad)
+
+
+def test_actuation_names_what_is_allowed():
+    with pytest.raises(ConfigError, match=r"actuation must be one of \['torque', 'position'\]"):
+        _actuation.check("velocity")
+    with pytest.raises(ConfigError, match="delay"):
+        jaxsync.short_task(delay=1.5)
+
+
+def test_the_paper_model_servo_is_its_stated_bandwidth(model):
+    s = _servo.servo_of(model)
+    inertia = _servo.joint_inertia(model)
+    w = 2 * np.pi * _servo.PAPER_SERVO["bandwidth"]
+    np.testing.assert_allclose(s.stiffness, inertia * w * w)
+    np.testing.assert_allclose(s.damping, 2 * _servo.PAPER_SERVO["damping_ratio"] * inertia * w)
+    assert "paper" in s.source and s.stiffness.shape == (2, 7)
+
+
+def test_a_robot_servo_comes_from_its_mjcf_or_its_file(tmp_path):
+    iiwa = jaxsync.load_model(os.path.join(ROBOTS, "iiwa14_twice.yaml"))
+    s = _servo.servo_of(iiwa)  # the MJCF's <position kp="2000" kv="50">
+    np.testing.assert_array_equal(s.stiffness, np.full((2, 7), 2000.0))
+    np.testing.assert_array_equal(s.damping, np.full((2, 7), 50.0))
+    text = open(os.path.join(ROBOTS, "ur5e_twice.yaml")).read()
+    assert "servo: {bandwidth: 25" in text
+    (tmp_path / "ur5e_like_arm.xml").write_text(open(os.path.join(ROBOTS, "ur5e_like_arm.xml")).read())
+    stated = text.replace(
+        "servo: {bandwidth: 25, damping_ratio: 1.0}",
+        "servo: {stiffness: [1, 2, 3, 4, 5, 6], damping: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}",
+    )
+    (tmp_path / "stated.yaml").write_text(stated)
+    s = _servo.servo_of(jaxsync.load_model(str(tmp_path / "stated.yaml")))
+    np.testing.assert_array_equal(s.stiffness, [[1, 2, 3, 4, 5, 6]] * 2)
+    np.testing.assert_array_equal(s.damping, [[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]] * 2)
+    (tmp_path / "none.yaml").write_text(text.replace("servo: {bandwidth: 25, damping_ratio: 1.0}", ""))
+    with pytest.raises(ConfigError, match="no joint servo known .* servo: {stiffness"):
+        _servo.servo_of(jaxsync.load_model(str(tmp_path / "none.yaml")))
+
+
+@pytest.mark.parametrize(
+    ("servo", "match"),
+    [
+        ("{stiffness: [1, 2, 3, 4, 5, 6]}", "missing 'damping'"),
+        ("{stiffness: [1, 2, 3], damping: [1, 2, 3]}", "servo.stiffness must be 6 numbers"),
+        ("{stiffness: [1, 2, 3, 4, 5, -6], damping: [1, 1, 1, 1, 1, 1]}", "stiffness must be > 0"),
+        ("{bandwidth: 0}", r"servo.bandwidth must be a number in \[0.1, 500.0\] Hz"),
+        ("{bandwidth: 20, stiffness: [1, 2, 3, 4, 5, 6]}", "servo must be"),
+        ("{bandwidth: 20, gain: 3}", r"unknown key\(s\) \['gain'\]"),
+        ("25", "servo must be"),
+    ],
+)
+def test_a_robot_file_servo_is_checked(tmp_path, servo, match):
+    text = open(os.path.join(ROBOTS, "ur5e_twice.yaml")).read()
+    (tmp_path / "ur5e_like_arm.xml").write_text(open(os.path.join(ROBOTS, "ur5e_like_arm.xml")).read())
+    (tmp_path / "r.yaml").write_text(text.replace("{bandwidth: 25, damping_ratio: 1.0}", servo))
+    with pytest.raises(ConfigError, match=match):
+        load_robot(str(tmp_path / "r.yaml"))
+
+
+@pytest.fixture(scope="module")
+def position_rollouts(model, shared_rollout):
+    """The synchronous controller on position-controlled arms: one program, delays 0 and 3."""
+    g = jaxsync.default_gains(model)
+    out = {}
+    for delay in (0, 3):
+        s = fast_scenario(delay=float(delay))
+        out[delay] = (s, shared_rollout(model, g, s, duration=TEST_DURATION, actuation="position"))
+    return out
+
+
+@pytest.mark.parametrize("delay", [0, 3])
+def test_position_controlled_arms_hold_the_ball_at_delays_0_and_3(position_rollouts, model, delay):
+    s, traj = position_rollouts[delay]
+    m = _metrics.summarize(traj, s)
+    assert not bool(m.dropped) and not bool(m.chattering) and not bool(m.nonfinite)
+    assert float(m.grip_force_error_rel) < 0.02
+    assert float(m.settled_peak_resultant_N) < 0.1
+    assert not np.asarray(traj.at_torque_limit).any()
+    # the pads follow the plan: within 2 mm of it once the object is held
+    hold = np.asarray(traj.phase) == 3
+    assert np.abs(np.asarray(traj.pad_pos - traj.plan_pad_pos))[hold].max() < 2e-3
+
+
+def test_the_delay_changes_the_rollout_and_the_torque_stack_differs(position_rollouts, rollouts):
+    (_, t0), (_, t3) = position_rollouts[0], position_rollouts[3]
+    assert float(jnp.abs(t0.pad_forces - t3.pad_forces).max()) > 0.1
+    assert float(jnp.abs(t0.torque - rollouts["synchronous"].torque).max()) > 1.0
+
+
+def test_mujoco_c_runs_the_same_position_stack(position_rollouts, model, shared_rollout):
+    s, x = position_rollouts[3]
+    c = shared_rollout(model, jaxsync.default_gains(model), s, duration=TEST_DURATION, actuation="position",
+                       backend="mujoco")  # fmt: skip
+    mx, mc = _metrics.summarize(x, s), _metrics.summarize(c, s)
+    np.testing.assert_allclose(float(mc.settled_peak_resultant_N), float(mx.settled_peak_resultant_N), rtol=0.05)
+    np.testing.assert_allclose(float(mc.grip_force_error_rel), float(mx.grip_force_error_rel), rtol=0.05, atol=1e-4)
+    assert float(jnp.abs(x.obj_pos - c.obj_pos).max()) < 5e-4
