@@ -24,6 +24,7 @@ from jaxsync.io import results as _results
 from jaxsync.optimize.studies import compare as _compare
 from jaxsync.optimize.studies.compare_video import VIDEO_FPS, compare_video
 from jaxsync.runtime.cache import _COMPILE_EVENT, _RETRIEVAL_EVENT, compile_watch
+from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.scenario import default_scenario
@@ -108,6 +109,11 @@ def test_compare_rejects_bad_input(tmp_path, capsys):
         (["--gains", str(bad_gains)], "k_rk"),
         (["--gains", str(tmp_path / "missing.json")], "no such file"),
         (["--out", str(blocker / "sub")], "cannot be written"),
+        (["--delay", "2"], "delay applies to position-controlled arms"),
+        (["--actuation", "position", "--delay", "0:3"], "one scenario runs one delay"),
+        (["--actuation", "position", "--delay", "-1"], "within 0..8"),
+        (["--actuation", "position", "--control-rate", "300"], "divide the physics rate 500 Hz"),
+        (["--actuation", "velocity"], "invalid choice: 'velocity'"),
     ]
     for args, message in cases:  # in this process (the console script itself: tests/test_model.py)
         try:
@@ -243,6 +249,24 @@ def test_a_comparison_with_a_drop_lists_the_video_and_says_so(tmp_path, model, r
     assert f"right {right:.2f}, left {left:.2f}" in said[1] and right == pytest.approx(1.31, abs=0.01)
 
 
+def test_a_position_stack_comparison_runs_its_delay_gains_and_records_the_stack(model, monkeypatch):
+    """run_comparison(stack=...): the scenario carries the stack's one delay, the
+    baseline is the position stack's defaults, and summary.json's options name
+    the stack and its servo (paper_comparison replaced by a stand-in)."""
+    seen = {}
+
+    def fake(m, g, scenario, out, **kw):
+        seen.update(gains=g, scenario=scenario, **kw)
+        return {}, []
+
+    monkeypatch.setattr(_compare, "paper_comparison", fake)
+    stack = _actuation.Stack("position", None, (3, 3))
+    _compare.run_comparison(model, stack=stack, say=lambda m: None)
+    assert float(seen["scenario"].delay) == 3.0 and seen["stack"] is stack
+    assert seen["options"]["stack"] == stack.to_dict(model) and seen["options"]["stack"]["servo"]["source"]
+    assert float(seen["gains"].kp_pos) == float(default_gains(model, "position").kp_pos)
+
+
 def test_the_comparison_scenario_takes_the_values_given(model):
     """--object-mass and the rest as run_comparison's overrides: the mass
     estimate follows the mass, the offset is along the clamping axis, the
@@ -291,6 +315,7 @@ def test_compare_cli_calls_the_job_prints_it_and_exits_by_it(tmp_path, rollouts,
     assert (kw["seed"], kw["duration"], kw["out"], kw["backend"]) == (3, 4.0, str(out), "mjx")
     assert kw["controllers"] == ("classical", "synchronous") and kw["video_speed"] == 0.5
     assert kw["mujoco_check"] is None and kw["options"]["object_offset"] == 0.008 and "func" not in kw["options"]
+    assert kw["stack"] == _actuation.Stack()  # torque, every physics step, no delay
     assert "resultant_ratio (classical / synchronous): n/a" in captured.out and "dropped at t=1.25 s" in captured.out
     assert captured.out.strip().splitlines()[-1].endswith("forces_synchronous.png, compare.mp4")
     last = captured.err.strip().splitlines()[-1]
@@ -299,6 +324,9 @@ def test_compare_cli_calls_the_job_prints_it_and_exits_by_it(tmp_path, rollouts,
     comparison.summary["synchronous"]["force_chatter_N"] = 2.5
     assert main(["compare", "--out", str(out), "--controllers", "synchronous,classical", "--no-visual"]) == 6
     assert calls[-1][1]["controllers"] == ("synchronous", "classical") and not calls[-1][1]["visual"]
+    argv = ["compare", "--out", str(out), "--actuation", "position", "--delay", "2", "--control-rate", "250"]
+    main(argv)
+    assert calls[-1][1]["stack"] == _actuation.Stack("position", 250.0, (2, 2))
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "the synchronous controller's pad forces chattered (RMS change per step 2.5 N > 1 N)" in last
     assert "exit status 6" in last

@@ -13,6 +13,7 @@ from conftest import TEST_DURATION, fast_scenario
 
 import jaxsync
 from jaxsync._errors import ConfigError
+from jaxsync.control import gains as _gains
 from jaxsync.physics import servo as _servo
 from jaxsync.physics.robot import load_robot
 from jaxsync.sim import actuation as _actuation
@@ -145,6 +146,39 @@ def test_actuation_names_what_is_allowed():
         _actuation.check("velocity")
     with pytest.raises(ConfigError, match="delay"):
         jaxsync.short_task(delay=1.5)
+
+
+def test_a_stack_reads_what_a_user_writes_and_refuses_what_does_not_run(model):
+    stack = _actuation.Stack.of("position", 250.0, "2")
+    assert stack == _actuation.Stack("position", 250.0, (2, 2)) and stack.scenario_delay() == 2
+    assert stack.rollout_options(model) == {"actuation": "position", "control_substeps": 2}
+    written = stack.to_dict(model)
+    assert written["control_period_s"] == pytest.approx(0.004) and written["delay"] == [2, 2]
+    assert written["servo"]["source"] == _servo.servo_of(model).source
+    assert "servo" not in _actuation.TORQUE.to_dict(model)  # a torque stack has no servo
+    with pytest.raises(ConfigError, match="delay applies to position-controlled arms") as err:
+        _actuation.Stack.of("torque", None, "1")
+    assert err.value.inputs == ("delay", "actuation")
+    with pytest.raises(ConfigError, match="one scenario runs one delay, got the range 0:3"):
+        _actuation.Stack.of("position", None, "0:3").scenario_delay()
+
+
+def test_position_defaults_hold_the_inner_loop_below_the_slowest_servo(model):
+    """default_gains(model, "position"): on the iiwa-like pair (shoulder servo
+    about 28 rad/s) lambda = 2 kp_pos / kd_pos falls to a third of the slowest
+    joint's servo frequency; the paper model's 25 Hz servo and the UR5e-like
+    pair's are fast enough for the torque defaults' 40 1/s."""
+    iiwa = jaxsync.load_model(os.path.join(ROBOTS, "iiwa14_twice.yaml"), visual=False)
+    torque, position = _gains.default_gains(iiwa), _gains.default_gains(iiwa, "position")
+    slowest = np.min(np.sqrt(_servo.servo_of(iiwa).stiffness / _servo.joint_inertia(iiwa)))
+    lam = 2 * float(position.kp_pos) / float(position.kd_pos)
+    assert lam == pytest.approx(slowest / _gains.SERVO_SEPARATION, rel=1e-6) and 5 < lam < 15
+    assert float(position.kd_pos) == float(torque.kd_pos)
+    assert 2 * float(torque.kp_pos) / float(torque.kd_pos) == pytest.approx(40.0)
+    np.testing.assert_array_equal(position.imp_mass, torque.imp_mass)  # only the inner loop moves
+    ur5e = jaxsync.load_model(os.path.join(ROBOTS, "ur5e_twice.yaml"), visual=False)
+    for m in (model, ur5e):
+        assert float(_gains.default_gains(m, "position").kp_pos) == float(_gains.default_gains(m).kp_pos)
 
 
 def test_the_paper_model_servo_is_its_stated_bandwidth(model):

@@ -114,3 +114,34 @@ def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="join a multi-process run that JAX detects from the cluster's environment (SLURM, Open MPI, ...)",
     )
+
+
+def add_stack_arguments(p: argparse.ArgumentParser) -> None:
+    """--actuation, --delay, --control-rate: the arms' stack (``jaxsync.sim.actuation.Stack``)."""
+    p.add_argument(
+        "--actuation",
+        choices=["torque", "position"],
+        default="torque",
+        help="torque: joint torque motors (default); position: joint position commands through the robot's servo",
+    )
+    p.add_argument(
+        "--delay",
+        default="0",
+        metavar="N|LO:HI",
+        help="control periods a position command waits before the servo acts on it (0; a range where "
+        "scenarios are drawn)",
+    )
+    p.add_argument(
+        "--control-rate",
+        type=positive(float),
+        default=None,
+        metavar="HZ",
+        help="the controller's rate; must divide the physics rate (default: the physics rate, 500 Hz)",
+    )
+
+
+def stack_of(args):
+    """The parsed stack flags as a ``Stack`` (a JaxsyncError names a bad one)."""
+    from jaxsync.sim.actuation import Stack
+
+    return Stack.of(args.actuation, args.control_rate, args.delay)

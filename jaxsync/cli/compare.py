@@ -12,10 +12,12 @@ from jaxsync.cli._common import (
     EXIT_UNSTABLE,
     add_gains_argument,
     add_model_argument,
+    add_stack_arguments,
     controller_list,
     model_options,
     model_source,
     positive,
+    stack_of,
 )
 
 
@@ -39,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
         video_speed=args.video_speed if args.video else None,
         mujoco_check=args.mujoco_check,
         options={k: v for k, v in vars(args).items() if k not in ("func",)},
+        stack=stack_of(args),
     )
     for line in _compare.table(r.summary):
         print(line)
@@ -99,6 +102,7 @@ def add_parser(sub) -> None:
         f"(default classical,synchronous; any of {', '.join(CONTROLLER_NAMES)})",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
+    add_stack_arguments(p)
     p.add_argument("--grip-force", type=positive(float), default=None, help="desired grip force f_d, N (10)")
     p.add_argument("--object-mass", type=positive(float), default=None, help="object mass, kg (0.5)")
     p.add_argument(

@@ -11,6 +11,7 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.physics.inertia import pad_apparent_inertia
+from jaxsync.physics.servo import joint_inertia, servo_of
 
 
 class Gains(NamedTuple):
@@ -64,17 +65,21 @@ USED = {
 }
 
 
-def default_gains(model=None) -> Gains:
+def default_gains(model=None, actuation: str = "torque") -> Gains:
     """The default gains of ``model``: the paper comparison's for the paper model
     or None (docs/controller.md says why these); for a robot file's model, the
     same with the normal-axis mass each arm's pad needs at the grasp
-    (:func:`stable_defaults`). Every command and library job takes a model's
-    defaults from here.
+    (:func:`stable_defaults`). On position-controlled arms
+    (``actuation="position"``) the inner loop's bandwidth is held below the
+    robot's slowest joint servo (:func:`position_loop_gains`). Every command and
+    library job takes a model's defaults from here.
 
     Example:
       >>> float(default_gains().imp_mass[0, 2])
       2.0
     """
+    if actuation == "position" and model is not None:
+        return position_loop_gains(default_gains(model), model)
     if model is not None and getattr(model, "robot", None) is not None:
         return stable_defaults(pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
     # Pad frame: x, y tangential, z along the normal. Soft along the normal
@@ -110,6 +115,29 @@ def default_gains(model=None) -> Gains:
         force_i=np.array([1e-4, 1e-4, 1 / 2000, 1e-3, 1e-3, 1e-3]),
     )
     return strongly_typed(g)
+
+
+SERVO_SEPARATION = 3.0
+"""How many times slower than the slowest joint servo the position stack's
+inner loop closes (:func:`position_loop_gains`)."""
+
+
+def position_loop_gains(g: Gains, model) -> Gains:
+    """``g`` with the inner loop's bandwidth lambda = 2 kp_pos / kd_pos held at
+    or below min_j sqrt(k_j / I_j) / ``SERVO_SEPARATION``, the slowest joint
+    servo's natural frequency (``jaxsync.physics.servo``) over 3: an outer
+    loop that closes faster than the servo it commands rings with it, and a
+    command delay makes that ring grow (measured on the iiwa-like pair, whose
+    MJCF servo gives its shoulder 28 rad/s at a damping ratio of 0.35: at
+    lambda = 40 1/s the synchronous controller dropped the object at 2 and 3
+    periods of delay; at 9.4 1/s it held it at every delay from 0 to 3).
+    Unchanged where the servo is fast enough (the paper model, 25 Hz servos)."""
+    servo = servo_of(model)
+    slowest = float(np.min(np.sqrt(servo.stiffness / joint_inertia(model))))
+    lam = 2.0 * float(g.kp_pos) / float(g.kd_pos)
+    if lam * SERVO_SEPARATION <= slowest:
+        return g
+    return g._replace(kp_pos=jnp.asarray(slowest / SERVO_SEPARATION * float(g.kd_pos) / 2.0))
 
 
 # ------------------------------------------------------- stable at the control period

@@ -96,12 +96,12 @@ def load_for(path: str | os.PathLike, model, any_model: bool = False):
     return load(path)
 
 
-def load_or_default(gains, model, any_model: bool = False):
-    """The gains a job runs: ``model``'s defaults for None, a gains file
-    (:func:`load_for`: refused when tuned on another model), or gains or a
-    schedule as given."""
+def load_or_default(gains, model, any_model: bool = False, actuation: str = "torque"):
+    """The gains a job runs: ``model``'s defaults for None (on ``actuation``'s
+    stack), a gains file (:func:`load_for`: refused when tuned on another
+    model), or gains or a schedule as given."""
     if gains is None:
-        return _gains.default_gains(model)
+        return _gains.default_gains(model, actuation)
     if isinstance(gains, str | os.PathLike):
         return load_for(gains, model, any_model)
     return gains

@@ -15,6 +15,7 @@ is MuJoCo's joint damping (integrated implicitly), set per scenario with
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import jax
@@ -32,6 +33,63 @@ def check(actuation: str) -> str:
     if actuation not in ACTUATIONS:
         raise ConfigError(f"actuation must be one of {list(ACTUATIONS)}, got {actuation!r}", inputs=("actuation",))
     return actuation
+
+
+@dataclasses.dataclass(frozen=True)
+class Stack:
+    """The stack a job simulates: how the arms are driven, how often the
+    controller runs, and the command delay (control periods: one value, or a
+    range ``(lo, hi)`` that randomised scenarios draw from).
+
+    Example:
+      >>> Stack("position", delay=(2, 2)).scenario_delay()
+      2
+    """
+
+    actuation: str = "torque"
+    control_rate: float | None = None  # Hz; None: every physics step
+    delay: tuple[int, int] = (0, 0)
+
+    def __post_init__(self):
+        check(self.actuation)
+        lo, hi = parse_delay(f"{self.delay[0]}:{self.delay[1]}")
+        if hi > 0 and self.actuation != "position":
+            raise ConfigError(
+                f"delay applies to position-controlled arms (actuation='position'), got delay {hi} with "
+                f"actuation={self.actuation!r}",
+                inputs=("delay", "actuation"),
+            )
+
+    @classmethod
+    def of(cls, actuation: str = "torque", control_rate: float | None = None, delay="0") -> Stack:
+        """From what a user writes: ``delay`` "N" or "lo:hi"."""
+        return cls(actuation, control_rate, parse_delay(delay))
+
+    def substeps(self, model) -> int:
+        return substeps_for_rate(model, self.control_rate)
+
+    def rollout_options(self, model) -> dict:
+        """``actuation`` and ``control_substeps`` for ``rollout``/``make_rollout``."""
+        return {"actuation": self.actuation, "control_substeps": self.substeps(model)}
+
+    def scenario_delay(self) -> int:
+        """The one delay of a job that runs one scenario; refuses a range."""
+        lo, hi = self.delay
+        if lo != hi:
+            raise ConfigError(
+                f"delay: one scenario runs one delay, got the range {lo}:{hi} (a range is drawn per scenario "
+                "where scenarios are randomised)",
+                inputs=("delay",),
+            )
+        return lo
+
+    def to_dict(self, model=None) -> dict:
+        out = {"actuation": self.actuation, "control_rate_Hz": self.control_rate, "delay": list(self.delay)}
+        if model is not None:
+            out["control_period_s"] = float(model.mj_model.opt.timestep) * self.substeps(model)
+            if self.actuation == "position":
+                out["servo"] = servo_of(model).to_dict()
+        return out
 
 
 class PositionConsts(NamedTuple):
@@ -150,3 +208,7 @@ def parse_delay(text) -> tuple[int, int]:
             inputs=("delay",),
         )
     return lo, hi
+
+
+TORQUE = Stack()
+"""The ideal torque-controlled stack: every job's default."""

@@ -31,6 +31,7 @@ def sim_to_sim(
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
     mjx_rows: dict | None = None,
     controller: str = "synchronous",
+    stack=None,
 ) -> dict:
     """``gains`` against ``baseline`` (e.g. tuned against default gains) on MJX and on
     MuJoCo C, with the same jitted control law of ``controller`` (``rollout(backend=...)``),
@@ -49,7 +50,8 @@ def sim_to_sim(
     ``mjx_rows`` (``{"before": rows, "after": rows}``, either or both; rows as
     :func:`metric_rows` makes them) are MJX's metrics of the same scenarios and
     duration that the caller already has (``jaxsync tune``'s held-out scoring):
-    those rollouts are not run again.
+    those rollouts are not run again. ``stack``: the
+    :class:`~jaxsync.sim.actuation.Stack` both engines run (None: torque).
 
     Example:
       >>> from jaxsync.optimize.tuning import scenarios, tune
@@ -64,6 +66,7 @@ def sim_to_sim(
         raise ConfigError("the sim-to-sim check needs at least one scenario")
     per: dict = {}
     given = mjx_rows or {}
+    stack_options = {} if stack is None else stack.rollout_options(model)
     for backend in BACKENDS:
         for which, g in (("before", baseline), ("after", gains)):
             if backend == "mjx" and len(given.get(which) or []) >= n:
@@ -75,7 +78,7 @@ def sim_to_sim(
                 s = jax.tree_util.tree_map(lambda x, i=i: x[i], scenarios)
                 m = _metrics.summarize(
                     jax.block_until_ready(
-                        rollout(model, g, s, controller=controller, duration=duration, backend=backend)
+                        rollout(model, g, s, controller=controller, duration=duration, backend=backend, **stack_options)
                     ),
                     s,
                 )

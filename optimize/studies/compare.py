@@ -8,6 +8,7 @@ import time
 from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxsync._errors import ConfigError
@@ -27,6 +28,7 @@ from jaxsync.runtime.gl import select_gl_backend
 from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.actuation import TORQUE, Stack
 from jaxsync.sim.metrics import drop_time
 from jaxsync.sim.rollout import rollout
 from jaxsync.sim.scenario import min_duration
@@ -69,8 +71,9 @@ def run(
     backend: str = "mjx",
     controllers: tuple[str, ...] = PAPER,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
+    stack: Stack = TORQUE,
 ):
-    """Roll out each controller; return ``{name: (trajectory, metrics)}``."""
+    """Roll out each controller on ``stack``; return ``{name: (trajectory, metrics)}``."""
     check_duration(scenario, duration)
     controllers = check_controllers(controllers)
     results = {}
@@ -80,7 +83,15 @@ def run(
         t0 = time.perf_counter()
         with compile_watch() as watch:
             traj = jax.block_until_ready(
-                rollout(model, gains, scenario, controller=name, duration=duration, backend=backend)
+                rollout(
+                    model,
+                    gains,
+                    scenario,
+                    controller=name,
+                    duration=duration,
+                    backend=backend,
+                    **stack.rollout_options(model),
+                )
             )
             m = _metrics.summarize(traj, scenario)
         took = f"{time.perf_counter() - t0:.1f} s{watch.describe()}"
@@ -285,6 +296,7 @@ def paper_comparison(
     mujoco_check: int = 0,
     controllers: tuple[str, ...] = PAPER,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
+    stack: Stack = TORQUE,
 ) -> tuple[dict, list[str]]:
     """``jaxsync compare``'s job: the controllers on ``scenario``, written to ``out``.
 
@@ -294,7 +306,9 @@ def paper_comparison(
     on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C with
     the last controller (:func:`jaxsync.sim.crosscheck.sim_to_sim`, recorded as
     ``summary["sim_to_sim"]``). Every input is checked before ``out`` is
-    created. Returns the summary and the files.
+    created. ``stack``: the arms' actuation, control rate and delay
+    (``jaxsync.sim.actuation.Stack``; the scenario carries the delay).
+    Returns the summary and the files.
     """
     check_duration(scenario, duration)
     controllers = check_controllers(controllers)
@@ -302,7 +316,9 @@ def paper_comparison(
         select_gl_backend()
     _results.ensure_writable_dir(out)
     t0 = time.perf_counter()
-    results = run(model, gains, scenario, duration=duration, backend=backend, controllers=controllers, log=log)
+    results = run(
+        model, gains, scenario, duration=duration, backend=backend, controllers=controllers, log=log, stack=stack
+    )
     stiffness = {n: stiffness_of(model, n, gains) for n in controllers}
     summary = write_results(
         out,
@@ -322,15 +338,17 @@ def paper_comparison(
         # jaxsync tune's held-out scenarios (with the model's object) and evaluation horizon
         cfg = TuneConfig(scenario=_scenarios.model_overrides(model))
         held = _scenarios.heldout_scenarios(cfg)
+        held = held._replace(delay=jnp.full_like(held.delay, float(stack.delay[0])))
         summary["sim_to_sim"] = _crosscheck.sim_to_sim(
             model,
             gains,
-            default_gains(model),
+            default_gains(model, stack.actuation),
             held,
             cfg.training.eval_duration,
             n=mujoco_check,
             log=log,
             controller=controllers[-1],
+            stack=stack,
         )
         _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary, files
@@ -407,6 +425,7 @@ def run_comparison(
     video_speed: float | None = None,
     mujoco_check: int | None = None,
     options: dict | None = None,
+    stack: Stack = TORQUE,
     say=print,
     log=lambda msg: print(msg, file=sys.stderr, flush=True),
 ) -> Comparison:
@@ -421,13 +440,16 @@ def run_comparison(
     the sensor noise). ``say`` gets the lines to read before the rollouts:
     each note and the normal-axis stability ratio. ``options``: what
     summary.json records as the run's options (this call's, by default).
+    ``stack``: the arms' actuation, control rate and delay (one delay: one
+    scenario); summary.json records it under ``stack``, with the servo.
     """
     unknown = sorted(set(overrides or {}) - set(SCENARIO_OVERRIDES))
     if unknown:
         raise ConfigError(f"overrides may set {', '.join(SCENARIO_OVERRIDES)}, not {', '.join(unknown)}")
     model = as_model(model, visual=visual)
     from_file = isinstance(gains, str | os.PathLike)
-    g = gains_file.load_or_default(gains, model, any_model)
+    delay = stack.scenario_delay()
+    g = gains_file.load_or_default(gains, model, any_model, stack.actuation)
     tuned_for = gains_file.controller_of(gains) if from_file else None
     notes = []
     if tuned_for is not None and tuned_for not in controllers:
@@ -442,7 +464,7 @@ def run_comparison(
         f"normal-axis stability ratio (M + B dt + K dt^2) / apparent inertia: right {ratio[0]:.2f}, left "
         f"{ratio[1]:.2f} (above 1 stable against a stiff contact; docs/robots.md)"
     )
-    scenario = comparison_scenario(model, seed=seed, **(overrides or {}))
+    scenario = comparison_scenario(model, seed=seed, **(overrides or {}))._replace(delay=jnp.asarray(float(delay)))
     check_duration(scenario, duration)
     if options is None:
         options = {
@@ -458,6 +480,7 @@ def run_comparison(
             "video_speed": video_speed,
             "mujoco_check": mujoco_check,
         }
+    options = {**options, "stack": stack.to_dict(model)}
     summary, files = paper_comparison(
         model,
         g,
@@ -470,6 +493,7 @@ def run_comparison(
         mujoco_check=mujoco_check,
         controllers=tuple(controllers),
         log=log,
+        stack=stack,
     )
     dropped = {n: t for n in controllers_of(summary) if (t := drop_time(summary[n])) is not None}
     check = summary.get("sim_to_sim")
