@@ -190,9 +190,21 @@ def test_missing_meshes_load_with_no_visual(tmp_path):
 UR5E_DURATION = 2.0
 
 
+def _ur5e():
+    return jaxsync.load_model(robot_path("ur5e_twice.yaml"))
+
+
+def compile_ahead():
+    """The UR5e-like pair's rollout (tests/conftest.py: compiled ahead in a second process)."""
+    from jaxsync.control import gains as G
+
+    ur5e = _ur5e()
+    jaxsync.rollout(ur5e, G.default_gains(ur5e), jaxsync.short_task(), duration=UR5E_DURATION).time.block_until_ready()
+
+
 @pytest.fixture(scope="module")
 def ur5e():
-    return jaxsync.load_model(robot_path("ur5e_twice.yaml"))
+    return _ur5e()
 
 
 def test_a_6_dof_robot_holds_the_ball_and_the_chatter_metric_tells_its_gains_apart(ur5e):
