@@ -6,7 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import TEST_DURATION, fast_scenario
+from conftest import TEST_DURATION, fast_scenario, paper_model
 
 from jaxsync import ConfigError, Trajectory
 from jaxsync.control import gains as _gains
@@ -114,13 +114,24 @@ def test_fast_scenario_grasps_lifts_and_holds(rollouts):
         np.testing.assert_allclose(moved, np.asarray(s.lift), atol=0.005, err_msg=name)
 
 
-@pytest.fixture(scope="module")
-def batched(model):
-    """vmap over gains and scenarios at once: one compile for the batch."""
+def _batch(model):
     fn = jax.jit(jax.vmap(make_rollout(model, "synchronous", TEST_DURATION)))
     g = default_gains()
     gains = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), g)._replace(k_rk=jnp.array([0.5, 0.0]))
     scen = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), fast_scenario(), fast_scenario(object_mass=0.7))
+    return fn, gains, scen
+
+
+def compile_ahead():
+    """The vmapped rollout (tests/conftest.py: compiled ahead in a second process)."""
+    fn, gains, scen = _batch(paper_model())
+    jax.block_until_ready(fn(gains, scen))
+
+
+@pytest.fixture(scope="module")
+def batched(model):
+    """vmap over gains and scenarios at once: one compile for the batch."""
+    fn, gains, scen = _batch(model)
     return fn, gains, scen, fn(gains, scen)
 
 

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import build_tuning_program, paper_model
 from jax.flatten_util import ravel_pytree
 from mujoco import mjx
 
@@ -51,8 +52,7 @@ def _unrolled_model(mx):
     return mx.replace(opt=opt)
 
 
-@pytest.fixture(scope="module")
-def one_step(model):
+def _one_step(model):
     """f(p) = a scalar of one physics step's qacc, constraint forces and wrist
     sensors, with p entering the velocity, the torques and the friction; and
     its gradient by the implicit adjoint and through unrolled iterations."""
@@ -81,14 +81,36 @@ def one_step(model):
     p0 = jnp.zeros(nv + model.mj_model.nu + 1)
     # one program gives the values (central differences), the gradient and the solves
     value_and_grad = jax.jit(jax.value_and_grad(step, has_aux=True), static_argnums=1)
+    fn = lambda p, unrolled: step(p, unrolled)[0]  # noqa: E731
     return {
-        "fn": lambda p, unrolled: step(p, unrolled)[0],
+        "fn": fn,
         "f": lambda p, unrolled: value_and_grad(p, unrolled)[0][0],
         "grad": lambda p, unrolled: value_and_grad(p, unrolled)[1],
         "solves": lambda: value_and_grad(p0, False)[0][1],
+        # forward mode through the implicit solve
+        "jvp": jax.jit(lambda p, v: jax.jvp(lambda q: fn(q, False), (p,), (v,))),
         "p0": p0,
         "mx": mx,
     }
+
+
+def compile_ahead():
+    """This module's programs, in the order its tests come (tests/conftest.py:
+    compiled ahead in a second process): the step's gradient, the tuner's
+    (the session's ``tuning_program``), the step's forward mode."""
+    model = paper_model()
+    step = _one_step(model)
+    jax.block_until_ready(step["solves"]())
+    tuning = build_tuning_program(model)
+    jax.block_until_ready(tuning["value_and_grad"](tuning["theta0"], tuning["scenarios"]))
+    p0 = step["p0"]
+    jax.block_until_ready(step["jvp"](p0, jnp.ones_like(p0)))
+
+
+@pytest.fixture(scope="module")
+def one_step(model):
+    """``_one_step``: its programs compiled once for the module."""
+    return _one_step(model)
 
 
 def test_forward_values_are_mjx_solve_in_a_sliding_clamp(one_step, model):
@@ -212,8 +234,8 @@ def test_full_task_gradient_along_a_random_direction(tuning_program):
 
 def test_forward_mode_agrees_with_reverse_mode(one_step):
     """jax.jvp through the implicit solve (custom_root supports both modes)."""
-    f, p0 = one_step["fn"], one_step["p0"]
+    p0 = one_step["p0"]
     v = jnp.asarray(np.random.default_rng(11).standard_normal(p0.size))
     g = one_step["grad"](p0, False)
-    _, dv = jax.jit(lambda p, v: jax.jvp(lambda q: f(q, False), (p,), (v,)))(p0, v)
+    _, dv = one_step["jvp"](p0, v)
     assert abs(float(dv - g @ v)) <= 1e-9 * float(jnp.linalg.norm(g) * jnp.linalg.norm(v))

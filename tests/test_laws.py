@@ -9,14 +9,34 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import TEST_DURATION
+from conftest import TEST_DURATION, make_forward_sense, paper_model
 from mujoco import mjx
 
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
+from jaxsync.control.gains import default_gains
 from jaxsync.sim import closed_loop as _closed_loop
 from jaxsync.sim import rollout as _rollout
+from jaxsync.sim.scenario import short_task
+
+
+def _production_rollout(model):
+    """What the tuner differentiates: rematerialised steps, tree passes, truncated windows."""
+    return jax.jit(
+        _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, passes="tree", truncate_every=100)
+    )
+
+
+def compile_ahead():
+    """``forward_sense`` (tests/conftest.py) on a state like ``free_arms``, and the
+    production rollout (compiled ahead in a second process: tests/conftest.py)."""
+    model = paper_model()
+    d = mujoco.MjData(model.mj_model)
+    d.qpos[:] = model.keyframe_qpos("grasp")
+    jax.block_until_ready(make_forward_sense(model)(model.mjx_model, mjx.put_data(model.mj_model, d, impl="jax")))
+    jax.block_until_ready(_production_rollout(model)(default_gains(), short_task()))
+
 
 # ------------------------------------------------------- joint-space law
 
@@ -143,8 +163,7 @@ def test_truncated_rematerialised_rollout_has_the_plain_forward_values(model, ro
     7e-13 at most, the contact forces). Checked against the shared plain
     rollout of the test task (grasp, lift, hold)."""
     plain = rollouts["synchronous"]
-    fn = _rollout.make_rollout(model, "synchronous", TEST_DURATION, remat=True, passes="tree", truncate_every=100)
-    prod = jax.jit(fn)(rollouts["gains"], rollouts["scenario"])
+    prod = _production_rollout(model)(rollouts["gains"], rollouts["scenario"])
     assert np.abs(np.asarray(plain.pad_forces)).max() > 1.0  # in contact: the solve matters
     for name, a, b in zip(plain._fields, plain, prod, strict=True):
         a = np.asarray(a)

@@ -187,16 +187,29 @@ def test_missing_meshes_load_with_no_visual(tmp_path):
 # ------------------------------------------------------------- rollouts on a robot
 
 
+UR5E_DURATION = 2.0
+
+
+def _ur5e():
+    return jaxsync.load_model(robot_path("ur5e_twice.yaml"))
+
+
+def compile_ahead():
+    """The UR5e-like pair's rollout (tests/conftest.py: compiled ahead in a second process)."""
+    from jaxsync.control import gains as G
+
+    ur5e = _ur5e()
+    jaxsync.rollout(ur5e, G.default_gains(ur5e), jaxsync.short_task(), duration=UR5E_DURATION).time.block_until_ready()
+
+
 @pytest.fixture(scope="module")
 def ur5e():
-    return jaxsync.load_model(robot_path("ur5e_twice.yaml"))
+    return _ur5e()
 
 
 def test_a_6_dof_robot_holds_the_ball_and_the_chatter_metric_tells_its_gains_apart(ur5e):
     """The UR5e-like pair at the paper model's defaults (stability ratio 0.87)
     chatters; at its own defaults (ratio 1.5) it holds the ball without."""
-    import jax
-
     from jaxsync.control import gains as G
     from jaxsync.physics.inertia import pad_apparent_inertia
 
@@ -206,9 +219,9 @@ def test_a_6_dof_robot_holds_the_ball_and_the_chatter_metric_tells_its_gains_apa
     np.testing.assert_allclose(G.stability_ratio(own, lam, dt), G.STABILITY_MARGIN)
     assert np.all(G.stability_ratio(G.default_gains(), lam, dt) < 1)
     s = jaxsync.short_task()
-    fn = jax.jit(jaxsync.make_rollout(ur5e, "synchronous", 2.0))
-    m_own = jaxsync.summarize(fn(own, s), s)
-    m_paper = jaxsync.summarize(fn(G.default_gains(), s), s)
+    # rollout()'s program, the one the MuJoCo C comparison below runs too (one compile for both tests)
+    m_own = jaxsync.summarize(jaxsync.rollout(ur5e, own, s, duration=UR5E_DURATION), s)
+    m_paper = jaxsync.summarize(jaxsync.rollout(ur5e, G.default_gains(), s, duration=UR5E_DURATION), s)
     assert not bool(m_own.dropped) and not bool(m_own.chattering), float(m_own.force_chatter_N)
     assert float(m_own.force_chatter_N) < 0.5
     assert bool(m_paper.chattering) and float(m_paper.force_chatter_N) > 5.0
@@ -220,8 +233,8 @@ def test_a_robots_composed_scene_runs_the_same_on_mujoco_c(ur5e):
 
     s = jaxsync.short_task()
     g = G.default_gains(ur5e)
-    x = jaxsync.rollout(ur5e, g, s, duration=2.0)
-    c = jaxsync.rollout_mujoco(ur5e, g, s, duration=2.0)
+    x = jaxsync.rollout(ur5e, g, s, duration=UR5E_DURATION)
+    c = jaxsync.rollout_mujoco(ur5e, g, s, duration=UR5E_DURATION)
     assert float(np.abs(np.asarray(c.obj_pos) - np.asarray(x.obj_pos)).max()) < 1e-3
     mx, mc = jaxsync.summarize(x, s), jaxsync.summarize(c, s)
     assert abs(float(mx.mean_grip_force_N) - float(mc.mean_grip_force_N)) < 0.05

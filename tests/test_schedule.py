@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import TEST_DURATION
+from conftest import TEST_DURATION, fast_scenario, paper_model
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
@@ -116,6 +116,12 @@ def test_tune_spec_with_a_schedule_has_160_parameters_and_starts_at_the_base():
     # the base's phases are kept
     back = spec.to_gains(spec.init(spec.to_gains(theta2, g)), g)
     np.testing.assert_allclose(np.asarray(back.phases.imp_stiffness), st, rtol=1e-12)
+
+
+def compile_ahead():
+    """rollout() of a schedule (tests/conftest.py: compiled ahead in a second process)."""
+    sched = _schedule.constant(_gains.default_gains())
+    jax.block_until_ready(rollout(paper_model(), sched, fast_scenario(), duration=TEST_DURATION))
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 
 import jax
 import numpy as np
@@ -171,6 +172,12 @@ def test_a_plot_where_every_point_dropped_says_so(tmp_path, monkeypatch, params)
 
 
 # ----------------------------------------------------------------- compiled runs
+
+
+def compile_ahead():
+    """The sweep's chunk function (tests/conftest.py: compiled ahead in a second process)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        assert run_cli(["sweep", *FAST, *GRID, "--out", os.path.join(tmp, "sweep")]) == 0
 
 
 @pytest.fixture(scope="module")

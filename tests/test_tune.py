@@ -13,7 +13,7 @@ import jax
 import numpy as np
 import pytest
 import tqdm as tqdm_module
-from conftest import TEST_DURATION, fake_heldout_metrics
+from conftest import TEST_DURATION, build_tuning_program, fake_heldout_metrics, paper_model
 
 import jaxsync
 from jaxsync.cli import build_parser, main
@@ -41,6 +41,12 @@ from jaxsync.sim import metrics as _metrics
 # central differences in every parameter. Two iterations, a checkpoint and a
 # validation after each: the run is stopped after the first and resumed.
 RESUME = dict(iterations=2, checkpoint_every=1, validate_every=1, method="adam")
+
+
+def compile_ahead():
+    """The session's ``tuning_program`` (tests/conftest.py: compiled ahead in a second process)."""
+    p = build_tuning_program(paper_model())
+    jax.block_until_ready(p["value_and_grad"](p["theta0"], p["scenarios"]))
 
 
 def test_parametrisation_is_constrained_and_round_trips():
