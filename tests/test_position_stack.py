@@ -231,6 +231,16 @@ def test_a_robot_file_servo_is_checked(tmp_path, servo, match):
         load_robot(str(tmp_path / "r.yaml"))
 
 
+def compile_ahead():
+    """The position stack's rollout (tests/conftest.py: compiled ahead in a second process)."""
+    from conftest import paper_model
+
+    m = paper_model()
+    s = fast_scenario(delay=0.0)
+    traj = jaxsync.rollout(m, jaxsync.default_gains(m), s, duration=TEST_DURATION, actuation="position")
+    traj.time.block_until_ready()
+
+
 @pytest.fixture(scope="module")
 def position_rollouts(model, shared_rollout):
     """The synchronous controller on position-controlled arms: one program, delays 0 and 3."""
