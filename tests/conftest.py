@@ -42,6 +42,12 @@ jax.config.update("jax_enable_x64", True)
 enable_compilation_cache(min_compile_time_s=0.0)
 
 
+# Python's own Ctrl-C handler, whatever the shell started the tests with (a
+# background job of a non-interactive shell inherits SIGINT ignored): the
+# interrupt tests raise SIGINT and expect a KeyboardInterrupt.
+signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def pytest_collection_modifyitems(config, items):
     """The default run (the README's test command, .ci/run) leaves out the
     tests marked slow: deep checks that compile for minutes on a small CPU.

@@ -266,3 +266,58 @@ def test_paired_timing_alternates_the_models_round_by_round(monkeypatch):
     assert all(sorted(r) == sorted(calls[:4]) for r in rounds)
     assert out["rounds"] == 3 and len(out["ratio_of_ratios"]["per_round"]) == 3
     assert set(out["models"]) == {"robot", "paper"}
+
+
+def test_bench_position_stack_times_its_gradient_beside_the_torque_stacks(model, monkeypatch, tmp_path):
+    """``jaxsync bench --actuation position --delay 2``: a last section times the
+    position stack's forward and gradient with the torque stack's in the same
+    rounds (stand-in timings); the ratio of their costs in forward rollouts is
+    the target's figure; the stack and its servo are recorded."""
+    from jaxsync.optimize.benchmarks import benchmark as bm
+    from jaxsync.optimize.benchmarks.benchmark_measure import ratio_of_ratios
+    from jaxsync.sim.actuation import Stack
+
+    fg = {"forward_s": 1.0, "grad_s": 2.0, "grad_over_forward": 2.0, "label": "x", "grad_finite": True}
+    _stand_ins(
+        monkeypatch,
+        bm,
+        lambda source, solver, visual=True: model,
+        lambda *a, **k: fg,
+        lambda *a, **k: {"cold": {"total_s": 40.0}, "warm": {"total_s": 3.0}},
+        lambda *a, **k: {"peak_rss_gib": 1.0, "warm": {"peak_rss_gib": 0.5}},
+    )
+    seen = []
+
+    def fake_stacks(duration, rounds, log, stack, small=False, source=None, visual=True):
+        seen.append(stack)
+        times = {
+            "position": {"forward": [1.0, 1.1, 1.0], "grad": [2.6, 2.9, 2.4]},
+            "torque": {"forward": [0.9, 0.9, 0.9], "grad": [1.8, 1.8, 1.8]},
+        }
+        stacks = {m: {"grad_over_forward": min(t["grad"]) / min(t["forward"])} for m, t in times.items()}
+        return {"stacks": stacks, "ratio_of_ratios": ratio_of_ratios(times, "position", "torque")}
+
+    monkeypatch.setattr(bm, "paired_stacks", fake_stacks)
+    stack = Stack("position", None, (2, 2))
+    r = bm.run(str(tmp_path), quick=True, log=lambda m: None, stack=stack)
+    assert seen == [stack]
+    # per round: (2.6/1.0)/(2.0) = 1.3, (2.9/1.1)/2.0 = 1.318, (2.4/1.0)/2.0 = 1.2: median 1.3
+    assert r["position_grad_over_forward_over_torque"] == pytest.approx(1.3)
+    assert r["targets"]["position_grad_over_forward_over_torque"]["met"] is True
+    assert r["position_stack"]["stack"]["delay"] == [2, 2] and r["position_stack"]["stack"]["servo"]["source"]
+    rows = {line.split("  ")[0]: line for line in bm.table(r).splitlines()}
+    assert "2.40" in rows["position stack: gradient / forward, in the same rounds"]
+    assert "1.30" in rows["position stack's gradient / forward over the torque stack's, median of the rounds"]
+    plain = bm.run(str(tmp_path), quick=True, log=lambda m: None)
+    assert plain["position_stack"] is None and "position_grad_over_forward_over_torque" not in plain["targets"]
+
+
+def test_bench_refuses_a_stack_it_cannot_run(tmp_path, capsys):
+    for args, message in [
+        (["--actuation", "position", "--delay", "0:3"], "one scenario runs one delay"),
+        (["--delay", "1"], "delay applies to position-controlled arms"),
+    ]:
+        assert run_cli(["bench", "--out", str(tmp_path / "b"), *args]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err
+        assert not (tmp_path / "b").exists()

@@ -17,6 +17,7 @@ from PIL import Image
 import jaxsync
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
+from jaxsync.control import compliance as _compliance
 from jaxsync.control import gains as _gains
 from jaxsync.control.gains import default_gains
 from jaxsync.io import render as _render
@@ -40,7 +41,7 @@ def test_compare_writes_a_well_formed_summary(tmp_path, rollouts, model):
     names = ("classical", "synchronous", "object_impedance", "task_space")
     results = {name: (rollouts[name], _metrics.summarize(rollouts[name], s)) for name in names}
     limits = np.full((2, 7), 1e9)
-    stiffness = {n: _compare.stiffness_of(model, n, rollouts["gains"]) for n in names}
+    stiffness = {n: _compliance.stiffness_at_pad(model, n, rollouts["gains"]) for n in names}
     summary = _compare.write_results(
         str(tmp_path), results, s, rollouts["gains"], {"test": True}, 1.0, limits, stiffness
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import yaml
 
+import jaxsync
 from jaxsync._errors import ConfigError
 from jaxsync.cli import main
 from jaxsync.control import gains as _gains
@@ -17,6 +19,8 @@ from jaxsync.control import schedule as _schedule
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
 from jaxsync.io.export_gains import Exported, export_gains
+
+ROBOTS = os.path.join(os.path.dirname(__file__), "..", "mjcf", "robots")
 
 
 def _tuned_like():
@@ -173,3 +177,22 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
     with pytest.raises(ConfigError, match="^fmt must be one of") as err:
         export_gains(None, "urdf", str(tmp_path / "e"))
     assert err.value.inputs == ("fmt",) and not (tmp_path / "e").exists()
+
+
+def test_export_writes_a_stacks_defaults(tmp_path, capsys):
+    """export --actuation position without gains: the robot's defaults for
+    position-controlled arms (on the iiwa-like pair, whose shoulder servo is
+    slow, a lower kp_pos than the torque stack's), said in the origin."""
+    robot = os.path.join(ROBOTS, "iiwa14_twice.yaml")
+    r = export_gains(None, "json", str(tmp_path / "p"), model=robot, visual=False, actuation="position")
+    assert r.same and r.origin.endswith("iiwa14_twice.yaml on position-controlled arms")
+    written = gains_file.load(r.paths[0])
+    iiwa = jaxsync.load_model(robot, visual=False)
+    assert float(written.kp_pos) == pytest.approx(float(_gains.default_gains(iiwa, "position").kp_pos))
+    assert float(written.kp_pos) < float(_gains.default_gains(iiwa).kp_pos)
+    argv = ["export", "--format", "json", "--robot", robot, "--no-visual", "--actuation", "position"]
+    assert main([*argv, "--out", str(tmp_path / "c")]) == 0
+    assert "on position-controlled arms" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="actuation must be one of"):
+        export_gains(None, "json", str(tmp_path / "e"), actuation="velocity")
+    assert not (tmp_path / "e").exists()

@@ -186,7 +186,7 @@ def stand_ins(monkeypatch):
         "evaluated": 0,
     }
 
-    def evaluator(model, duration, controller="synchronous"):
+    def evaluator(model, duration, controller="synchronous", **stack):
         def evaluate(g, s):
             calls["evaluated"] += 1
             return calls["metrics"]

@@ -28,6 +28,7 @@ from jaxsync.optimize.studies.sensitivity import (
     table,
 )
 from jaxsync.optimize.tuning.scenarios import sample_scenarios
+from jaxsync.sim.actuation import Stack
 
 DURATION = 1.7  # the short task's shortest horizon with a settled window
 BATCH = 2
@@ -124,11 +125,14 @@ def test_command_calls_the_job_and_prints_its_table(tmp_path, monkeypatch, capsy
         "seed": 5,
         "controller": "classical",
         "out": str(out),
+        "stack": Stack(),
     }
     text = capsys.readouterr().out
     assert "imp_stiffness[right,z]" in text and "sensitivity.png" in text and "(12 s)" in text
     assert main(["sensitivity", "--out", str(out)]) == 0
     assert calls[-1][1]["task"] == "full" and calls[-1][1]["duration"] is None  # the job's default for the task
+    assert main(["sensitivity", "--out", str(out), "--actuation", "position", "--delay", "0:3"]) == 0
+    assert calls[-1][1]["stack"] == Stack("position", None, (0, 3))
 
 
 def test_job_defaults_and_its_errors_in_its_own_words(model, tmp_path):

@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 from conftest import ctrl_c_in_a_gc_callback
 
+from jaxsync._errors import ConfigError
 from jaxsync.cli import build_parser, main
 from jaxsync.optimize.studies import study as study_mod
 from jaxsync.optimize.studies import study_report as report_mod
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import pipeline as pipeline_mod
 from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.sim.actuation import Stack
 from jaxsync.sim.metrics import Metrics
 
 
@@ -74,7 +76,9 @@ def fake_study(monkeypatch, model):
     calls = []
     n = 4
 
-    def fake_evaluator(model, duration, controller="synchronous"):
+    def fake_evaluator(model, duration, controller="synchronous", **stack):
+        fake_study_interrupt.setdefault("stacks", []).append(stack)
+
         def evaluate(g, scenarios):
             peaks = np.linspace(0.05, 0.08, n) * scale[controller]
             fields = {f: np.full(n, 0.01) for f in Metrics._fields}
@@ -92,6 +96,7 @@ def fake_study(monkeypatch, model):
 
     def fake_tune(model, base, cfg, *, out, resume, restart, before, **kw):
         calls.append((cfg.problem.controller, cfg.problem.max_impact_N, cfg.data.seed, resume))
+        fake_study_interrupt.setdefault("tune_stacks", []).append((cfg.stack(), cfg.data.servo_spread))
         if len(calls) == fake_study_interrupt.get("at"):
             raise KeyboardInterrupt
         if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
@@ -152,6 +157,29 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     assert any("classical / synchronous (bound x0.7): 4" in line for line in lines)
 
 
+def test_a_position_stack_study_scores_and_tunes_on_its_stack(model, tmp_path, fake_study):
+    """StudyConfig(actuation="position", delay, servo_spread): the defaults,
+    the compliance reference and every tuning run are on that stack."""
+    calls, seen = fake_study
+    cfg = study_mod.StudyConfig(
+        controllers=("classical", "synchronous"),
+        bounds=(1.0,),
+        seeds=(0,),
+        heldout_batch=4,
+        bootstrap=100,
+        actuation="position",
+        delay=(0, 3),
+        servo_spread=0.3,
+    )
+    study_mod.run_study(model, cfg, str(tmp_path / "study"), log=lambda m: None)
+    assert len(seen["stacks"]) == 3 and all(
+        s == {"actuation": "position", "control_substeps": 1} for s in seen["stacks"]
+    )  # the defaults of both controllers, the reference
+    assert seen["tune_stacks"] == [(Stack("position", None, (0, 3)), 0.3)] * 2 and len(calls) == 2
+    with pytest.raises(ConfigError, match="servo_spread applies to position-controlled arms"):
+        study_mod.StudyConfig(servo_spread=0.3).validate()
+
+
 def test_study_cli_rejects_bad_input(tmp_path, capsys):
     out = tmp_path / "o"
     for args, msg in [
@@ -164,6 +192,8 @@ def test_study_cli_rejects_bad_input(tmp_path, capsys):
         (["--seeds", "a"], "argument --seeds: expected comma-separated numbers, got 'a'"),
         (["--seeds", ","], "argument --seeds: name at least one, got ','"),
         (["--grip-spread", "1.5"], "grip_spread must be a share in [0, 1), got 1.5 (--grip-spread)"),
+        (["--delay", "0:3"], "delay applies to position-controlled arms"),
+        (["--actuation", "position", "--control-rate", "300"], "divide the physics rate 500 Hz"),
     ]:
         try:
             rc = main(["study", "--out", str(out), *args])

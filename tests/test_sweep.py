@@ -19,6 +19,7 @@ from jaxsync.cli import main
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies import sweep, sweep_report
 from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.actuation import Stack
 from jaxsync.sim.rollout import cpu_vmap_limit
 
 # The tests' task (jaxsync.short_task, tests/conftest.py) as fixed sweep parameters, 1.7 s rollouts.
@@ -96,6 +97,25 @@ def test_random_samples_are_seeded_and_in_range():
     assert set(a.points[:, 3]) <= set(range(10)) and np.all(a.points[:, 3] == np.round(a.points[:, 3]))
 
 
+def test_a_position_stack_sweep_sweeps_the_delay_and_servo_and_records_the_stack():
+    """On position-controlled arms a sweep may vary the delay (whole periods)
+    and the servo scale; the plan's rollouts run that stack, its base is the
+    stack's one delay and defaults, and its spec (the resume fingerprint) says so."""
+    stack = Stack("position", None, (2, 2))
+    plan = sweep.make_plan(["delay=0:3:4", "servo_scale=0.7,1.3"], duration=4.0, stack=stack)
+    assert plan.stack_options == ("position", 1) and len(plan.points) == 8
+    g, scen = sweep.build_batch(plan.params, plan.points, plan.base_gains, plan.base_scenario)
+    assert sorted(set(np.asarray(scen.delay).tolist())) == [0.0, 1.0, 2.0, 3.0]
+    assert sorted(set(np.asarray(scen.servo_scale).tolist())) == [0.7, 1.3]
+    assert plan.spec["stack"]["actuation"] == "position" and plan.spec["stack"]["servo"]["source"]
+    base = sweep.make_plan(["k_rk=0,0.5"], duration=4.0, stack=stack)
+    assert float(base.base_scenario.delay) == 2.0
+    torque = sweep.make_plan(["k_rk=0,0.5"], duration=4.0)
+    assert torque.fingerprint != base.fingerprint and torque.stack_options == ("torque", 1)
+    samples = sweep.make_plan(["delay=0:3"], samples=40, seed=1, duration=4.0, stack=stack)
+    assert set(samples.points[:, 0].tolist()) == {0.0, 1.0, 2.0, 3.0}  # whole periods, drawn
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -120,6 +140,11 @@ def test_random_samples_are_seeded_and_in_range():
         (["--param", "k_rk=0,1", "--duration", "2"], "--duration must be at least 2.70"),
         (["--param", "t_carry=1.2,3", "--duration", "4"], "--duration must be at least 4.50"),
         ([], "give at least one --param"),
+        (["--param", "delay=0,1"], "apply to position-controlled arms (actuation='position')"),
+        (["--param", "delay=0,1"], "(--param, --actuation)"),
+        (["--actuation", "position", "--param", "delay=0.5,1"], "whole numbers"),
+        (["--actuation", "position", "--param", "delay=0,9"], "delay"),
+        (["--actuation", "position", "--delay", "0:2", "--param", "k_rk=0,1"], "one scenario runs one delay"),
     ],
 )
 def test_bad_input_is_a_clear_error(tmp_path, capsys, args, message):

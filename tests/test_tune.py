@@ -32,6 +32,7 @@ from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
 from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text, summary_lines
 from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.physics import step as _physics
+from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 
@@ -290,6 +291,12 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         (["--gains", str(schedule_file)], "tune them per phase (TuneSpec(schedule=True)) (--per-phase)"),
         (["--controller", "classical", "--tune", "k_rk"], "does not use k_rk"),
         (["--controller", "task_space", "--tune", "imp_mass"], "it tunes force_p, force_i"),
+        (["--delay", "0:3"], "delay applies to position-controlled arms (actuation='position'), got delay 3"),
+        (["--delay", "0:3"], "(--delay, --actuation)"),
+        (["--servo-spread", "0.3"], "servo_spread applies to position-controlled arms"),
+        (["--actuation", "position", "--servo-spread", "1.5"], "servo_spread must be a share in [0, 1)"),
+        (["--actuation", "position", "--delay", "2:1"], "within 0..8, got '2:1' (--delay)"),
+        (["--actuation", "position", "--control-rate", "300"], "divide the physics rate 500 Hz"),
     ]
     for args, msg in cases:  # in this process (the console script itself: tests/test_model.py)
         rc = main(["tune", "--out", str(tmp_path / "o"), *args])
@@ -316,8 +323,8 @@ def fake_tuning(monkeypatch):
     fake_metrics = fake_heldout_metrics()
     calls = {}
 
-    def fake_evaluator(model, duration, controller="synchronous"):
-        calls["evaluator_controller"] = controller
+    def fake_evaluator(model, duration, controller="synchronous", **stack):
+        calls["evaluator_controller"], calls["evaluator_stack"] = controller, stack
         return lambda g, s: fake_metrics
 
     monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
@@ -337,7 +344,7 @@ def fake_tuning(monkeypatch):
     def fake_sim_to_sim(model, gains, baseline, scenarios, duration, *, n=4, mjx_rows=None, **kw):
         """MuJoCo C's rollouts replaced: the held-out MJX rows as given, MuJoCo C's
         settled peak after tuning 0.03 N in every scenario (MJX: 0.01, 0.02)."""
-        calls["mujoco_check"], calls["mjx_rows"] = n, mjx_rows
+        calls["mujoco_check"], calls["mjx_rows"], calls["mujoco_stack"] = n, mjx_rows, kw.get("stack")
         m = min(n, len(mjx_rows["before"]))
         per = {
             "mjx_before": mjx_rows["before"][:m],
@@ -421,6 +428,40 @@ def test_tune_job_tunes_the_named_controller_under_bounds(model, tmp_path, fake_
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] > 1e3
 
 
+def test_a_position_stack_tune_runs_its_stack_everywhere_and_records_it(model, tmp_path, fake_tuning):
+    """TuneConfig(actuation="position", delay, servo_spread): the held-out and
+    validation evaluator and the MuJoCo C check run that stack, the held-out
+    scenarios draw its delays and servo scales, summary.json records it."""
+    calls = fake_tuning
+    cfg = TuneConfig(iterations=1, actuation="position", control_rate=250.0, delay=(0, 3), servo_spread=0.3)
+    _run_tune(model, tmp_path / "run", cfg, mujoco_check=True)
+    assert calls["evaluator_stack"] == {"actuation": "position", "control_substeps": 2}
+    assert calls["mujoco_stack"] == _actuation.Stack("position", 250.0, (0, 3))
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["stack"]["delay"] == [0, 3] and summary["stack"]["servo"]["source"]
+    assert summary["config"]["training"]["actuation"] == "position" and summary["config"]["data"]["servo_spread"] == 0.3
+    held = scenarios.heldout_scenarios(calls["cfg"])
+    assert set(np.asarray(held.delay).tolist()) == {0.0, 1.0, 2.0, 3.0}
+    scale = np.asarray(held.servo_scale)
+    assert scale.min() >= 0.7 and scale.max() <= 1.3 and np.ptp(scale) > 0.2
+
+
+def test_delay_and_servo_draws_span_their_ranges_and_leave_the_rest():
+    base = jaxsync.default_scenario()
+    plain = sample_scenarios(jax.random.key(3), 8, base, stratified=True)
+    drawn = sample_scenarios(jax.random.key(3), 8, base, stratified=True, delay=(1, 4), servo_spread=0.3)
+    assert sorted(np.asarray(drawn.delay).tolist()) == [1, 1, 2, 2, 3, 3, 4, 4]
+    np.testing.assert_allclose(np.sort(np.asarray(drawn.servo_scale)), np.linspace(0.7, 1.3, 8), rtol=1e-12)
+    for f in ("object_mass", "contact_timeconst", "friction", "force_noise", "object_offset", "grip_force"):
+        np.testing.assert_array_equal(np.asarray(getattr(plain, f)), np.asarray(getattr(drawn, f)), err_msg=f)
+    np.testing.assert_array_equal(np.asarray(plain.delay), 0.0)
+    np.testing.assert_array_equal(np.asarray(plain.servo_scale), 1.0)
+    iid = np.asarray(sample_scenarios(jax.random.key(3), 64, base, delay=(0, 3)).delay)
+    assert set(iid.tolist()) == {0.0, 1.0, 2.0, 3.0}  # whole periods, every one of them
+    fixed = sample_scenarios(jax.random.key(3), 4, base, delay=(2, 2))
+    np.testing.assert_array_equal(np.asarray(fixed.delay), 2.0)
+
+
 def test_tune_cli_parses_into_one_job_and_prints_it(tmp_path, monkeypatch, capsys):
     """jaxsync tune is its flags read into a TuneConfig, one call of
     pipeline.run_tune and the summary's lines; a library error comes out as
@@ -442,7 +483,12 @@ def test_tune_cli_parses_into_one_job_and_prints_it(tmp_path, monkeypatch, capsy
     assert (cfg.method.name, cfg.method.learning_rate, cfg.loop.iterations) == ("sgd", 0.01, 1)
     assert (cfg.training.task, cfg.data.heldout_batch, cfg.loop.validate_every) == ("full", 16, 5)
     assert got["model"] is None and got["gains"] is None and got["options"]["weight"] == ["grip=3"]
+    assert cfg.stack() == _actuation.TORQUE and cfg.data.servo_spread == 0.0
     assert capsys.readouterr().out == ""
+    argv = ["tune", "--out", str(tmp_path / "o"), "--actuation", "position", "--delay", "0:3", "--servo-spread", "0.3"]
+    assert main([*argv, "--control-rate", "250"]) == 0
+    cfg = got["cfg"]
+    assert cfg.stack() == _actuation.Stack("position", 250.0, (0, 3)) and cfg.data.servo_spread == 0.3
 
     def refused(model, cfg, *, out, **kw):
         _results.ensure_writable_dir(out)  # the job made the folder, then refused

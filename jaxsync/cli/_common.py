@@ -116,8 +116,9 @@ def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def add_stack_arguments(p: argparse.ArgumentParser) -> None:
-    """--actuation, --delay, --control-rate: the arms' stack (``jaxsync.sim.actuation.Stack``)."""
+def add_stack_arguments(p: argparse.ArgumentParser, drawn: bool = False) -> None:
+    """--actuation, --delay, --control-rate: the arms' stack (``jaxsync.sim.actuation.Stack``);
+    ``drawn`` (commands whose scenarios are randomised): --servo-spread too."""
     p.add_argument(
         "--actuation",
         choices=["torque", "position"],
@@ -138,10 +139,18 @@ def add_stack_arguments(p: argparse.ArgumentParser) -> None:
         metavar="HZ",
         help="the controller's rate; must divide the physics rate (default: the physics rate, 500 Hz)",
     )
+    if drawn:
+        p.add_argument(
+            "--servo-spread",
+            type=float,
+            default=0.0,
+            metavar="SHARE",
+            help="position arms: every scenario's servo gains scaled by 1 +- SHARE, drawn (0; e.g. 0.3)",
+        )
 
 
 def stack_of(args):
     """The parsed stack flags as a ``Stack`` (a JaxsyncError names a bad one)."""
-    from jaxsync.sim.actuation import Stack
+    from jaxsync.sim.actuation import Stack  # here, not at the top: `jaxsync --help` stays fast
 
     return Stack.of(args.actuation, args.control_rate, args.delay)

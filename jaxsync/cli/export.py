@@ -17,6 +17,7 @@ def run(args) -> int:
         distro=args.ros_distro,
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
         any_model=args.any_model,
+        actuation=args.actuation,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if r.same else "DIFFERENT gains"))
@@ -41,6 +42,13 @@ def add_parser(subparsers):
         positional=True,
     )
     p.add_argument("--format", required=True, choices=list(FORMATS), help="output format")
+    p.add_argument(
+        "--actuation",
+        choices=["torque", "position"],
+        default="torque",
+        help="without a gains file: the default gains of this stack (position: joint commands through the "
+        "robot's servo) (torque)",
+    )
     add_model_argument(p)
     p.add_argument(
         "--ros-distro",

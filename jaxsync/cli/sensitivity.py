@@ -6,9 +6,11 @@ from jaxsync.cli._common import (
     add_controller_argument,
     add_gains_argument,
     add_model_argument,
+    add_stack_arguments,
     model_options,
     model_source,
     positive,
+    stack_of,
 )
 
 
@@ -28,6 +30,7 @@ def run(args) -> int:
         controller=args.controller,
         out=args.out,
         log=lambda m: print(m, flush=True),
+        stack=stack_of(args),
     )
     print(sens.table(r.sensitivity))
     print(f"results in {args.out}: {', '.join(r.files)} ({r.seconds:.0f} s)")
@@ -55,6 +58,7 @@ def add_parser(subparsers):
         help="the full task (default, as held out) or jaxsync.short_task() (2 s)",
     )
     p.add_argument("--duration", type=positive(float), default=None, help="rollout length, s (full 4, short 2)")
+    add_stack_arguments(p)
     p.add_argument("--out", default="results/sensitivity", help="output folder (results/sensitivity)")
     p.set_defaults(func=run)
     return p

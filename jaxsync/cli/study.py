@@ -7,6 +7,7 @@ import argparse
 from jaxsync.cli._common import (
     CONTROLLER_NAMES,
     add_model_argument,
+    add_stack_arguments,
     controller_list,
     model_options,
     model_source,
@@ -34,6 +35,7 @@ def run(args) -> int:
     from jaxsync.optimize.studies import study as _study
     from jaxsync.optimize.studies import study_report as _report
     from jaxsync.physics.model import load_model
+    from jaxsync.sim.actuation import parse_delay
 
     cfg = _study.StudyConfig(
         controllers=tuple(args.controllers),
@@ -48,6 +50,10 @@ def run(args) -> int:
         validate_every=args.validate_every,
         bootstrap=args.bootstrap,
         grip_spread=args.grip_spread,
+        actuation=args.actuation,
+        control_rate=args.control_rate,
+        delay=parse_delay(args.delay),
+        servo_spread=args.servo_spread,
     ).validate()  # every input is checked before anything is written or compiled
     model = load_model(model_source(args), **model_options(args))
     n = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)
@@ -113,6 +119,7 @@ def add_parser(subparsers):
         action="store_true",
         help="write the report of the runs finished so far and tune nothing (the same settings as the study's)",
     )
+    add_stack_arguments(p, drawn=True)
     add_model_argument(p)
     p.set_defaults(func=run, interrupted_hint="finished tuning runs are kept; run again with --resume to continue")
     return p

@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import argparse
 
-from jaxsync.cli._common import add_distributed_arguments, add_model_argument, model_options, model_source, positive
+from jaxsync.cli._common import (
+    add_distributed_arguments,
+    add_model_argument,
+    add_stack_arguments,
+    model_options,
+    model_source,
+    positive,
+    stack_of,
+)
 from jaxsync.control.controller import CONTROLLERS
 from jaxsync.optimize.studies.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.studies.sweep_report import DEFAULT_PLOT_METRICS
@@ -70,6 +78,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--max-chunks", type=int, default=None, help=argparse.SUPPRESS)  # testing: stop early
+    add_stack_arguments(p)
     add_model_argument(p)
     add_distributed_arguments(p)
     p.set_defaults(func=run, interrupted_hint="finished chunks are kept; run again with --resume to continue")
@@ -93,6 +102,7 @@ def run(args: argparse.Namespace) -> int:
         base_gains=gains,
         model=source,
         visual=model_options(args)["visual"],
+        stack=stack_of(args),
     )
     summary = sweep.run(
         plan,

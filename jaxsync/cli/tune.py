@@ -7,6 +7,7 @@ from jaxsync.cli._common import (
     add_distributed_arguments,
     add_gains_argument,
     add_model_argument,
+    add_stack_arguments,
     model_options,
     model_source,
     positive,
@@ -21,6 +22,7 @@ def config_from_args(args):
     from jaxsync.optimize.tuning.config import Problem, TuneConfig
     from jaxsync.optimize.tuning.cost import parse_weights
     from jaxsync.optimize.tuning.params import spec_for
+    from jaxsync.sim.actuation import parse_delay
 
     names = lambda text: [t.strip() for t in text.split(",") if t.strip()] if text else []  # noqa: E731
     spec = spec_for(args.controller, names(args.tune), names(args.freeze), per_arm=args.per_arm,
@@ -34,6 +36,10 @@ def config_from_args(args):
         learning_rate=args.lr,
         clip_norm=args.clip,
         truncate_every=args.truncate_every or None,
+        actuation=args.actuation,
+        control_rate=args.control_rate,
+        delay=parse_delay(args.delay),
+        servo_spread=args.servo_spread,
         **{k: getattr(args, k) for k in settings},
     )
 
@@ -131,6 +137,7 @@ def add_parser(sub) -> None:
         metavar="NAME=VALUE",
         help="a cost weight (repeatable): resultant_ms, resultant_peak, grip, sync, effort, peak_temperature",
     )
+    add_stack_arguments(p, drawn=True)
     add_gains_argument(p, "start from this gains file (default: the model's own)")
     add_model_argument(p)
     add_distributed_arguments(p)

@@ -82,3 +82,12 @@ def apparent_stiffness(kind: str, gains, pads_pos, pads_rot, dt: float, cross_te
     dx = [displacement(kind, gains, pads_pos, pads_rot, dt, a, cross_term) for a in (NORMAL, *TANGENTIAL)]
     stiff = [1.0 / jnp.maximum(d, 1e-12) for d in dx]
     return {"normal": stiff[0], "tangential": jnp.maximum(stiff[1], stiff[2])}
+
+
+def stiffness_at_pad(model, controller: str, gains) -> dict:
+    """The apparent stiffness at the right pad of constant ``gains`` on
+    ``model`` at the grasp, N/m by axis (:func:`apparent_stiffness`, jitted)."""
+    pos, rot = probe_geometry(model)
+    dt = float(model.mj_model.opt.timestep)
+    k = jax.jit(lambda g: apparent_stiffness(controller, g, pos, rot, dt))(gains)
+    return {axis: float(v) for axis, v in k.items()}

@@ -18,6 +18,7 @@ from jaxsync.control.gains import Gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
 from jaxsync.physics.model import DualArmModel, as_model
+from jaxsync.sim import actuation as _actuation
 
 ROS2_CONTROLLERS = ("classical", "synchronous")  # the laws a ros2-admittance export runs
 
@@ -42,6 +43,7 @@ def export_gains(
     distro: str = "jazzy",
     command_interfaces=("position",),
     any_model: bool = False,
+    actuation: str = "torque",
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -52,8 +54,11 @@ def export_gains(
     files name its joints and links (for ``distro`` and the joint
     ``command_interfaces``), or when it is named, to refuse a gains file tuned
     on another model (unless ``any_model``). Every input is checked before
-    anything is written.
+    anything is written. ``actuation``: the stack whose default gains are
+    exported when ``gains`` is None ("position": held below the robot's joint
+    servos, ``jaxsync.control.gains.position_loop_gains``).
     """
+    _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
     tuned_for = gains_file.controller_of(gains) if from_file else None
     if fmt == "ros2-admittance" and tuned_for not in (None, *ROS2_CONTROLLERS):
@@ -72,13 +77,14 @@ def export_gains(
             target = _export.ros2_target(
                 loaded.mj_model, loaded.robot, distro=distro, command_interfaces=tuple(command_interfaces)
             )
-    g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded)
+    g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     paths = _export.export(g, fmt, out, target)
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
     if from_file:
         origin = str(gains)
     elif gains is None:
-        origin = f"the default gains of {_source_words(model)}"
+        stack = " on position-controlled arms" if actuation == "position" else ""
+        origin = f"the default gains of {_source_words(model)}{stack}"
     else:
         origin = "the given gains"
     return Exported(

@@ -54,9 +54,11 @@ from jaxsync.optimize.benchmarks.benchmark_measure import (
     mjx_throughput,
     mujoco_c_throughput,
     paired_forward_and_gradient,
+    paired_stacks,
 )
 from jaxsync.physics.model import identity, load_model
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.actuation import TORQUE, Stack
 
 TARGETS = {
     "mjx_over_mujoco_c": (">=", 3.0),
@@ -69,6 +71,8 @@ TARGETS = {
     # compile against the paper model's, measured in the same run
     "grad_over_forward_over_paper": ("<=", 1.3),
     "grad_compile_cold_over_paper": ("<=", 1.3),
+    # with a position stack: its gradient's cost (in forward rollouts) against the torque stack's
+    "position_grad_over_forward_over_torque": ("<=", 1.3),
 }
 
 FULL = dict(
@@ -131,6 +135,7 @@ def run(
     log: Callable[[str], None] = _log_stderr,
     source: str | None = None,
     visual: bool = True,
+    stack: Stack = TORQUE,
 ) -> dict:
     """Every measurement, in one run; writes ``out/bench.json`` and returns its content.
 
@@ -139,7 +144,10 @@ def run(
     MJX batch sizes; ``log`` receives the progress lines (standard error by
     default); ``source`` a robot file (or an MJCF in jaxsync's convention) to
     benchmark instead of the paper model, against the paper model's gradient
-    figures; ``visual`` False loads it without its meshes.
+    figures; ``visual`` False loads it without its meshes. ``stack`` a
+    position stack (one delay): its gradient's cost against the torque
+    stack's, timed in the same rounds (the other figures are the torque
+    stack's).
     """
     cfg = dict(QUICK if quick else FULL)
     if batch_sizes:
@@ -147,9 +155,13 @@ def run(
         if any(not isinstance(b, numbers.Integral) or b < 1 for b in sizes):
             raise ConfigError(f"batch sizes must be positive whole numbers, got {list(sizes)}")
         cfg["batch_sizes"] = tuple(int(b) for b in sizes)
-    _results.ensure_writable_dir(out)
     # the children run away from the working directory: an absolute path
     source = os.path.abspath(source) if source is not None else None
+    model = load_model(source, solver="accurate", visual=visual)
+    position = stack.actuation == "position"
+    if position:
+        stack.scenario_delay(), stack.substeps(model)  # one delay, a rate that divides: before any folder
+    _results.ensure_writable_dir(out)
     model_kw = {"source": source, "visual": visual}
     t_start = time.perf_counter()
     info = machine()
@@ -158,8 +170,7 @@ def run(
         f"JAX {info['jax']} {info['jax_backend']}"
     )
     small = cfg["small"]
-    model = load_model(source, solver="accurate", visual=visual)
-    n = 7 if source else 6
+    n = 6 + bool(source) + position
     log(f"[1/{n}] MJX closed loop, default scenario" + (f", {source}" if source else ""))
     mjx = mjx_throughput(model, cfg["batch_sizes"], cfg["mjx_duration"], cfg["repeats"], log)
     log(f"[2/{n}] the same controller on MuJoCo C")
@@ -203,6 +214,14 @@ def run(
             "ratio_of_ratios": pair["ratio_of_ratios"],
             "details": {"paired_forward_and_gradient": pair, "compile_cold": paper_cold},
         }
+    on_position = None
+    if position:
+        log(
+            f"[{n}/{n}] the position stack against the torque stack: forward rollout and gradient in alternating "
+            "rounds (this process)"
+        )
+        on_position = paired_stacks(dur, cfg["pair_rounds"], log, stack, small, **model_kw)
+        on_position["stack"] = stack.to_dict(model)
     best_b = max(mjx["rates"], key=mjx["rates"].get)
 
     def path_figures(p: str) -> dict:
@@ -257,6 +276,11 @@ def run(
         "grad_over_forward_over_paper": paper["ratio_of_ratios"]["per_round_median"] if paper else None,
         "grad_compile_cold_over_paper": implicit["grad_compile_cold_s"] / paper["grad_compile_cold_s"]
         if paper
+        else None,
+        # with a position stack: its figures and the gradient's cost over the torque stack's, in the same rounds
+        "position_stack": on_position,
+        "position_grad_over_forward_over_torque": on_position["ratio_of_ratios"]["per_round_median"]
+        if on_position
         else None,
         "details": {
             "mjx": mjx,
@@ -369,6 +393,29 @@ def table(r: dict) -> str:
                 f"{r['grad_compile_cold_over_paper']:.2f}",
                 "",
                 "grad_compile_cold_over_paper",
+            ),
+        ]
+    pos = r.get("position_stack")
+    if pos:
+        st = pos["stacks"]
+        rows += [
+            (
+                "position stack: gradient / forward, in the same rounds",
+                f"{st['position']['grad_over_forward']:.2f}",
+                "",
+                None,
+            ),
+            (
+                "torque stack: gradient / forward, in the same rounds",
+                f"{st['torque']['grad_over_forward']:.2f}",
+                "",
+                None,
+            ),
+            (
+                "position stack's gradient / forward over the torque stack's, median of the rounds",
+                f"{r['position_grad_over_forward_over_torque']:.2f}",
+                "",
+                "position_grad_over_forward_over_torque",
             ),
         ]
     tg = r.get("targets", {})

@@ -36,6 +36,7 @@ from jaxsync.physics.model import load_model
 from jaxsync.physics.sensing import sense
 from jaxsync.physics.step import before_control, put_data
 from jaxsync.runtime import xla as _xla
+from jaxsync.sim.actuation import TORQUE, Stack
 from jaxsync.sim.metrics import summarize
 from jaxsync.sim.rollout import cpu_vmap_limit, make_rollout, rollout, steps_for
 from jaxsync.sim.scenario import default_scenario
@@ -169,7 +170,13 @@ def bare_mj_step(model, n: int, log) -> float:
 
 
 def tuning_loss(
-    path: str, task: str, batch: int, duration: float | None = None, source: str | None = None, visual: bool = True
+    path: str,
+    task: str,
+    batch: int,
+    duration: float | None = None,
+    source: str | None = None,
+    visual: bool = True,
+    stack: Stack = TORQUE,
 ):
     """The tuner's own loss on ``path``'s physics: ``(loss, args, n_steps)``.
 
@@ -179,16 +186,18 @@ def tuning_loss(
     and truncation; ``args`` are the default gains' parameters and a seeded
     batch of randomised scenarios. ``source``: the model (:func:`load`), its
     default gains and its object, as ``jaxsync tune --robot`` takes them.
+    ``stack``: the arms' stack (its defaults and its one delay in every scenario).
     """
     p = PATHS[path]
     over = {"train_duration": duration} if (duration is not None and task == "short") else {}
     model = load(path, source, visual)
     over["scenario"] = model_overrides(model)
+    over.update(actuation=stack.actuation, control_rate=stack.control_rate)
     cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
-    base, spec = default_gains(model), cfg.problem.tuned
+    base, spec = default_gains(model, stack.actuation), cfg.problem.tuned
     loss = make_loss(model, base, cfg)
     scen_base, dur = training_base(cfg.training)
-    scen = sample_scenarios(jax.random.key(0), batch, scen_base)
+    scen = sample_scenarios(jax.random.key(0), batch, scen_base, delay=(stack.scenario_delay(),) * 2)
     return loss, (spec.init(base), scen), steps_for(dur, model)
 
 
@@ -210,14 +219,21 @@ def small_gradient(path: str = "implicit", source: str | None = None, visual: bo
     return f, (q0,), 1
 
 
-def gradient_functions(path: str, duration: float, small: bool = False, source: str | None = None, visual: bool = True):
+def gradient_functions(
+    path: str,
+    duration: float,
+    small: bool = False,
+    source: str | None = None,
+    visual: bool = True,
+    stack: Stack = TORQUE,
+):
     """``(jit(forward), jit(value_and_grad), args, n_steps)`` of the tuning
-    cost of one rollout of the short task (batch 1) on ``path``'s physics and
-    ``source``'s model (:func:`load`)."""
+    cost of one rollout of the short task (batch 1) on ``path``'s physics,
+    ``source``'s model (:func:`load`) and ``stack``."""
     if small:
         loss, args, n = small_gradient(path, source, visual)
     else:
-        loss, args, n = tuning_loss(path, "short", 1, duration, source, visual)
+        loss, args, n = tuning_loss(path, "short", 1, duration, source, visual, stack)
     return jax.jit(lambda *a: loss(*a)[0]), jax.jit(jax.value_and_grad(loss, has_aux=True)), args, n
 
 
@@ -262,10 +278,11 @@ def forward_and_gradient(
     }
 
 
-def ratio_of_ratios(times: dict) -> dict:
+def ratio_of_ratios(times: dict, num: str = "robot", den: str = "paper") -> dict:
     """The robot's gradient/forward over the paper model's, from timings taken
-    in rounds (``times[model][program]``: one time per round; models
-    ``"robot"``/``"paper"``, programs ``"forward"``/``"grad"``).
+    in rounds (``times[side][program]``: one time per round; sides ``num``
+    and ``den``, by default ``"robot"``/``"paper"``, programs
+    ``"forward"``/``"grad"``).
 
     ``per_round``: the ratio within each round, four calls a few seconds
     apart; ``per_round_median`` is the figure the target is judged on, with
@@ -279,12 +296,12 @@ def ratio_of_ratios(times: dict) -> dict:
     if len(n) != 1 or 0 in n:
         raise ValueError(f"every program needs the same number of rounds (at least one), got {sorted(n)}")
     best = {m: float(p["grad"].min() / p["forward"].min()) for m, p in t.items()}
-    per = (t["robot"]["grad"] / t["robot"]["forward"]) / (t["paper"]["grad"] / t["paper"]["forward"])
+    per = (t[num]["grad"] / t[num]["forward"]) / (t[den]["grad"] / t[den]["forward"])
     q25, q50, q75 = np.percentile(per, [25, 50, 75])
     return {
-        "of_best": best["robot"] / best["paper"],
-        "robot_grad_over_forward": best["robot"],
-        "paper_grad_over_forward": best["paper"],
+        "of_best": best[num] / best[den],
+        f"{num}_grad_over_forward": best[num],
+        f"{den}_grad_over_forward": best[den],
         "per_round": per.tolist(),
         "per_round_median": float(q50),
         "per_round_quartiles": [float(q25), float(q75)],
@@ -304,19 +321,8 @@ def paired_forward_and_gradient(
     each best of a few calls, moved the ratio of ratios between 1.21 and 1.49
     on the same files. Returns each model's best and median times and
     :func:`ratio_of_ratios`."""
-    progs = {}
-    for name, src in (("robot", source), ("paper", None)):
-        fwd, grad, args, n_steps = gradient_functions("implicit", duration, small, src, visual)
-        jax.block_until_ready(fwd(*args))
-        jax.block_until_ready(grad(*args))
-        progs[name] = (fwd, grad, args)
-    times = {m: {"forward": [], "grad": []} for m in progs}
-    for r in range(rounds):
-        for m in ("robot", "paper") if r % 2 == 0 else ("paper", "robot"):
-            fwd, grad, args = progs[m]
-            for kind, f in (("forward", fwd), ("grad", grad)):
-                times[m][kind].append(_timeit(lambda f=f, args=args: jax.block_until_ready(f(*args)), 1))
-    rr = ratio_of_ratios(times)
+    sides = {"robot": {"source": source, "visual": visual}, "paper": {"source": None, "visual": visual}}
+    times, rr, n_steps = _paired_rounds(duration, rounds, small, sides)
     models = {
         m: {
             "forward_s": min(t["forward"]),
@@ -339,6 +345,61 @@ def paired_forward_and_gradient(
         f"round by round median {rr['per_round_median']:.2f} (quartiles {q25:.2f}-{q75:.2f})"
     )
     return {"rounds": rounds, "steps": n_steps, "models": models, "ratio_of_ratios": rr, "times": times}
+
+
+def _paired_rounds(duration: float, rounds: int, small: bool, sides: dict):
+    """Forward and gradient of two sides (``{name: gradient_functions kwargs}``,
+    numerator first), every program timed once per round, the sides in turn
+    first: ``(times, ratio_of_ratios, n_steps)``."""
+    progs = {}
+    for name, kw in sides.items():
+        fwd, grad, args, n_steps = gradient_functions("implicit", duration, small, **kw)
+        jax.block_until_ready(fwd(*args))
+        jax.block_until_ready(grad(*args))
+        progs[name] = (fwd, grad, args)
+    num, den = list(sides)
+    times = {m: {"forward": [], "grad": []} for m in progs}
+    for r in range(rounds):
+        for m in (num, den) if r % 2 == 0 else (den, num):
+            fwd, grad, args = progs[m]
+            for kind, f in (("forward", fwd), ("grad", grad)):
+                times[m][kind].append(_timeit(lambda f=f, args=args: jax.block_until_ready(f(*args)), 1))
+    return times, ratio_of_ratios(times, num, den), n_steps
+
+
+def paired_stacks(
+    duration: float, rounds: int, log, stack: Stack, small: bool = False, source: str | None = None, visual: bool = True
+) -> dict:
+    """The tuner's gradient on ``stack`` (position-controlled arms) against
+    the torque stack's, forward rollout and gradient timed in the same rounds
+    of one process (as :func:`paired_forward_and_gradient`): the gradient's
+    cost in forward rollouts on each stack, and their ratio."""
+    sides = {
+        "position": {"source": source, "visual": visual, "stack": stack},
+        "torque": {"source": source, "visual": visual, "stack": TORQUE},
+    }
+    times, rr, n_steps = _paired_rounds(duration, rounds, small, sides)
+    stacks = {
+        m: {
+            "forward_s": min(t["forward"]),
+            "grad_s": min(t["grad"]),
+            "grad_over_forward": min(t["grad"]) / min(t["forward"]),
+            "forward_median_s": float(np.median(t["forward"])),
+            "grad_median_s": float(np.median(t["grad"])),
+        }
+        for m, t in times.items()
+    }
+    for m, f in stacks.items():
+        log(
+            f"  {m} stack: forward {f['forward_s']:.3f} s, value_and_grad {f['grad_s']:.3f} s over {n_steps} "
+            f"steps (best of {rounds} rounds): ratio {f['grad_over_forward']:.2f}"
+        )
+    q25, q75 = rr["per_round_quartiles"]
+    log(
+        f"  gradient/forward, position over torque: {rr['of_best']:.2f} of the best times; round by round "
+        f"median {rr['per_round_median']:.2f} (quartiles {q25:.2f}-{q75:.2f})"
+    )
+    return {"rounds": rounds, "steps": n_steps, "stacks": stacks, "ratio_of_ratios": rr, "times": times}
 
 
 def have_flatbuffers() -> bool:

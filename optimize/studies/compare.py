@@ -319,7 +319,9 @@ def paper_comparison(
     results = run(
         model, gains, scenario, duration=duration, backend=backend, controllers=controllers, log=log, stack=stack
     )
-    stiffness = {n: stiffness_of(model, n, gains) for n in controllers}
+    # a schedule has one stiffness per phase: none recorded
+    constant = not isinstance(gains, _schedule.Schedule)
+    stiffness = {n: _compliance.stiffness_at_pad(model, n, gains) if constant else None for n in controllers}
     summary = write_results(
         out,
         results,
@@ -352,17 +354,6 @@ def paper_comparison(
         )
         _results.write_json(os.path.join(out, "summary.json"), summary)
     return summary, files
-
-
-def stiffness_of(model, controller: str, gains) -> dict | None:
-    """The apparent stiffness at the right pad (``jaxsync.control.compliance``)
-    of constant ``gains``, N/m by axis; None for a schedule (it has one per phase)."""
-    if isinstance(gains, _schedule.Schedule):
-        return None
-    pos, rot = _compliance.probe_geometry(model)
-    dt = float(model.mj_model.opt.timestep)
-    k = jax.jit(lambda g: _compliance.apparent_stiffness(controller, g, pos, rot, dt))(gains)
-    return {axis: float(v) for axis, v in k.items()}
 
 
 # ------------------------------------------------------ the job from its inputs

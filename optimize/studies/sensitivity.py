@@ -37,6 +37,7 @@ from jaxsync.optimize.tuning.scenarios import sample_scenarios
 from jaxsync.physics.model import as_model, identity
 from jaxsync.runtime import programs
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.actuation import TORQUE, Stack
 from jaxsync.sim.rollout import make_rollout
 from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
@@ -64,9 +65,12 @@ def entry_names() -> list[str]:
     return names
 
 
-def metrics_function(model, duration: float, start: str | None = None, controller: str = "synchronous"):
-    """``f(gains, scenarios) -> (3,)``: each smooth metric's mean over the batch."""
+def metrics_function(
+    model, duration: float, start: str | None = None, controller: str = "synchronous", stack: Stack = TORQUE
+):
+    """``f(gains, scenarios) -> (3,)``: each smooth metric's mean over the batch, on ``stack``."""
     kw = {} if start is None else {"start": start}
+    kw.update(stack.rollout_options(model))
     fn = make_rollout(model, controller, duration, remat=True, passes="tree", **kw)
 
     def one(g, s):
@@ -92,10 +96,10 @@ def derivatives_function(f):
 
 
 @programs.memoize(maxsize=8)
-def program(model, duration: float, start: str | None = None, controller: str = "synchronous"):
+def program(model, duration: float, start: str | None = None, controller: str = "synchronous", stack: Stack = TORQUE):
     """The jitted derivatives of one configuration, built once per process
     (the command line and the library share it)."""
-    return derivatives_function(metrics_function(model, duration, start, controller))
+    return derivatives_function(metrics_function(model, duration, start, controller, stack))
 
 
 class Sensitivity(NamedTuple):
@@ -127,13 +131,20 @@ def elasticities(names, gains_flat, values, derivative) -> np.ndarray:
 
 
 def sensitivity(
-    model, gains, scenarios, duration: float, start: str | None = None, controller: str = "synchronous"
+    model,
+    gains,
+    scenarios,
+    duration: float,
+    start: str | None = None,
+    controller: str = "synchronous",
+    stack: Stack = TORQUE,
 ) -> Sensitivity:
     """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading
     axis), of the gains ``controller`` reads (``jaxsync.control.gains.USED``)
-    and the joint-space law's."""
+    and the joint-space law's, on the arms' ``stack``."""
 
-    values, grads = jax.block_until_ready(program(model, float(duration), start, controller)(gains, scenarios))
+    fn = program(model, float(duration), start, controller, stack)
+    values, grads = jax.block_until_ready(fn(gains, scenarios))
     flat, _ = ravel_pytree(gains)
     deriv = np.stack(
         [np.asarray(ravel_pytree(jax.tree_util.tree_map(lambda x, i=i: x[i], grads))[0]) for i in range(3)]
@@ -207,6 +218,7 @@ def write_results(
     seconds: float,
     scenario=None,
     model: dict | None = None,
+    stack: dict | None = None,
 ) -> list:
     """``sensitivity.csv`` (a row per gain entry), ``sensitivity.json`` (the
     same with the metrics and the run's settings) and ``sensitivity.png``;
@@ -223,6 +235,7 @@ def write_results(
             "gains": _gains.to_dict(gains),
             "scenario_base": _scenario.to_dict(scenario) if scenario is not None else None,
             "model": model,
+            "stack": stack,
             "batch": batch,
             "seed": seed,
             "duration_s": duration,
@@ -255,23 +268,34 @@ def study(
     at: str = "the given gains",
     log=print,
     controller: str = "synchronous",
+    stack: Stack = TORQUE,
 ) -> Sensitivity:
     """``jaxsync sensitivity``'s job: the sensitivities of the smooth metrics
     to every gain entry over ``batch`` randomised scenarios around ``base``
-    (a :class:`~jaxsync.Scenario`), written to ``out`` (:func:`write_results`)."""
+    (a :class:`~jaxsync.Scenario`; on a position ``stack`` each draws its
+    delay from the stack's range), written to ``out`` (:func:`write_results`)."""
     check_duration(base, duration)
     _results.ensure_writable_dir(out)
-    scen = sample_scenarios(jax.random.key(seed), batch, base)
+    scen = sample_scenarios(jax.random.key(seed), batch, base, delay=stack.delay)
     log(
         f"sensitivities of the {controller} controller at {at}: {batch} randomised scenarios (seed {seed}), "
         f"{duration:g} s; one forward pass and one reverse pass per metric (the first run compiles the "
         "gradient: minutes on a small CPU)"
     )
     t0 = time.perf_counter()
-    s = sensitivity(model, gains, scen, duration, controller=controller)
+    s = sensitivity(model, gains, scen, duration, controller=controller, stack=stack)
     seconds = time.perf_counter() - t0
     write_results(
-        out, s, gains, batch=batch, seed=seed, duration=duration, seconds=seconds, scenario=base, model=identity(model)
+        out,
+        s,
+        gains,
+        batch=batch,
+        seed=seed,
+        duration=duration,
+        seconds=seconds,
+        scenario=base,
+        model=identity(model),
+        stack=stack.to_dict(model),
     )
     return s
 
@@ -301,6 +325,7 @@ def run_sensitivity(
     controller: str = "synchronous",
     out: str = "results/sensitivity",
     log=print,
+    stack: Stack = TORQUE,
 ) -> SensitivityRun:
     """``jaxsync sensitivity``'s job from what a user names: :func:`study` on
     ``model``'s full task (``default_scenario``) or its short one (``short_task``).
@@ -310,7 +335,9 @@ def run_sensitivity(
     file of constant gains (refused when it was tuned on another model, unless
     ``any_model``) or :class:`~jaxsync.Gains`; None: the model's defaults.
     ``duration``: the rollout, s (None: 4 for the full task, 2 for the short one).
-    Every input is checked before ``out`` is written.
+    ``stack``: the arms' stack (a delay range: drawn per scenario); the
+    default gains are that stack's. Every input is checked before ``out`` is
+    written.
     """
     if task not in TASKS:
         raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {task!r}", inputs=("task",))
@@ -320,7 +347,7 @@ def run_sensitivity(
         gains_file.check_model(gains, model, any_model)
         g = gains_file.load_constant(gains, "the sensitivity study")
     else:
-        g = gains if gains is not None else _gains.default_gains(model)
+        g = gains if gains is not None else _gains.default_gains(model, stack.actuation)
         if not isinstance(g, _gains.Gains):
             raise ConfigError(
                 "gains must be constant gains: the sensitivity study takes no schedule", inputs=("gains",)
@@ -328,6 +355,7 @@ def run_sensitivity(
     base = short_task(model) if task == "short" else default_scenario(model)
     duration = duration if duration is not None else TASK_DURATION[task]
     check_duration(base, duration, "duration", f"the {task} task")
+    stack.substeps(model)  # a control rate that divides the physics rate: before any folder
     t0 = time.perf_counter()
     s = study(
         model,
@@ -340,6 +368,7 @@ def run_sensitivity(
         at="the gains of " + str(gains) if from_file else "the default gains" if gains is None else "the given gains",
         log=log,
         controller=controller,
+        stack=stack,
     )
     files = ["sensitivity.csv", "sensitivity.json", "sensitivity.png"]
     return SensitivityRun(s, files, time.perf_counter() - t0)

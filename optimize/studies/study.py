@@ -196,8 +196,9 @@ def reference_compliance(model, cfg: StudyConfig, out: str, log) -> dict:
         with open(path) as f:
             return json.load(f)
     tcfg = cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None)
-    base, data = _gains.default_gains(model), tcfg.data
-    evaluate = _loss.make_evaluator(model, tcfg.training.eval_duration, REFERENCE_CONTROLLER)
+    base, data = _gains.default_gains(model, tcfg.training.actuation), tcfg.data
+    stack = tcfg.stack().rollout_options(model)
+    evaluate = _loss.make_evaluator(model, tcfg.training.eval_duration, REFERENCE_CONTROLLER, **stack)
     log(f"compliance reference: default {REFERENCE_CONTROLLER} on {data.validation_batch} validation scenarios...")
     ev = _loss.eval_summary(evaluate(base, _scenarios.validation_scenarios(tcfg)))
     k = jax.jit(_loss.compliance_fn(model, REFERENCE_CONTROLLER))(base)
@@ -221,7 +222,8 @@ def bounds_for(reference: dict, factor: float) -> dict:
 def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
     """Every controller (and the reference) at its default gains on the held-out set, kept on disk."""
     held = _scenarios.heldout_scenarios(cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None))
-    base = _gains.default_gains(model)
+    base = _gains.default_gains(model, cfg.tuning.training.actuation)
+    stack = cfg.tuning.stack().rollout_options(model)
     out_dir = os.path.join(out, "defaults")
     os.makedirs(out_dir, exist_ok=True)
     found = {}
@@ -236,7 +238,7 @@ def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
         duration = cfg.tuning.training.eval_duration
         n = cfg.tuning.data.heldout_batch
         log(f"defaults: {name} on {n} held-out scenarios ({duration:g} s; compiles first)...")
-        evaluate = _loss.make_evaluator(model, duration, name)
+        evaluate = _loss.make_evaluator(model, duration, name, **stack)
         ev = _loss.eval_summary(evaluate(base, held))
         ev.update(_pipeline.stiffness_figures(jax.jit(_loss.compliance_fn(model, name, axis=None))(base)))
         _results.write_json(path, ev)
@@ -263,6 +265,7 @@ def run_study(
     looked at while another process runs it, or after it was stopped."""
     scenario = tuple(cfg.tuning.training.scenario) or _scenarios.model_overrides(model)
     cfg = cfg.replace(scenario=scenario).validate()
+    cfg.tuning.stack().substeps(model)  # a control rate that does not divide the physics rate: before any folder
     _results.ensure_writable_dir(out)
     model_name = model_label(model)
     t_start = time.perf_counter()
@@ -279,7 +282,7 @@ def run_study(
             f"{reference['first_impact_peak_N']:.3g} N, apparent normal stiffness "
             f"{reference['apparent_stiffness_normal_N_per_m']:.4g} N/m; bounds x {', '.join(map(str, cfg.bounds))}"
         )
-        base = _gains.default_gains(model)
+        base = _gains.default_gains(model, cfg.tuning.training.actuation)
         jobs = [(c, b, s) for b in cfg.bounds for c in cfg.controllers for s in cfg.seeds]
         runs, took = {}, []
         for k, (controller, factor, seed) in enumerate(jobs):

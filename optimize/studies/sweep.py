@@ -220,7 +220,9 @@ def _run(plan, out, chunk, budget_gib, restart, resume, progress, max_chunks, pl
             todo = todo[:max_chunks]
     todo = _distributed.share("sweep: todo", todo if main_proc else None)
     mine = todo[me::nproc]
-    n_steps = evaluator(plan.solver, plan.controller, plan.duration, n_dev, plan.model, plan.visual)[1]
+    n_steps = evaluator(
+        plan.solver, plan.controller, plan.duration, n_dev, plan.model, plan.visual, *plan.stack_options
+    )[1]
     size = lambda chunks: sum(stop - start for start, stop in (_bounds(i, c, n) for i in chunks))  # noqa: E731
     bar = _progress_bar(progress and main_proc, size(mine) + size(results), size(results), nproc)
     t_eval = time.perf_counter()

@@ -42,15 +42,25 @@ def _mesh():
 
 @programs.memoize(maxsize=8)
 def evaluator(
-    solver: str, controller: str, duration: float, n_devices: int, model: str | None = None, visual: bool = True
+    solver: str,
+    controller: str,
+    duration: float,
+    n_devices: int,
+    model: str | None = None,
+    visual: bool = True,
+    actuation: str = "torque",
+    control_substeps: int = 1,
 ):
-    """jit(shard_map(vmap(metrics of one rollout))) over the 'batch' mesh axis.
+    """jit(shard_map(vmap(metrics of one rollout))) over the 'batch' mesh axis,
+    on the arms' stack (``actuation``, ``control_substeps``).
 
     Each device evaluates its slice of the chunk with a plain vmap: no
     communication, and the same per-environment arithmetic as one device.
     """
 
-    fn = make_rollout(_model(solver, model, visual), controller, duration)
+    fn = make_rollout(
+        _model(solver, model, visual), controller, duration, actuation=actuation, control_substeps=control_substeps
+    )
     local = jax.vmap(lambda g, s: summarize(fn(g, s), s))
     if n_devices == 1:
         return jax.jit(local), fn.n_steps
@@ -62,9 +72,11 @@ def evaluator(
 
 
 @programs.memoize(maxsize=8)
-def _compiled(solver, controller, duration, chunk, n_devices, gdtypes, sdtypes, model=None, visual=True):
+def _compiled(
+    solver, controller, duration, chunk, n_devices, gdtypes, sdtypes, model=None, visual=True, stack=("torque", 1)
+):
 
-    fn, _ = evaluator(solver, controller, duration, n_devices, model, visual)
+    fn, _ = evaluator(solver, controller, duration, n_devices, model, visual, *stack)
     sharding = _sharding() if n_devices > 1 else None
     g = Gains(*(jax.ShapeDtypeStruct((chunk,) + sh, dt, sharding=sharding) for sh, dt in gdtypes))
     s = Scenario(*(jax.ShapeDtypeStruct((chunk,) + sh, dt, sharding=sharding) for sh, dt in sdtypes))
@@ -139,7 +151,15 @@ def choose_chunk(
     while True:
         t0 = time.perf_counter()
         compiled = _compiled(
-            plan.solver, plan.controller, plan.duration, c * n_devices, n_devices, *sig, plan.model, plan.visual
+            plan.solver,
+            plan.controller,
+            plan.duration,
+            c * n_devices,
+            n_devices,
+            *sig,
+            plan.model,
+            plan.visual,
+            plan.stack_options,
         )
         log(f"compiled the chunk function for {c * n_devices} points in {time.perf_counter() - t0:.1f} s")
         used = memory_bytes(compiled)

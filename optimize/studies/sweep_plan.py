@@ -21,6 +21,7 @@ from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import Gains
 from jaxsync.optimize.studies.sweep_spec import (
     PHASE_FIELDS,
+    POSITION_FIELDS,
     Param,
     check_overlaps,
     make_points,
@@ -29,6 +30,7 @@ from jaxsync.optimize.studies.sweep_spec import (
 )
 from jaxsync.physics.model import identity, load_model
 from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.actuation import TORQUE, Stack
 from jaxsync.sim.scenario import Scenario, min_duration
 
 PLAN_VERSION = 1
@@ -55,6 +57,13 @@ class Plan:
     model: str | None = None  # an MJCF or robot file; None: the paper model
     visual: bool = True  # a robot's meshes loaded (False: --no-visual)
     model_identity: dict | None = None  # jaxsync.physics.model.identity of the model loaded
+    stack: Stack = TORQUE  # the arms' stack every point runs (its one delay is the base scenario's)
+
+    @property
+    def stack_options(self) -> tuple[str, int]:
+        """(actuation, control_substeps) of the evaluator's rollouts."""
+        o = self.stack.rollout_options(loaded_model(self.solver, self.model, self.visual))
+        return o["actuation"], o["control_substeps"]
 
     @property
     def spec(self) -> dict:
@@ -72,6 +81,7 @@ class Plan:
             "base_gains": _gains.to_dict(self.base_gains),
             "base_scenario": _scenario.to_dict(self.base_scenario),
             "model_identity": self.model_identity,
+            "stack": self.stack.to_dict(loaded_model(self.solver, self.model, self.visual)),
             "n_points": len(self.points),
             "points_sha256": hashlib.sha256(np.ascontiguousarray(self.points).tobytes()).hexdigest(),
         }
@@ -93,8 +103,11 @@ def make_plan(
     base_scenario: Scenario | None = None,
     model: str | None = None,
     visual: bool = True,
+    stack: Stack = TORQUE,
 ) -> Plan:
     """Parse and check everything that can be checked without compiling.
+    ``stack``: the arms' stack (one delay: the base scenario's; on a position
+    stack ``delay`` and ``servo_scale`` may be swept).
 
     Example:
       >>> plan = make_plan(["k_rk=-1:1:5", "object_mass=0.5,1"], duration=4.0)
@@ -116,9 +129,18 @@ def make_plan(
     if dup:
         raise ConfigError(f"parameter(s) {dup} given more than once")
     # the model's own defaults (a robot file's raised gains and its object), and which model it is
+    position_only = sorted({p.target.field for p in params if p.target.field in POSITION_FIELDS})
+    if position_only and stack.actuation != "position":
+        raise ConfigError(
+            f"parameter(s) {position_only} apply to position-controlled arms (actuation='position'), got "
+            f"actuation={stack.actuation!r}",
+            inputs=("param", "actuation"),
+        )
     loaded = loaded_model(solver, model, visual)
-    base_gains = base_gains if base_gains is not None else _gains.default_gains(loaded)
-    base_scenario = base_scenario if base_scenario is not None else _scenario.default_scenario(loaded)
+    stack.substeps(loaded)  # a control rate that divides the physics rate
+    base_gains = base_gains if base_gains is not None else _gains.default_gains(loaded, stack.actuation)
+    if base_scenario is None:
+        base_scenario = _scenario.default_scenario(loaded)._replace(delay=np.float64(stack.scenario_delay()))
     check_overlaps(params, base_gains, base_scenario)
     validate_values(params, base_gains, base_scenario)
     points = make_points(params, samples, seed)
@@ -147,4 +169,5 @@ def make_plan(
         model,
         visual,
         identity(loaded),
+        stack,
     )

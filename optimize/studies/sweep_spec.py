@@ -29,9 +29,9 @@ PER_ARM_GAINS = ("imp_mass", "imp_damping", "imp_stiffness")
 AXIS_GAINS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")  # (6,): one per axis
 SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS + AXIS_GAINS)
 VECTOR_FIELDS = ("object_offset", "lift")
-# the position stack's fields (delay, servo scale) mean nothing to the torque-driven rollouts a sweep runs
+# the position stack's fields (delay, servo scale): swept on position-controlled arms only (make_plan)
 POSITION_FIELDS = ("delay", "servo_scale")
-SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",) + POSITION_FIELDS)
+SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",))
 PHASE_FIELDS = ("t_close", "t_squeeze", "t_carry", "settle_time")
 
 
@@ -103,7 +103,7 @@ def resolve_name(name: str) -> Target:
             return Target("gain", head, (AXES[parts[1]],))
         raise bad
     if head in SCALAR_FIELDS and len(parts) == 1:
-        return Target("scenario", head)
+        return Target("scenario", head, integer=head == "delay")  # whole control periods
     if head in VECTOR_FIELDS:
         if len(parts) == 2 and parts[1] in VEC_AXES:
             return Target("scenario", head, (VEC_AXES[parts[1]],))

@@ -5,9 +5,9 @@ A job has five parts, each a frozen dataclass:
 - :class:`Problem`: what is tuned (the controller, its parameters, the cost
   and the compliance bounds);
 - :class:`Training`: the training rollouts (task, durations, start, scenario
-  base, batch size, gradient truncation);
+  base, batch size, gradient truncation, how the arms are driven);
 - :class:`Data`: the seeds and draws of the training, validation and
-  held-out scenarios;
+  held-out scenarios (with the command delay and servo gains they draw);
 - :class:`Method`: the optimiser;
 - :class:`Loop`: iterations, checkpoints and validation.
 
@@ -32,6 +32,7 @@ from jaxsync.optimize.tuning import methods as _methods
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loop import make_optimizer
 from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TuneSpec
+from jaxsync.sim import actuation as _actuation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,8 +80,16 @@ class Training:
     train_scenario: tuple = ()  # (field, value) overrides of the training scenarios' base
     batch: int = 4  # training scenarios per iteration (per process in a multi-process run)
     truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
+    actuation: str = "torque"  # or "position": joint commands through the servo (jaxsync.sim.actuation)
+    control_rate: float | None = None  # Hz; None: the controller runs every physics step
 
     def validate(self) -> None:
+        _actuation.check(self.actuation)
+        r = self.control_rate
+        if r is not None and not (r > 0 and math.isfinite(r)):
+            raise ConfigError(
+                f"control_rate must be a positive number of Hz (or None), got {r}", inputs=("control_rate",)
+            )
         if self.task not in ("short", "full"):
             raise ConfigError(f"task must be 'short' or 'full', got {self.task!r}", inputs=("task",))
         if self.batch < 1:
@@ -108,8 +117,18 @@ class Data:
     validation_batch: int = 16
     heldout_seed: int = 1000
     heldout_batch: int = 16
+    delay: tuple[int, int] = (0, 0)  # command delay, control periods: every scenario draws one in [lo, hi]
+    servo_spread: float = 0.0  # every scenario's servo gains scaled by 1 +- this share (position arms)
 
     def validate(self) -> None:
+        d = self.delay
+        if not (isinstance(d, tuple | list) and len(d) == 2):
+            raise ConfigError(f"delay must be a range (lo, hi) of control periods, got {d!r}", inputs=("delay",))
+        _actuation.parse_delay(f"{d[0]}:{d[1]}")
+        if not 0.0 <= self.servo_spread < 1.0:
+            raise ConfigError(
+                f"servo_spread must be a share in [0, 1), got {self.servo_spread}", inputs=("servo_spread",)
+            )
         for name in ("validation_batch", "heldout_batch"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {getattr(self, name)}", inputs=(name,))
@@ -243,7 +262,20 @@ class TuneConfig:
     def validate(self) -> TuneConfig:
         for part in PARTS:
             getattr(self, part).validate()
+        self.stack()  # a delay or a servo spread needs position-controlled arms
+        if self.data.servo_spread and self.training.actuation != "position":
+            raise ConfigError(
+                f"servo_spread applies to position-controlled arms (actuation='position'), got "
+                f"{self.data.servo_spread} with actuation={self.training.actuation!r}",
+                inputs=("servo_spread", "actuation"),
+            )
         return self
+
+    def stack(self) -> _actuation.Stack:
+        """The arms' stack the job runs: the training's actuation and control
+        rate, the data's delay range."""
+        t = self.training
+        return _actuation.Stack(t.actuation, t.control_rate, tuple(self.data.delay))
 
     def program(self) -> tuple[Problem, Training]:
         """What the training loss's compiled program depends on (and is keyed by)."""
@@ -259,6 +291,7 @@ class TuneConfig:
         out["problem"]["spec"] = self.problem.tuned.describe()
         for k in ("scenario", "train_scenario"):
             out["training"][k] = [list(x) for x in out["training"][k]]
+        out["data"]["delay"] = list(out["data"]["delay"])
         return out
 
     def settings(self) -> dict:

@@ -26,6 +26,7 @@ from jaxsync.physics import step as _physics
 from jaxsync.runtime import programs
 from jaxsync.runtime.cache import traced_on_disk
 from jaxsync.sim import metrics as _metrics
+from jaxsync.sim.actuation import substeps_for_rate
 from jaxsync.sim.crosscheck import metric_rows
 from jaxsync.sim.rollout import make_rollout
 
@@ -60,6 +61,8 @@ def make_loss(model, base: _gains.Gains, cfg: TuneConfig, *, differentiated: boo
         passes="tree" if differentiated else "mjx",
         truncate_every=training.truncate_every,
         start=training.train_start,
+        actuation=training.actuation,
+        control_substeps=substeps_for_rate(model, training.control_rate),
     )
 
     stiffness = compliance_fn(model, problem.controller) if max_stiffness else None
@@ -118,10 +121,13 @@ def compliance_fn(model, controller: str, axis: str | None = "normal"):
 
 
 @programs.memoize(maxsize=8)
-def make_evaluator(model, duration: float, controller: str = "synchronous"):
+def make_evaluator(
+    model, duration: float, controller: str = "synchronous", actuation: str = "torque", control_substeps: int = 1
+):
     """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver);
-    one per configuration and process (a study's runs share it)."""
-    fn = make_rollout(model, controller, duration)
+    one per configuration and process (a study's runs share it); ``actuation``
+    and ``control_substeps``: the arms' stack (``Stack.rollout_options``)."""
+    fn = make_rollout(model, controller, duration, actuation=actuation, control_substeps=control_substeps)
     return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
 
 

@@ -147,6 +147,7 @@ class TuneSummary:
     tune: dict
     start_moved_into_bands: list
     mujoco_check: dict | None
+    stack: dict  # the arms' stack the job ran (jaxsync.sim.actuation.Stack.to_dict, with the servo)
 
     @property
     def peak_before(self) -> float | None:
@@ -240,7 +241,9 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
     t_start = time.perf_counter()
     spec, weights, controller = cfg.problem.tuned, cfg.problem.weights, cfg.problem.controller
     data, eval_duration = cfg.data, cfg.training.eval_duration
-    evaluate = _loss.make_evaluator(model, eval_duration, controller)  # one physics: training, validation, held out
+    stack = cfg.stack()
+    # one physics and one stack: training, validation, held out
+    evaluate = _loss.make_evaluator(model, eval_duration, controller, **stack.rollout_options(model))
     held = _scenarios.heldout_scenarios(cfg)
     before_path = os.path.join(out, HELDOUT_BEFORE)
     before = dict(given) if given is not None else None
@@ -335,6 +338,7 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
             mjx_rows=mjx_rows,
             log=lambda m: None,
             controller=controller,
+            stack=stack,
         )
     cols = {k: [r[k] for r in history] for k in history_columns(history)}
     if cols:
@@ -368,6 +372,7 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
         tune=described,
         start_moved_into_bands=moved,
         mujoco_check=check,
+        stack=stack.to_dict(model),
     )
     _results.write_json(os.path.join(out, "summary.json"), summary.to_dict())
     _distributed.barrier("tune: results written")
@@ -400,8 +405,8 @@ def run_tune(
     """``jaxsync tune``'s job: ``model`` (a model, an MJCF or robot file, or
     None: the paper model), starting from ``gains`` (a gains file, refused
     when tuned on another model unless ``any_model``; gains; None: the
-    model's own defaults), tuned as ``cfg`` says (None: ``TuneConfig()``),
-    then :func:`tune_and_evaluate`.
+    model's own defaults on ``cfg``'s stack), tuned as ``cfg`` says (None:
+    ``TuneConfig()``), then :func:`tune_and_evaluate`.
 
     Example:
       >>> cfg = TuneConfig(iterations=2)
@@ -409,7 +414,8 @@ def run_tune(
     """
     cfg = (cfg if cfg is not None else _tune.TuneConfig()).validate()  # checked before the model compiles
     model = as_model(model, visual=visual)
-    base = gains_file.load_or_default(gains, model, any_model)
+    base = gains_file.load_or_default(gains, model, any_model, cfg.training.actuation)
+    cfg.stack().substeps(model)  # a control rate that does not divide the physics rate: before any folder
     return tune_and_evaluate(
         model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
     )

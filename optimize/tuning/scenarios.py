@@ -23,14 +23,24 @@ def training_base(training) -> tuple[_scenario.Scenario, float]:
 
 
 def sample_scenarios(
-    key: jax.Array, n: int, base: _scenario.Scenario, *, stratified: bool = False, grip_spread: float = 0.0
+    key: jax.Array,
+    n: int,
+    base: _scenario.Scenario,
+    *,
+    stratified: bool = False,
+    grip_spread: float = 0.0,
+    delay: tuple[int, int] = (0, 0),
+    servo_spread: float = 0.0,
 ) -> _scenario.Scenario:
     """A batch of randomised scenarios around ``base``: object mass +-30 % (the
     controller keeps the nominal estimate), offset along the clamping axis
     +-5 mm, contact time constant 15-30 ms, friction 0.8-1.2, wrist force
     noise 0.05-0.15 N, fresh noise keys; with ``grip_spread`` g > 0 also the
-    desired grip force, +-g relative (from its own key: the other draws stay
-    as they are without it).
+    desired grip force, +-g relative; with ``delay`` (lo, hi), hi > lo, the
+    command delay, whole control periods from lo to hi; with ``servo_spread``
+    s > 0 the servo gains' scale, 1 +- s (position-controlled arms). Each of
+    the last three from its own key: the other draws stay as they are
+    without them.
 
     Each quantity is drawn independently and uniformly over its range. With
     ``stratified`` the batch is a Latin hypercube on the ranges' ends instead:
@@ -61,14 +71,25 @@ def sample_scenarios(
     batch = jax.tree_util.tree_map(rep, base)
     offset = jnp.zeros((n, 3)).at[:, 1].set(u(1, -0.005, 0.005))
     noise_keys = jax.vmap(lambda k: jax.random.key_data(k))(jax.random.split(ks[6], n)).astype(jnp.uint32)
+
+    def own(i):  # a draw in [0, 1] from its own key
+        k = jax.random.fold_in(key, i)
+        if stratified:
+            return jax.random.permutation(k, n) / max(n - 1, 1) if n > 1 else jnp.full((1,), 0.5)
+        return jax.random.uniform(k, (n,), dtype=jnp.float64)
+
     if grip_spread:
-        kg = jax.random.fold_in(key, 2)
-        r = (
-            (jax.random.permutation(kg, n) / max(n - 1, 1) if n > 1 else jnp.full((1,), 0.5))
-            if stratified
-            else jax.random.uniform(kg, (n,), dtype=jnp.float64)
+        batch = batch._replace(grip_force=base.grip_force * (1.0 - grip_spread + 2.0 * grip_spread * own(2)))
+    lo, hi = delay
+    if hi > lo:  # whole periods, each of lo..hi equally likely (stratified: spread evenly over them)
+        periods = jnp.minimum(jnp.floor(lo + (hi - lo + 1) * own(3)), hi)
+        batch = batch._replace(delay=periods.astype(batch.delay.dtype))
+    elif lo:
+        batch = batch._replace(delay=jnp.full((n,), float(lo), batch.delay.dtype))
+    if servo_spread:
+        batch = batch._replace(
+            servo_scale=(1.0 - servo_spread + 2.0 * servo_spread * own(4)).astype(batch.servo_scale.dtype)
         )
-        batch = batch._replace(grip_force=base.grip_force * (1.0 - grip_spread + 2.0 * grip_spread * r))
     return batch._replace(
         object_mass=base.object_mass * u(0, 0.7, 1.3),
         object_offset=offset,
@@ -86,20 +107,25 @@ def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.S
     d = cfg.data
     key = jax.random.fold_in(jax.random.key(d.seed), iteration)
     stratified = d.sampling == "stratified"
-    return sample_scenarios(key, cfg.training.batch, base, stratified=stratified, grip_spread=d.grip_spread)
+    return sample_scenarios(key, cfg.training.batch, base, stratified=stratified, **_draws(d))
+
+
+def _draws(data) -> dict:
+    """What every sampled scenario of ``data`` (a TuneConfig's) draws beyond the task's ranges."""
+    return {"grip_spread": data.grip_spread, "delay": tuple(data.delay), "servo_spread": data.servo_spread}
 
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the held-out seed (never used for training or selection)."""
     base, d = _scenario.default_scenario(**dict(cfg.training.scenario)), cfg.data
-    return sample_scenarios(jax.random.key(d.heldout_seed), d.heldout_batch, base, grip_spread=d.grip_spread)
+    return sample_scenarios(jax.random.key(d.heldout_seed), d.heldout_batch, base, **_draws(d))
 
 
 def validation_scenarios(cfg) -> _scenario.Scenario:
     """Full-task scenarios from the validation seed: they pick the iterate, the
     held-out ones only score it."""
     base, d = _scenario.default_scenario(**dict(cfg.training.scenario)), cfg.data
-    return sample_scenarios(jax.random.key(d.validation_seed), d.validation_batch, base, grip_spread=d.grip_spread)
+    return sample_scenarios(jax.random.key(d.validation_seed), d.validation_batch, base, **_draws(d))
 
 
 def model_overrides(model) -> tuple:
