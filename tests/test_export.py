@@ -24,11 +24,13 @@ ROBOTS = os.path.join(os.path.dirname(__file__), "..", "mjcf", "robots")
 
 
 def _tuned_like():
-    """Gains unlike the defaults in every field (per arm, per axis)."""
+    """Gains unlike the defaults in every field (per arm, per axis); the
+    admittance rule runs them within its margin (the normal axis's stability
+    index ramp / 2.5 <= 0.52)."""
     g = _gains.default_gains()
     ramp = np.linspace(0.7, 1.3, 12).reshape(2, 6)
     return g._replace(
-        imp_mass=g.imp_mass * ramp,
+        imp_mass=g.imp_mass * ramp * 2.5,
         imp_stiffness=g.imp_stiffness * ramp[::-1],
         imp_damping=g.imp_damping * ramp**2,
         k_rk=jnp.asarray(0.18),
@@ -196,3 +198,30 @@ def test_export_writes_a_stacks_defaults(tmp_path, capsys):
     with pytest.raises(ConfigError, match="actuation must be one of"):
         export_gains(None, "json", str(tmp_path / "e"), actuation="velocity")
     assert not (tmp_path / "e").exists()
+
+
+def test_ros2_export_is_refused_where_the_admittance_rule_runs_near_its_bound(tmp_path, capsys):
+    """The paper model's torque-stack defaults put the normal axis at dt D/M =
+    2.00, the explicit rule's bound: refused with the numbers, no folder; with
+    force written, each file opening with the WARNING and the notes saying it;
+    the position stack's defaults (normal mass 3 kg) export as they are."""
+    with pytest.raises(ConfigError, match=r"the right arm's pad axis z unstable: dt D/M = 2, .* = 1\.000") as err:
+        export_gains(None, "ros2-admittance", str(tmp_path / "r"))
+    assert err.value.inputs == ("gains", "force") and not (tmp_path / "r").exists()
+    assert "(and" not in str(err.value)  # the two normal axes, no more
+    r = export_gains(None, "ros2-admittance", str(tmp_path / "f"), force=True)
+    assert r.notes[0].startswith("WARNING: the admittance rule runs the right arm's pad axis z unstable")
+    for arm in ("right", "left"):
+        first = (tmp_path / "f" / f"admittance_{arm}.yaml").read_text().splitlines()[0]
+        assert first.startswith("# WARNING: the admittance rule runs the ") and "unstable" in first
+    assert main(["export", "--format", "ros2-admittance", "--out", str(tmp_path / "c")]) == 2
+    assert "(--gains, --force)" in capsys.readouterr().err
+    assert main(["export", "--format", "ros2-admittance", "--out", str(tmp_path / "c"), "--force"]) == 0
+    p = export_gains(None, "ros2-admittance", str(tmp_path / "p"), actuation="position")
+    assert not any(n.startswith("WARNING") for n in p.notes)
+    adm = yaml.safe_load((tmp_path / "p" / "admittance_right.yaml").read_text())
+    mass = adm["admittance_controller_right"]["ros__parameters"]["admittance"]["mass"]
+    assert max(mass) == pytest.approx(3.0, rel=1e-4)  # 1.5 (2 dt D + dt^2 K) / 4 on the normal axis
+    iiwa = os.path.join(ROBOTS, "iiwa14_twice.yaml")
+    with pytest.raises(ConfigError, match=r"pad axis z within its margin: dt D/M = 1\.63"):
+        export_gains(None, "ros2-admittance", str(tmp_path / "i"), model=iiwa, visual=False)

@@ -545,3 +545,19 @@ def test_gradient_through_steps_matches_finite_differences():
         return command.positions
 
     check_grads(final_command, (params,), order=1, modes=("rev",), eps=1e-6)
+
+
+def test_the_stability_index_is_the_one_axis_bound_and_deployable_mass_meets_the_margin():
+    """stability_index < 1 exactly where the one-axis recurrence is stable (K > 0);
+    deployable_mass raises a mass to index 1 / DEPLOY_MARGIN and leaves the rest."""
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        m, d, k = rng.uniform(0.05, 5.0), rng.uniform(0.0, 3000.0), rng.uniform(1.0, 5000.0)
+        index = float(ra.stability_index(m, d, k, DT))
+        if abs(index - 1.0) > 1e-9:
+            assert (index < 1.0) == ra.one_axis_stable(m, d, k, DT), (m, d, k, index)
+    mass = np.array([2.0, 2.0, 2.0, 0.05])
+    damping, stiffness = np.array([109.5, 2000.0, 2000.0, 2.8]), np.array([1500.0, 50.0, 50.0, 40.0])
+    raised = ra.deployable_mass(mass, damping, stiffness, DT)
+    np.testing.assert_allclose(ra.stability_index(raised, damping, stiffness, DT)[1:3], 1 / ra.DEPLOY_MARGIN)
+    assert raised[0] == 2.0 and raised[3] == 0.05 and raised[1] == pytest.approx(3.0, rel=1e-4)

@@ -18,6 +18,7 @@ def run(args) -> int:
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
         any_model=args.any_model,
         actuation=args.actuation,
+        force=args.force,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains (relative difference <= 1e-12)" if r.same else "DIFFERENT gains"))
@@ -61,6 +62,12 @@ def add_parser(subparsers):
         default="position",
         help=f"ros2-admittance: the joint command interfaces, comma-separated, of {list(COMMAND_INTERFACES)} "
         "(position)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="ros2-admittance: write gains the admittance rule would run unstably or within its margin, with a "
+        "WARNING in each file (refused otherwise)",
     )
     p.add_argument("--out", default="results/export", help="output folder (results/export)")
     p.set_defaults(func=run)

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import ros2_admittance as _ra
 from jaxsync.physics.inertia import pad_apparent_inertia
 from jaxsync.physics.servo import joint_inertia, servo_of
 
@@ -71,15 +72,18 @@ def default_gains(model=None, actuation: str = "torque") -> Gains:
     same with the normal-axis mass each arm's pad needs at the grasp
     (:func:`stable_defaults`). On position-controlled arms
     (``actuation="position"``) the inner loop's bandwidth is held below the
-    robot's slowest joint servo (:func:`position_loop_gains`). Every command and
-    library job takes a model's defaults from here.
+    robot's slowest joint servo (:func:`position_loop_gains`) and the masses
+    are raised where ros2_controllers' admittance rule would run them near its
+    stability bound (:func:`deployable_gains`). Every command and library job
+    takes a model's defaults from here.
 
     Example:
       >>> float(default_gains().imp_mass[0, 2])
       2.0
     """
     if actuation == "position" and model is not None:
-        return position_loop_gains(default_gains(model), model)
+        dt = float(model.mj_model.opt.timestep)
+        return deployable_gains(position_loop_gains(default_gains(model), model), dt)
     if model is not None and getattr(model, "robot", None) is not None:
         return stable_defaults(pad_apparent_inertia(model.mj_model), float(model.mj_model.opt.timestep))
     # Pad frame: x, y tangential, z along the normal. Soft along the normal
@@ -138,6 +142,17 @@ def position_loop_gains(g: Gains, model) -> Gains:
     if lam * SERVO_SEPARATION <= slowest:
         return g
     return g._replace(kp_pos=jnp.asarray(slowest / SERVO_SEPARATION * float(g.kd_pos) / 2.0))
+
+
+def deployable_gains(g: Gains, dt: float) -> Gains:
+    """``g`` with each impedance mass raised where ros2_controllers' admittance
+    rule, explicit in D and K, would run the axis at control period ``dt``
+    within its margin of instability
+    (``jaxsync.control.ros2_admittance.deployable_mass``: stable with D/M and
+    K/M raised 1.5 times). On the paper model's normal axis (D = 2000 N s/m,
+    2 ms) the mass goes from 2 to 3 kg; the other axes are far from it."""
+    mass = _ra.deployable_mass(np.asarray(g.imp_mass), np.asarray(g.imp_damping), np.asarray(g.imp_stiffness), dt)
+    return g._replace(imp_mass=jnp.asarray(mass, dtype=jnp.asarray(g.imp_mass).dtype))
 
 
 # ------------------------------------------------------- stable at the control period

@@ -393,6 +393,35 @@ def _one_axis_checked(mass, damping, stiffness, dt, joint_damping) -> tuple[floa
     return dt * (damping / mass + joint_damping), dt * dt * stiffness / mass
 
 
+DEPLOY_MARGIN = 1.5
+"""The margin an export asks of the deployed rule on every axis: stable with
+D/M and K/M raised this much (:func:`stability_index` <= 1 / DEPLOY_MARGIN).
+jaxsync's own stability ratio asks the same 1.5 of its own stack
+(``jaxsync.control.gains.STABILITY_MARGIN``)."""
+
+
+def stability_index(mass, damping, stiffness, dt: float, joint_damping=0.0):
+    """(2 dt d + dt^2 K/M) / 4, d = D/M + joint_damping, elementwise: the
+    rule's one-axis recurrence is stable below 1 (:func:`one_axis_stable`,
+    with K > 0) and rings at half the control rate at 1. Scaling D/M and K/M
+    by c scales it by c: 1 / index is the axis's margin.
+
+    Example:
+      >>> float(stability_index(2.0, 2000.0, 50.0, 0.002))  # the paper's normal axis
+      1.000025
+    """
+    m = np.asarray(mass, dtype=float)
+    d = np.asarray(damping, dtype=float) / m + joint_damping
+    return (2.0 * dt * d + dt * dt * np.asarray(stiffness, dtype=float) / m) / 4.0
+
+
+def deployable_mass(mass, damping, stiffness, dt: float, margin: float = DEPLOY_MARGIN):
+    """The mass, elementwise, raised where needed so that
+    ``stability_index`` <= 1 / ``margin``: M >= margin (2 dt D + dt^2 K) / 4."""
+    need = margin * (2.0 * dt * np.asarray(damping, dtype=float) + dt * dt * np.asarray(stiffness, dtype=float)) / 4.0
+    return np.maximum(np.asarray(mass, dtype=float), need)
+
+
 def one_axis_roots(mass: float, damping: float, stiffness: float, dt: float, joint_damping: float = 0.0) -> np.ndarray:
     """Characteristic roots (2,) complex of the rule on one axis.
 

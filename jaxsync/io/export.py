@@ -290,7 +290,7 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
     return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
 
 
-def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, target: Ros2Target) -> str:
+def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, target: Ros2Target, warnings=()) -> str:
     name = ARMS[arm]
     t = target.arms[arm]
     order = list(t.axes)  # the control (tip) frame's axes, each carrying a pad-frame axis
@@ -301,6 +301,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     when = f", task phase '{phase}'" if phase else ""
     normal = ", ".join(f"{x:.6g}" for x in t.normal)
     lines = [
+        *(f"# {w}" for w in warnings),
         f"# jaxsync gains for the {name} arm{when}, in the schema of {ADMITTANCE_SOURCE}",
         f"# ({target.distro}; docs/export.md cites the definition's commit). Every parameter without a default",
         f"# is set. Axis order x, y, z, rx, ry, rz of the control frame, the flange link '{t.tip}' (jaxsync's pad",
@@ -387,13 +388,14 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target) -> list[str]:
+def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()) -> list[str]:
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
     for arm, name in enumerate(ARMS):
         path = os.path.join(out, f"admittance_{name}.yaml")
-        _results.atomic_write_text(path, _admittance_yaml(g, arm, f"admittance_controller_{name}", phase, target))
+        text = _admittance_yaml(g, arm, f"admittance_controller_{name}", phase, target, warnings)
+        _results.atomic_write_text(path, text)
         paths.append(path)
     path = os.path.join(out, "synchronisation.yaml")
     _results.atomic_write_text(path, _sync_yaml(g, phase, target))
@@ -446,9 +448,10 @@ def _ros2_load(folder: str) -> Gains:
     return _gains.from_dict(d)
 
 
-def export(gains, fmt: str, out: str, target: Ros2Target | None = None) -> list[str]:
+def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings=()) -> list[str]:
     """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written.
-    ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default)."""
+    ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default);
+    ``warnings``: lines each admittance file opens with."""
     if fmt not in FORMATS:
         raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", inputs=("fmt",))
     if fmt == "ros2-admittance":
@@ -461,9 +464,9 @@ def export(gains, fmt: str, out: str, target: Ros2Target | None = None) -> list[
                 check_admittance(_schedule.phase(gains, i), p)
             paths = []
             for i, p in enumerate(_schedule.PHASES):
-                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target)
+                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target, warnings)
             return paths
-        return _ros2(gains, out, None, target)
+        return _ros2(gains, out, None, target, warnings)
     _results.ensure_writable_dir(out)
     doc = document(gains)
     path = os.path.join(out, f"gains.{fmt}")

@@ -13,7 +13,11 @@ from __future__ import annotations
 import os
 from typing import NamedTuple
 
+import numpy as np
+
 from jaxsync._errors import ConfigError
+from jaxsync.control import ros2_admittance as _ra
+from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
@@ -44,6 +48,7 @@ def export_gains(
     command_interfaces=("position",),
     any_model: bool = False,
     actuation: str = "torque",
+    force: bool = False,
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -56,7 +61,11 @@ def export_gains(
     on another model (unless ``any_model``). Every input is checked before
     anything is written. ``actuation``: the stack whose default gains are
     exported when ``gains`` is None ("position": held below the robot's joint
-    servos, ``jaxsync.control.gains.position_loop_gains``).
+    servos, ``jaxsync.control.gains.position_loop_gains``, with masses the
+    admittance rule runs stably). A ros2-admittance export is refused when
+    the admittance rule would run an axis of any phase unstable or within its
+    margin at the exported update rate (:func:`deployed_stability`); with
+    ``force`` it is written, each file and the notes saying so in a WARNING.
     """
     _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
@@ -78,7 +87,21 @@ def export_gains(
                 loaded.mj_model, loaded.robot, distro=distro, command_interfaces=tuple(command_interfaces)
             )
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
-    paths = _export.export(g, fmt, out, target)
+    warnings = []
+    if fmt == "ros2-admittance":
+        problems = deployed_stability(g, 1.0 / target.update_rate)
+        if problems and not force:
+            more = f" (and {len(problems) - 2} more axes or phases)" if len(problems) > 2 else ""
+            raise ConfigError(
+                "ros2-admittance: the admittance rule (explicit in D and K) would run "
+                + "; ".join(problems[:2])
+                + more
+                + ". Tune on position-controlled arms (jaxsync tune --actuation position), export a stack's "
+                "defaults (actuation='position'), or force it (docs/deploy.md)",
+                inputs=("gains", "force"),
+            )
+        warnings = [f"WARNING: the admittance rule runs {p}" for p in problems]
+    paths = _export.export(g, fmt, out, target, warnings=tuple(warnings))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
     if from_file:
         origin = str(gains)
@@ -92,7 +115,7 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g),
-        notes=_export.notes(g) if fmt == "ros2-admittance" else [],
+        notes=warnings + (_export.notes(g) if fmt == "ros2-admittance" else []),
     )
 
 
@@ -100,3 +123,35 @@ def _source_words(model) -> str:
     if isinstance(model, DualArmModel):
         return model.path
     return str(model) if model is not None else "the paper model"
+
+
+def deployed_stability(gains, dt: float) -> list[str]:
+    """Each axis, arm and phase of ``gains`` that ros2_controllers' admittance
+    rule would run at control period ``dt`` unstable or within its margin
+    (``jaxsync.control.ros2_admittance.stability_index`` above 1 /
+    ``DEPLOY_MARGIN``; joint_damping 0, as exported), as one phrase each,
+    worst first; [] when every axis is within it. Gains the controller cannot
+    hold at all (``jaxsync.io.export.check_admittance``) raise first."""
+    phases = (
+        [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
+        if isinstance(gains, _schedule.Schedule)
+        else [(None, gains)]
+    )
+    found = []
+    for phase, g in phases:
+        _export.check_admittance(g, phase)  # what the controller cannot hold at all, said first
+        when = f", phase {phase}" if phase else ""
+        m, d, k = (np.asarray(v, dtype=float) for v in (g.imp_mass, g.imp_damping, g.imp_stiffness))
+        index = _ra.stability_index(m, d, k, dt)
+        for arm, axis in zip(*np.nonzero(index * _ra.DEPLOY_MARGIN > 1.0), strict=True):
+            state = "unstable" if index[arm, axis] >= 1.0 else "within its margin"
+            found.append(
+                (
+                    float(index[arm, axis]),
+                    f"the {_export.ARMS[arm]} arm's pad axis {_export.AXES[axis]}{when} {state}: dt D/M = "
+                    f"{dt * d[arm, axis] / m[arm, axis]:.3g}, dt^2 K/M = {dt * dt * k[arm, axis] / m[arm, axis]:.3g}, "
+                    f"(2 dt D/M + dt^2 K/M) / 4 = {index[arm, axis]:.3f} (stable below 1; the margin asks <= "
+                    f"{1 / _ra.DEPLOY_MARGIN:.3f}; M = {m[arm, axis]:.4g} at dt = {dt:g} s)",
+                )
+            )
+    return [text for _, text in sorted(found, key=lambda f: -f[0])]

@@ -38,8 +38,8 @@ PAPER_SERVO = {"bandwidth": 25.0, "damping_ratio": 1.0}
 """The paper model's servo. The paper puts each joint under its own joint
 controller and gives no gains; 25 Hz, critically damped, is a stated
 assumption in the range of industrial arms' joint position loops (tens of
-Hz), the figure the one-axis model of the deployed stack in docs/deploy.md
-uses. A robot file states its own (``servo:``) or its MJCF has one."""
+Hz) (docs/deploy.md). A robot file states its own (``servo:``) or its MJCF
+has one."""
 
 GRASP_KEY = "grasp"
 
