@@ -94,6 +94,9 @@ def _check(path: str, distro: str, n_joints: int):
     assert len(params["joints"]) == n_joints
     assert params["ft_sensor"]["filter_coefficient"] == 1.0  # unfiltered, as simulated
     assert params["kinematics"]["plugin_package"] == "kinematics_interface"
+    assert params["kinematics"]["alpha"] == 0.01  # the damped least squares' alpha the position stack runs
+    if distro == "humble":
+        assert params["alpha"] == 0.01  # what Humble's KDL plugin reads
     if distro == "humble":
         assert "wrench_reference" not in open(path).read().split("Humble")[0]
     return params

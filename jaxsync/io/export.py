@@ -15,9 +15,8 @@ Formats (:data:`FORMATS`):
   zeta = D / (2 sqrt(M K))), and ``synchronisation.yaml`` with what the paper
   adds and the admittance controller has no parameter for (k_rk, k_lk, k_rl,
   k_ll, the inner position loop and the null-space gains), for a dual-arm
-  controller to read. The admittance controller has no gain schedules: a
-  schedule is exported one folder per phase. :func:`load` reads such a folder
-  back.
+  controller to read. A schedule is exported one folder per phase (the
+  admittance controller has none); :func:`load` reads such a folder back.
 
 Example:
   >>> paths = export(jaxsync.default_gains(), "yaml", "results/export")  # doctest: +SKIP
@@ -37,6 +36,7 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
+from jaxsync.control.joint_space import COMMAND_ALPHA
 from jaxsync.io import results as _results
 
 FORMATS = ("yaml", "json", "ros2-admittance")
@@ -335,6 +335,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
         "    kinematics:",
         f"      plugin_name: {KDL_PLUGIN[0]}",
         f"      plugin_package: {KDL_PLUGIN[1]}",
+        f"      alpha: {COMMAND_ALPHA!r}  # the damped least squares' alpha, as jaxsync's position stack runs it",
         f"      base: {t.base}",
         f"      tip: {t.tip}",
         "    ft_sensor:",
@@ -363,6 +364,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     ]
     if target.distro == "humble":
         lines.append('    robot_description: ""  # Humble reads the URDF here: your launch file sets it')
+        lines.append(f"    alpha: {COMMAND_ALPHA!r}  # Humble's KDL plugin reads this one, not kinematics.alpha")
     return "\n".join(lines) + "\n"
 
 
@@ -403,7 +405,6 @@ def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()
 
 
 def _read_yaml(path: str):
-
     try:
         with open(path) as f:
             return yaml.safe_load(f)
