@@ -115,8 +115,18 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g),
-        notes=warnings + (_export.notes(g) if fmt == "ros2-admittance" else []),
+        notes=warnings + (_export.notes(g) + _distro_notes(distro) if fmt == "ros2-admittance" else []),
     )
+
+
+def _distro_notes(distro: str) -> list[str]:
+    if distro != "humble":
+        return []
+    return [
+        "Humble's admittance controller has no wrench set-point (~/wrench_reference is Jazzy's and later): "
+        "it cannot be told the grip force f_d the gains were tuned to hold; it complies toward zero force "
+        "unless your reference trajectory squeezes the object"
+    ]
 
 
 def _source_words(model) -> str:
