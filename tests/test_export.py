@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -74,7 +75,8 @@ def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
     assert params["control"]["frame"]["id"] == "l_ee" and params["ft_sensor"]["frame"]["id"] == "l_ee"
     assert adm["selected_axes"] == [True] * 6
     m, k, zeta = (np.array(adm[key]) for key in ("mass", "stiffness", "damping_ratio"))
-    np.testing.assert_allclose(m, np.asarray(g.imp_mass)[1], rtol=0)
+    # the paper model's flange frame is its pad frame; the mass is per axis of the base (pad y, z, x)
+    np.testing.assert_allclose(m, np.asarray(g.imp_mass)[1][[1, 2, 0, 4, 5, 3]], rtol=0)
     np.testing.assert_allclose(k, np.asarray(g.imp_stiffness)[1], rtol=0)
     np.testing.assert_allclose(2 * zeta * np.sqrt(m * k), np.asarray(g.imp_damping)[1], rtol=1e-14)
     text = (tmp_path / "admittance_left.yaml").read_text()
@@ -134,25 +136,40 @@ def test_ros2_refuses_what_the_admittance_controller_cannot_hold(tmp_path, capsy
 
 
 def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
-    """joint_damping 0 (jaxsync's law has none), the missing force set-point named,
-    and a note when the mass is anisotropic (the controller applies it in the base frame)."""
+    """joint_damping 0 (jaxsync's law has none), the missing force set-point
+    named; the mass written per axis of kinematics.base, where Jazzy and
+    Humble apply it: on the paper model the pad's normal (z) lies along the
+    base's y at the grasp, so the normal mass sits in column y of the mass
+    while stiffness and damping stay in the flange link's axis order, and the
+    controller's D = 2 zeta sqrt(M K), formed entry by entry, is the tuned D."""
     _export.export(_gains.default_gains(), "ros2-admittance", str(tmp_path / "d"))
     text = (tmp_path / "d" / "admittance_right.yaml").read_text()
     params = yaml.safe_load(text)["admittance_controller_right"]["ros__parameters"]
     assert params["admittance"]["joint_damping"] == 0.0 and "f_d" in text and "kinematics.base" in text
-    assert _export.notes(_gains.default_gains()) == []  # isotropic per block: nothing to say
     tuned = _tuned_like()
-    notes = _export.notes(tuned)
-    assert len(notes) == 1 and notes[0].startswith(
-        "M_d differs between the axes of a block by up to 16 % (right arm, x, y, z:"
-    )
+    target = _export.ros2_target(jaxsync.load_model().mj_model)
+    right = target.arms[0]
+    assert right.base_axes == (1, 2, 0, 4, 5, 3)  # base x, y, z carry the pad's y, z (normal), x
+    paths = _export.export(tuned, "ros2-admittance", str(tmp_path / "e"), target)
+    adm = yaml.safe_load(open(paths[0]).read())["admittance_controller_right"]["ros__parameters"]["admittance"]
+    m_pad = np.asarray(tuned.imp_mass)[0]
+    np.testing.assert_allclose(adm["mass"], m_pad[[1, 2, 0, 4, 5, 3]], rtol=1e-15)
+    k = np.asarray(adm["stiffness"])
+    d = 2 * np.asarray(adm["damping_ratio"]) * np.sqrt(np.asarray(adm["mass"]) * k)  # what the controller forms
+    order = list(right.axes)
+    np.testing.assert_allclose(d, np.asarray(tuned.imp_damping)[0][order], rtol=1e-12)
+    _same(_export.load(str(tmp_path / "e")), tuned, rtol=1e-12)
     src = tmp_path / "g.json"
     src.write_text(json.dumps({"gains": _schedule.to_file_dict(tuned)}))
-    assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "e")]) == 0
+    assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "f")]) == 0
     out = capsys.readouterr().out
-    assert out.count("note: ") == 1 and "the same gains" in out
-    tiny = _gains.default_gains()._replace(imp_mass=_gains.default_gains().imp_mass.at[0, 1].multiply(1.005))
-    assert _export.notes(tiny) == []  # a spread under 1 % is no news
+    assert "note: " not in out and "the same gains" in out
+    # a pad frame not aligned with the base: only a mass equal on a block's axes has a base-frame form
+    tilted = dataclasses.replace(right, base_axes=None)
+    with pytest.raises(ConfigError, match=r"right arm's pad frame is not aligned with kinematics.base .* x, y, z"):
+        _export.mass_in_base(tuned, 0, tilted)
+    iso = _gains.default_gains()
+    np.testing.assert_array_equal(_export.mass_in_base(iso, 0, tilted), np.asarray(iso.imp_mass)[0])
 
 
 def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path, capsys):
@@ -171,7 +188,7 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
     r = export_gains(str(src), "yaml", str(tmp_path / "y"))  # yaml carries any controller's gains
     assert r == Exported([str(tmp_path / "y" / "gains.yaml")], "constant gains", str(src), True, [])
     r = export_gains(_tuned_like(), "ros2-admittance", str(tmp_path / "t"))
-    assert r.same and r.origin == "the given gains" and len(r.notes) == 1 and len(r.paths) == 3
+    assert r.same and r.origin == "the given gains" and r.notes == [] and len(r.paths) == 3
     r = export_gains(None, "json", str(tmp_path / "d"))
     assert r.origin == "the default gains of the paper model" and r.same
     with pytest.raises(ConfigError, match="^command_interfaces must name position") as err:

@@ -25,7 +25,6 @@ Example:
 
 from __future__ import annotations
 
-import dataclasses
 import os
 
 import jax.numpy as jnp
@@ -38,10 +37,20 @@ from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
 from jaxsync.control.joint_space import COMMAND_ALPHA
 from jaxsync.io import results as _results
+from jaxsync.io.ros2_target import (  # noqa: F401  (jaxsync.io.export's public names)
+    ARMS,
+    COMMAND_INTERFACES,
+    CONTROLLER_TYPE,
+    DISTROS,
+    KDL_PLUGIN,
+    ArmTarget,
+    Ros2Target,
+    mass_in_base,
+    ros2_target,
+)
 
 FORMATS = ("yaml", "json", "ros2-admittance")
 AXES = ("x", "y", "z", "rx", "ry", "rz")
-ARMS = ("right", "left")
 # jaxsync name -> (the paper's symbol, unit)
 MEANING = {
     "imp_mass": ("M_d (eqs. 8-10, 15)", "kg for x, y, z; kg m^2 for rx, ry, rz"),
@@ -159,144 +168,14 @@ def check_admittance(g: Gains, phase: str | None = None) -> None:
                 raise ConfigError(f"ros2-admittance: damping {bi:g} of the {where} must be finite and >= 0")
 
 
-# a mass spread between the axes of one block (x, y, z or rx, ry, rz) worth a note, relative
-MASS_SPREAD_NOTE = 0.01
-
-
-def notes(gains) -> list[str]:
-    """What the user should know about exporting these gains to the admittance controller
-    beyond what every export says (docs/export.md): at most one line, when M_d differs
-    between the axes of a block by more than :data:`MASS_SPREAD_NOTE`."""
-    phases = (
-        [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
-        if isinstance(gains, _schedule.Schedule)
-        else [(None, gains)]
-    )
-    worst = (0.0, "")
-    for phase, g in phases:
-        m = np.asarray(g.imp_mass, dtype=float)
-        for arm, name in enumerate(ARMS):
-            for part, cols in (("x, y, z", slice(0, 3)), ("rx, ry, rz", slice(3, 6))):
-                v = m[arm, cols]
-                spread = float(v.max() / v.min() - 1.0)
-                if spread > worst[0]:
-                    when = f", phase {phase}" if phase else ""
-                    worst = (spread, f"{name} arm, {part}{when}: {', '.join(f'{x:.4g}' for x in v)}")
-    if worst[0] <= MASS_SPREAD_NOTE:
-        return []
-    return [
-        f"M_d differs between the axes of a block by up to {100 * worst[0]:.0f} % ({worst[1]}): the admittance "
-        "controller applies its mass per axis of kinematics.base, not of the control frame, so it matches "
-        "jaxsync only while the pad frame is aligned with the base frame (docs/export.md)"
-    ]
-
-
-DISTROS = ("jazzy", "humble")
-COMMAND_INTERFACES = ("position", "velocity")
-KDL_PLUGIN = ("kinematics_interface_kdl/KinematicsInterfaceKDL", "kinematics_interface")  # name, package
-CONTROLLER_TYPE = "admittance_controller/AdmittanceController"
-
-
-@dataclasses.dataclass(frozen=True)
-class ArmTarget:
-    """What one arm's admittance controller needs from the robot (``ros2_target``)."""
-
-    joints: tuple[str, ...]
-    base: str  # kinematics.base and the fixed world frame: the link the arm is mounted on
-    tip: str  # kinematics.tip, the control, sensor and gravity-compensation frame: the flange's link
-    axes: tuple[int, ...]  # for each of the tip frame's 6 axes, the pad-frame axis it carries
-    cog: tuple[float, float, float]  # the end effector's centre of mass in the tip frame, m
-    weight: float  # the end effector's weight, N (what jaxsync's wrist sensor compensates)
-    normal: tuple[float, float, float]  # the pad normal (into the object) in the tip frame
-    ft_sensor: str
-
-
-@dataclasses.dataclass(frozen=True)
-class Ros2Target:
-    arms: tuple[ArmTarget, ArmTarget]
-    distro: str = "jazzy"
-    command_interfaces: tuple[str, ...] = ("position",)
-    update_rate: int = 500  # Hz: the control rate the gains were tuned at
-
-
-def _signed_permutation(R: np.ndarray, what: str) -> tuple[int, ...]:
-    """Row i (a tip-frame axis) carries pad axis argmax |R[i]|; refused unless R is a signed permutation."""
-    idx = np.argmax(np.abs(R), axis=1)
-    if not (np.allclose(np.abs(R[np.arange(3), idx]), 1.0, atol=1e-6) and len(set(idx.tolist())) == 3):
-        raise ConfigError(
-            f"ros2-admittance: the {what}'s pad frame is not aligned with its flange link's axes (up to a "
-            "signed permutation), so its per-axis gains have no per-axis form in that link's frame: give the "
-            "robot file a flange body whose axes match the flange site"
-        )
-    return tuple(int(i) for i in idx)
-
-
-def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_interfaces=("position",),
-                ft_sensors=None) -> Ros2Target:  # fmt: skip
-    """The robot facts the admittance controller's parameters take, from a
-    loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
-    paper model's MJCF names). A robot file's names are its own, each arm's
-    joints and links (base, tip: every frame the files name) with the arm's
-    ``ros_prefix`` before them."""
-    # imported here, not at the top: the export of yaml/json gains needs no MuJoCo
-    import mujoco  # noqa: PLC0415
-
-    from jaxsync.physics import robot_names  # noqa: PLC0415
-    from jaxsync.physics.inertia import arm_joint_ids  # noqa: PLC0415
-
-    if distro not in DISTROS:
-        raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", inputs=("distro",))
-    bad = [c for c in command_interfaces if c not in COMMAND_INTERFACES]
-    if bad or not command_interfaces:
-        raise ConfigError(
-            f"command_interfaces must name position and/or velocity (the joint commands the admittance "
-            f"controller writes), got {list(command_interfaces)}",
-            inputs=("command_interfaces",),
-        )
-    d = mujoco.MjData(m)
-    mujoco.mj_kinematics(m, d)
-    ident = lambda kind, name: mujoco.mj_name2id(m, kind, name)  # noqa: E731
-    arms = []
-    for side, name in (("r", "right"), ("l", "left")):
-        ee = ident(mujoco.mjtObj.mjOBJ_BODY, f"{side}_ee")
-        pad = ident(mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
-        tip_id = int(m.body_parentid[ee]) if robot is not None else ee
-        R_tip = d.xmat[tip_id].reshape(3, 3)
-        R = R_tip.T @ d.site_xmat[pad].reshape(3, 3)  # pad axes (columns) in the tip frame
-        perm = _signed_permutation(R, f"{name} arm")
-        cog = R_tip.T @ (d.xipos[ee] - d.xpos[tip_id])
-        if robot is not None:
-            ros = robot_names.ros_prefix(m, name)  # arms.<side>.ros_prefix; a base of "world" is everyone's
-            joints, links = tuple(ros + j for j in robot.joint_names[name]), robot.links[name]
-            base, tip = links["base"] if links["base"] == "world" else ros + links["base"], ros + links["tip"]
-        else:
-            jids = arm_joint_ids(m, side)
-            joints = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in jids)
-            base = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.body_parentid[m.jnt_bodyid[jids[0]]]))
-            tip = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, ee)
-        sensor = (ft_sensors or {}).get(name, f"{name}_ft_sensor")
-        arms.append(
-            ArmTarget(
-                joints,
-                base,
-                tip,
-                perm + tuple(3 + i for i in perm),
-                tuple(float(x) for x in cog),
-                float(m.body_mass[ee] * 9.81),
-                tuple(float(x) for x in R[:, 2]),
-                sensor,
-            )  # fmt: skip
-        )
-    return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
-
-
 def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, target: Ros2Target, warnings=()) -> str:
     name = ARMS[arm]
     t = target.arms[arm]
     order = list(t.axes)  # the control (tip) frame's axes, each carrying a pad-frame axis
-    m = np.asarray(g.imp_mass, dtype=float)[arm][order]
     b = np.asarray(g.imp_damping, dtype=float)[arm][order]
     k = np.asarray(g.imp_stiffness, dtype=float)[arm][order]
+    m = mass_in_base(g, arm, t)
+    # the controller forms D = 2 zeta sqrt(M K) entry by entry from the arrays as written
     zeta = b / (2.0 * np.sqrt(m * k))  # check_admittance: K > 0 here
     when = f", task phase '{phase}'" if phase else ""
     normal = ", ".join(f"{x:.6g}" for x in t.normal)
@@ -317,7 +196,8 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
             else "Humble's admittance controller has no wrench set-point (Jazzy and later: ~/wrench_reference)."
         ),
         *([f"# force = f_d * [{normal}], docs/export.md)."] if target.distro != "humble" else []),
-        "# It applies stiffness and damping in the control frame but the mass per axis of kinematics.base",
+        "# It applies stiffness and damping in the control frame but the mass per axis of kinematics.base:",
+        "# mass is in the base's axis order, each pad axis's mass on the base axis it lies along at the grasp",
         "# (docs/export.md). joint_damping is 0: jaxsync's law has none (the default, 5, adds joint-space",
         "# damping the tuned gains did not see). ft_sensor.filter_coefficient is 1.0: the simulation read the",
         "# sensor unfiltered (the default, 0.05, is a low-pass filter it never modelled).",
@@ -387,6 +267,9 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
     for arm, name in enumerate(ARMS):
         lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
+    lines.append("    # for each kinematics.base axis of admittance_<arm>.yaml's mass, the pad-frame axis it carries")
+    for arm, name in enumerate(ARMS):
+        lines.append(f"    mass_axes_{name}: {list(target.arms[arm].base_axes or target.arms[arm].axes)}")
     return "\n".join(lines) + "\n"
 
 
@@ -440,10 +323,13 @@ def _ros2_load(folder: str) -> Gains:
         if sorted(axes) != list(range(6)):
             raise ConfigError(f"{path}: pad_axes_{name} must order the 6 axes 0-5, got {axes}")
         inv = np.argsort(axes)  # pad axis j sits at control-frame position inv[j]
-        m, zeta, k = m[inv], zeta[inv], k[inv]
-        fields.setdefault("imp_mass", []).append(m)
-        fields.setdefault("imp_stiffness", []).append(k)
-        fields.setdefault("imp_damping", []).append(2.0 * zeta * np.sqrt(m * k))
+        mass_axes = sync.get(f"mass_axes_{name}", axes)
+        if sorted(mass_axes) != list(range(6)):
+            raise ConfigError(f"{path}: mass_axes_{name} must order the 6 axes 0-5, got {mass_axes}")
+        d = 2.0 * zeta * np.sqrt(m * k)  # as the controller forms it, entry by entry
+        fields.setdefault("imp_mass", []).append(m[np.argsort(mass_axes)])
+        fields.setdefault("imp_stiffness", []).append(k[inv])
+        fields.setdefault("imp_damping", []).append(d[inv])
     d = {k: np.stack(v).tolist() for k, v in fields.items()}
     d.update({k: sync[k] for k in SYNC_FIELDS + BASELINE_FIELDS if k in sync})
     return _gains.from_dict(d)

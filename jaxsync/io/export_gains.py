@@ -115,7 +115,7 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g),
-        notes=warnings + (_export.notes(g) + _distro_notes(distro) if fmt == "ros2-admittance" else []),
+        notes=warnings + (_distro_notes(distro) if fmt == "ros2-admittance" else []),
     )
 
 
