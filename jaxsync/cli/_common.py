@@ -29,16 +29,15 @@ def positive(kind):
     return parse
 
 
-def controller_list(minimum: int = 1):
-    """An argparse type: comma-separated controller names, each known, none twice, at least ``minimum``."""
+def controller_list(minimum: int = 1, known=CONTROLLER_NAMES):
+    """An argparse type: comma-separated controller names, each ``known``,
+    none twice, at least ``minimum``."""
 
     def parse(text):
         names = [n.strip() for n in text.split(",") if n.strip()]
-        unknown = [n for n in names if n not in CONTROLLER_NAMES]
+        unknown = [n for n in names if n not in known]
         if unknown:
-            raise argparse.ArgumentTypeError(
-                f"unknown controller(s) {', '.join(unknown)}; known: {', '.join(CONTROLLER_NAMES)}"
-            )
+            raise argparse.ArgumentTypeError(f"unknown controller(s) {', '.join(unknown)}; known: {', '.join(known)}")
         if len(set(names)) != len(names):
             raise argparse.ArgumentTypeError(f"a controller is named twice in {text!r}")
         if len(names) < minimum:

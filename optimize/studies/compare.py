@@ -13,9 +13,10 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import compliance as _compliance
+from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import default_gains, stability_ratio
+from jaxsync.control.names import ALL_CONTROLLERS, POSITION_ONLY
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies.compare_video import compare_video
@@ -75,7 +76,7 @@ def run(
 ):
     """Roll out each controller on ``stack``; return ``{name: (trajectory, metrics)}``."""
     check_duration(scenario, duration)
-    controllers = check_controllers(controllers)
+    controllers = check_controllers(controllers, stack)
     results = {}
     for i, name in enumerate(controllers):
         compiles = " (compiled first, unless the compilation cache holds it)" if backend == "mjx" and i == 0 else ""
@@ -116,17 +117,20 @@ SETTLED_KEYS = ("settled_peak_resultant_N", "mean_grip_force_N", "grip_force_err
 
 def controllers_of(summary: dict) -> list[str]:
     """The controllers a comparison's summary holds, in its order."""
-    return list(summary.get("controllers") or [n for n in CONTROLLERS if n in summary])
+    return list(summary.get("controllers") or [n for n in ALL_CONTROLLERS if n in summary])
 
 
-def check_controllers(controllers) -> tuple[str, ...]:
-    """At least two distinct known controller names, as a tuple (else ConfigError naming them)."""
+def check_controllers(controllers, stack: Stack = TORQUE) -> tuple[str, ...]:
+    """At least two distinct known controller names that run on ``stack``, as
+    a tuple (else ConfigError naming them)."""
     names = tuple(controllers)
-    unknown = [n for n in names if n not in CONTROLLERS]
+    unknown = [n for n in names if n not in ALL_CONTROLLERS]
     if unknown:
-        raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(CONTROLLERS)}")
+        raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(ALL_CONTROLLERS)}")
     if len(names) < 2 or len(set(names)) != len(names):
         raise ConfigError(f"--controllers must name at least two different controllers, got {', '.join(names)}")
+    for n in names:
+        _ros2_loop.check_actuation(n, stack.actuation)
     return names
 
 
@@ -311,7 +315,7 @@ def paper_comparison(
     Returns the summary and the files.
     """
     check_duration(scenario, duration)
-    controllers = check_controllers(controllers)
+    controllers = check_controllers(controllers, stack)
     if video_speed is not None:  # say now, not after the rollouts, when no OpenGL backend can render it
         select_gl_backend()
     _results.ensure_writable_dir(out)
@@ -321,7 +325,11 @@ def paper_comparison(
     )
     # a schedule has one stiffness per phase: none recorded
     constant = not isinstance(gains, _schedule.Schedule)
-    stiffness = {n: _compliance.stiffness_at_pad(model, n, gains) if constant else None for n in controllers}
+    # ros2_admittance's offsets come from joint space, not the Cartesian probe: none recorded
+    stiffness = {
+        n: _compliance.stiffness_at_pad(model, n, gains) if constant and n not in POSITION_ONLY else None
+        for n in controllers
+    }
     summary = write_results(
         out,
         results,
