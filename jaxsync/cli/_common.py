@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from jaxsync.control.names import ALL_CONTROLLERS  # noqa: F401 (compare's --controllers: any of these)
 from jaxsync.control.names import CONTROLLERS as CONTROLLER_NAMES
 
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)

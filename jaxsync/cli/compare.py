@@ -6,6 +6,7 @@ import argparse
 import sys
 
 from jaxsync.cli._common import (
+    ALL_CONTROLLERS,
     EXIT_DROPPED,
     EXIT_SIM_TO_SIM,
     EXIT_UNSTABLE,
@@ -18,7 +19,6 @@ from jaxsync.cli._common import (
     positive,
     stack_of,
 )
-from jaxsync.control.names import ALL_CONTROLLERS
 
 
 def run(args: argparse.Namespace) -> int:

@@ -41,11 +41,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxsync._errors import ConfigError
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import so3 as _so3
-from jaxsync.control.names import POSITION_ONLY
+from jaxsync.control.names import check_actuation  # noqa: F401 (re-exported)
 from jaxsync.physics.sensing import ArmState
 
 DEFAULT_DISTRO = "jazzy"
@@ -66,18 +65,6 @@ def init(q0: jax.Array) -> Ros2State:
     n = q0.shape[0] // 2
     one = _ra.admittance_rule(DEFAULT_DISTRO).init(n)
     return Ros2State(q_ref=q0.reshape(2, n), rule=jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), one))
-
-
-def check_actuation(controller: str, actuation: str) -> None:
-    """ConfigError unless ``controller`` runs on ``actuation``: the ros2
-    admittance rule makes joint position commands, so it needs
-    position-controlled arms."""
-    if controller in POSITION_ONLY and actuation != "position":
-        raise ConfigError(
-            f"controller {controller!r} runs on position-controlled arms only (actuation='position'): it is "
-            f"ros2_controllers' admittance rule, which writes joint position commands; got actuation={actuation!r}",
-            inputs=("controller", "actuation"),
-        )
 
 
 def params(gains, arm: int) -> _ra.AdmittanceParams:

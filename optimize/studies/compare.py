@@ -13,10 +13,9 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import compliance as _compliance
-from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import default_gains, stability_ratio
-from jaxsync.control.names import ALL_CONTROLLERS, POSITION_ONLY
+from jaxsync.control.names import ALL_CONTROLLERS, check_actuation
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies.compare_video import compare_video
@@ -121,16 +120,14 @@ def controllers_of(summary: dict) -> list[str]:
 
 
 def check_controllers(controllers, stack: Stack = TORQUE) -> tuple[str, ...]:
-    """At least two distinct known controller names that run on ``stack``, as
-    a tuple (else ConfigError naming them)."""
+    """At least two distinct known controller names that run on ``stack``, as a tuple (else ConfigError)."""
     names = tuple(controllers)
     unknown = [n for n in names if n not in ALL_CONTROLLERS]
     if unknown:
         raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(ALL_CONTROLLERS)}")
     if len(names) < 2 or len(set(names)) != len(names):
         raise ConfigError(f"--controllers must name at least two different controllers, got {', '.join(names)}")
-    for n in names:
-        _ros2_loop.check_actuation(n, stack.actuation)
+    check_actuation(names, stack.actuation)
     return names
 
 
@@ -310,9 +307,8 @@ def paper_comparison(
     on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C with
     the last controller (:func:`jaxsync.sim.crosscheck.sim_to_sim`, recorded as
     ``summary["sim_to_sim"]``). Every input is checked before ``out`` is
-    created. ``stack``: the arms' actuation, control rate and delay
-    (``jaxsync.sim.actuation.Stack``; the scenario carries the delay).
-    Returns the summary and the files.
+    created. ``stack``: the arms' actuation, control rate and delay (``jaxsync.sim.actuation.Stack``; the
+    scenario carries the delay), which each controller must run on. Returns the summary and the files.
     """
     check_duration(scenario, duration)
     controllers = check_controllers(controllers, stack)
@@ -325,11 +321,7 @@ def paper_comparison(
     )
     # a schedule has one stiffness per phase: none recorded
     constant = not isinstance(gains, _schedule.Schedule)
-    # ros2_admittance's offsets come from joint space, not the Cartesian probe: none recorded
-    stiffness = {
-        n: _compliance.stiffness_at_pad(model, n, gains) if constant and n not in POSITION_ONLY else None
-        for n in controllers
-    }
+    stiffness = {n: _compliance.stiffness_at_pad(model, n, gains) if constant else None for n in controllers}
     summary = write_results(
         out,
         results,
