@@ -62,25 +62,29 @@ def _holds(m):
 
 def test_the_rule_holds_the_ball_on_position_controlled_arms(loop_runs):
     """Measured (2026-12-04, delay 1): settled peak resultant 0.082 N, grip
-    error 0.07 %, at most 3.4 % in the settled window."""
+    error 0.07 %, at most 3.4 % in the settled window, the pads within 0.7 mm
+    of the plan while the object is held."""
     traj, m = loop_runs["default"]
     assert _holds(m)
     assert float(m.grip_force_error_rel) < 0.01
     assert float(m.grip_force_error_rel_max) < 0.06
     assert float(m.settled_peak_resultant_N) < 0.15
     assert not np.asarray(traj.at_torque_limit).any()
-    # the pads stay near the plan: the compliance moves them by millimetres
+    # the pads stay near the plan: the compliance moves them by a fraction of a millimetre
     hold = np.asarray(traj.phase) == 3
-    assert np.abs(np.asarray(traj.pad_pos - traj.plan_pad_pos))[hold].max() < 5e-3
+    assert np.abs(np.asarray(traj.pad_pos - traj.plan_pad_pos))[hold].max() < 2e-3
 
 
 def test_the_rule_fails_past_its_explicit_bound(loop_runs):
     """dt D/M on the pad normal (D = 2000 N s/m, 2 ms): 1.33 at 3 kg holds
     the ball quietly; 2.00 at 2 kg (the bound) still holds it in this loop
-    but rings; 2.22 at 1.8 kg, past it, loses the grip."""
+    but rings (measured: settled peak resultant 0.083 N against 0.038 N,
+    force chatter 0.22 N against 0.11 N); 2.22 at 1.8 kg, past it, loses the
+    grip (forces up to 455 N, then the ball falls)."""
     m3, m2, m18 = (loop_runs[k][1] for k in (3.0, 2.0, 1.8))
     assert _holds(m3) and _holds(m2)
     assert float(m2.settled_peak_resultant_N) > 1.5 * float(m3.settled_peak_resultant_N)
+    assert float(m2.force_chatter_N) > 1.5 * float(m3.force_chatter_N)
     assert bool(m18.chattering) or bool(m18.nonfinite) or bool(m18.dropped)
 
 
