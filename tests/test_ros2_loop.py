@@ -226,3 +226,31 @@ def test_the_gains_map_to_the_exports_parameters(model):
         assert float(p.cog_force) == 0.0 and float(p.joint_damping) == 0.0
         assert float(p.filter_coefficient) == 1.0 and float(p.alpha) == _joint_space.COMMAND_ALPHA
     assert set(USED["ros2_admittance"]) == {"imp_mass", "imp_damping", "imp_stiffness"}
+
+
+def test_a_period_is_differentiable_in_the_gains(model):
+    """Two periods from the start (q_ref at the sensed joints): finite
+    gradients of the commands in every gain the loop reads."""
+    rng = np.random.default_rng(0)
+    arms = (_arm(rng), _arm(rng))
+    ref = _controller.Reference(
+        pad_pos=jnp.stack([a.pad_pos for a in arms]),
+        pad_rot=jnp.stack([a.pad_rot for a in arms]),
+        pad_vel=jnp.zeros((2, 6)),
+        pad_acc=jnp.zeros((2, 6)),
+        wrench=jnp.ones((2, 6)),
+        q_rest=jnp.zeros((2, 7)),
+    )
+    q0 = jnp.concatenate([a.q for a in arms])
+    options = _controller.ControllerOptions(kind="ros2_admittance")
+
+    def loss(g):
+        state, command = _controller.init(q0), q0
+        for _ in range(2):
+            command, state, _ = _controller.step_position(options, g, state, arms, ref, 0.002, command)
+        return jnp.sum(command**2)
+
+    grad = jax.jit(jax.grad(loss))(jaxsync.default_gains(model, "position"))
+    for name in ("imp_mass", "imp_damping", "imp_stiffness", "kp_pos", "kd_pos", "kp_null", "kd_null"):
+        assert np.all(np.isfinite(np.asarray(getattr(grad, name)))), name
+    assert float(jnp.abs(grad.imp_mass).max()) > 0.0
