@@ -115,6 +115,7 @@ def test_compare_rejects_bad_input(tmp_path, capsys):
         (["--actuation", "position", "--delay", "-1"], "within 0..8"),
         (["--actuation", "position", "--control-rate", "300"], "divide the physics rate 500 Hz"),
         (["--actuation", "velocity"], "invalid choice: 'velocity'"),
+        (["--controllers", "classical,ros2_admittance"], "'ros2_admittance' runs on position-controlled arms only"),
     ]
     for args, message in cases:  # in this process (the console script itself: tests/test_model.py)
         try:

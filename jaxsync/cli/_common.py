@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from jaxsync.control.names import ALL_CONTROLLERS  # noqa: F401 (compare's --controllers: any of these)
 from jaxsync.control.names import CONTROLLERS as CONTROLLER_NAMES
 
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
@@ -29,16 +30,15 @@ def positive(kind):
     return parse
 
 
-def controller_list(minimum: int = 1):
-    """An argparse type: comma-separated controller names, each known, none twice, at least ``minimum``."""
+def controller_list(minimum: int = 1, known=CONTROLLER_NAMES):
+    """An argparse type: comma-separated controller names, each ``known``,
+    none twice, at least ``minimum``."""
 
     def parse(text):
         names = [n.strip() for n in text.split(",") if n.strip()]
-        unknown = [n for n in names if n not in CONTROLLER_NAMES]
+        unknown = [n for n in names if n not in known]
         if unknown:
-            raise argparse.ArgumentTypeError(
-                f"unknown controller(s) {', '.join(unknown)}; known: {', '.join(CONTROLLER_NAMES)}"
-            )
+            raise argparse.ArgumentTypeError(f"unknown controller(s) {', '.join(unknown)}; known: {', '.join(known)}")
         if len(set(names)) != len(names):
             raise argparse.ArgumentTypeError(f"a controller is named twice in {text!r}")
         if len(names) < minimum:

@@ -6,7 +6,7 @@ import argparse
 import sys
 
 from jaxsync.cli._common import (
-    CONTROLLER_NAMES,
+    ALL_CONTROLLERS,
     EXIT_DROPPED,
     EXIT_SIM_TO_SIM,
     EXIT_UNSTABLE,
@@ -96,10 +96,11 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--controllers",
-        type=controller_list(minimum=2),
+        type=controller_list(minimum=2, known=ALL_CONTROLLERS),
         default=["classical", "synchronous"],
         help="comma-separated controllers to roll out, the first the reference of the ratios "
-        f"(default classical,synchronous; any of {', '.join(CONTROLLER_NAMES)})",
+        f"(default classical,synchronous; any of {', '.join(ALL_CONTROLLERS)}; ros2_admittance with "
+        "--actuation position only)",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     add_stack_arguments(p)

@@ -12,6 +12,9 @@ by an internal-force PI loop (Chiacchio, Chiaverini, Siciliano 1996;
 Caccavale, Chiacchio, Chiaverini 2000).
 Every one computes the offset of the planned pad poses from the same
 sensing and ends in the same joint-space law (eqs. 18, 19).
+On position-controlled arms only (``jaxsync.control.ros2_loop``):
+``ros2_admittance``: ros2_controllers' admittance rule per arm, as deployed,
+offsetting a reference joint trajectory that follows the plan.
 """
 
 from __future__ import annotations
@@ -26,10 +29,12 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import baselines as _baselines
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import joint_space as _joint_space
+from jaxsync.control import ros2_admittance as _ra
+from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import Gains
-from jaxsync.control.names import CONTROLLERS  # re-exported: jaxsync.CONTROLLERS
+from jaxsync.control.names import ALL_CONTROLLERS, CONTROLLERS, POSITION_ONLY  # re-exported: jaxsync.CONTROLLERS
 from jaxsync.physics.sensing import ArmState
 
 
@@ -39,18 +44,21 @@ class ControllerOptions:
 
     Example:
       >>> ControllerOptions(kind="classical")
-      ControllerOptions(kind='classical', cross_term='squeeze')
+      ControllerOptions(kind='classical', cross_term='squeeze', distro='jazzy')
     """
 
-    kind: str = "synchronous"  # one of CONTROLLERS
+    kind: str = "synchronous"  # one of ALL_CONTROLLERS
     cross_term: str = "squeeze"  # eq. 16's T_ij e_j, see jaxsync.control.sync.CROSS_TERMS
+    distro: str = _ros2_loop.DEFAULT_DISTRO  # ros2_admittance's release (ros2_admittance.DISTROS)
 
     def __post_init__(self):
 
-        if self.kind not in CONTROLLERS:
-            raise ConfigError(f"controller must be one of {CONTROLLERS}, got {self.kind!r}")
+        if self.kind not in ALL_CONTROLLERS:
+            raise ConfigError(f"controller must be one of {ALL_CONTROLLERS}, got {self.kind!r}")
         if self.cross_term not in _sync.CROSS_TERMS:
             raise ConfigError(f"cross_term must be one of {_sync.CROSS_TERMS}, got {self.cross_term!r}")
+        if self.distro not in _ra.DISTROS:
+            raise ConfigError(f"distro must be one of {_ra.DISTROS}, got {self.distro!r}")
 
 
 class ControllerSwitch(NamedTuple):
@@ -69,6 +77,8 @@ class ControllerSwitch(NamedTuple):
 
     @classmethod
     def of(cls, options: ControllerOptions) -> ControllerSwitch:
+        if options.kind not in CONTROLLERS:
+            raise ConfigError(f"controller {options.kind!r} runs from static ControllerOptions only, not a switch")
         return cls(
             kind=jnp.asarray(CONTROLLERS.index(options.kind)),
             cross_term=jnp.asarray(_sync.CROSS_TERMS.index(options.cross_term)),
@@ -101,6 +111,7 @@ class ControllerState(NamedTuple):
     impedance: _impedance.ImpedanceState  # the per-pad admittance filters (object_impedance: the internal ones)
     object: _baselines.ObjectState  # object_impedance's compliant object frame
     force_integral: jax.Array  # (2, 6) task_space's integral of the internal wrench
+    ros2: _ros2_loop.Ros2State  # ros2_admittance's reference joints q_ref and the two arms' rule states
 
 
 class ControlInfo(NamedTuple):
@@ -111,8 +122,11 @@ class ControlInfo(NamedTuple):
     force_error: jax.Array  # (2, 6) f_i - f_id
 
 
-def init() -> ControllerState:
-    """The controller's state at rest: both admittance filters at zero offset and rate.
+def init(q0: jax.Array | None = None) -> ControllerState:
+    """The controller's state at rest: both admittance filters at zero offset
+    and rate. ``q0`` (2 n,): the arms' joint positions at the start, where
+    ros2_admittance's reference joints begin (None: 7 joints per arm at zero,
+    for the controllers that do not read them).
 
     Example:
       >>> state = init()
@@ -120,7 +134,10 @@ def init() -> ControllerState:
       (2, 6)
     """
     return ControllerState(
-        impedance=_impedance.init(), object=_baselines.init_object(), force_integral=jnp.zeros((2, 6))
+        impedance=_impedance.init(),
+        object=_baselines.init_object(),
+        force_integral=jnp.zeros((2, 6)),
+        ros2=_ros2_loop.init(jnp.zeros(14) if q0 is None else q0),
     )
 
 
@@ -197,6 +214,8 @@ def step(
       >>> tau.shape  # doctest: +SKIP
       (14,)
     """
+    if not isinstance(options, ControllerSwitch):
+        _ros2_loop.check_actuation(options.kind, "torque")
     (off, off_vel, off_acc), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
     taus = []
     for i in range(2):
@@ -229,10 +248,16 @@ def step_position(
     :func:`step`, then each arm's joint position command integrated toward its
     compliant target (``jaxsync.control.joint_space.command_rate``).
 
+    ``ros2_admittance`` (static options only) runs ros2_controllers' rule
+    per arm instead (``jaxsync.control.ros2_loop``); its info's offset is the
+    rules' J dq.
+
     Args: as :func:`step`, and ``command`` (2 n,) the last joint position
     commands (right arm's n, then left's). Returns the next commands (2 n,),
     the new state and info.
     """
+    if not isinstance(options, ControllerSwitch) and options.kind in POSITION_ONLY:
+        return _ros2_admittance(options, gains, state, arms, ref, dt)
     (off, off_vel, _), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
     n = command.shape[0] // 2
     out = []
@@ -253,6 +278,16 @@ def step_position(
         out.append(q_cmd + dt * rate)
     info = ControlInfo(offset=off, delta=delta, force_error=force_error)
     return jnp.concatenate(out), state, info
+
+
+def _ros2_admittance(options, gains, state, arms, ref, dt):
+    pads = Pads.of(arms)
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
+    )
+    command, ros2, off = _ros2_loop.step(gains, state.ros2, arms, ref, dt, options.distro)
+    info = ControlInfo(offset=off, delta=delta, force_error=pads.wrench - ref.wrench)
+    return command, state._replace(ros2=ros2), info
 
 
 def _impedance_filters(gains, state, ref, force_error, dt):

@@ -63,6 +63,9 @@ USED = {
     "synchronous": IMPEDANCE_FIELDS + ("k_rk", "k_lk", "k_rl", "k_ll"),
     "object_impedance": IMPEDANCE_FIELDS + ("obj_mass", "obj_damping", "obj_stiffness"),
     "task_space": ("force_p", "force_i"),
+    # ros2_controllers' rule: mass, D (as its damping ratio) and K per arm; its reference joints follow
+    # the plan with the joint-space law's gains
+    "ros2_admittance": IMPEDANCE_FIELDS,
 }
 
 

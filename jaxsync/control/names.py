@@ -1,4 +1,24 @@
 """The controllers' names, importable without JAX (the CLI's argument parsing uses them)."""
 
-CONTROLLERS = ("classical", "synchronous", "object_impedance", "task_space")
+from jaxsync._errors import ConfigError
+
+CONTROLLERS = ("classical", "synchronous", "object_impedance", "task_space")  # Cartesian offsets: either stack
 PAPER = ("classical", "synchronous")  # the paper's pair
+# ros2_controllers' admittance rule run per arm as deployed (jaxsync.control.ros2_loop): it makes joint
+# position commands itself, so it runs on position-controlled arms only
+POSITION_ONLY = ("ros2_admittance",)
+ALL_CONTROLLERS = CONTROLLERS + POSITION_ONLY
+
+
+def check_actuation(controllers, actuation: str) -> None:
+    """ConfigError unless ``controllers`` (a name, or several) run on
+    ``actuation``: the ros2 admittance rule makes joint position commands, so
+    it needs position-controlled arms."""
+    for controller in (controllers,) if isinstance(controllers, str) else controllers:
+        if controller not in POSITION_ONLY or actuation == "position":
+            continue
+        raise ConfigError(
+            f"controller {controller!r} runs on position-controlled arms only (actuation='position'): it is "
+            f"ros2_controllers' admittance rule, which writes joint position commands; got actuation={actuation!r}",
+            inputs=("controller", "actuation"),
+        )

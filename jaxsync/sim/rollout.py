@@ -18,8 +18,10 @@ import mujoco
 from jaxsync._errors import ConfigError
 from jaxsync.control import controller as _controller
 from jaxsync.control import gains as _gains
+from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control.controller import ControllerOptions, ControllerSwitch
 from jaxsync.control.gains import Gains
+from jaxsync.control.names import POSITION_ONLY
 from jaxsync.physics import step as _physics
 from jaxsync.physics.model import DualArmModel
 from jaxsync.physics.sensing import sense
@@ -45,12 +47,14 @@ def make_rollout(
     start: str = START_KEY,
     passes: str = "mjx",
     actuation: str = "torque",
+    distro: str = "jazzy",
 ):
     """Build ``fn(gains, scenario) -> Trajectory`` for one static configuration.
 
     Args:
       model: from :func:`jaxsync.load_model` (its solver setting is used).
-      controller: "classical" or "synchronous".
+      controller: one of ``jaxsync.control.names.ALL_CONTROLLERS``
+        ("ros2_admittance" with ``actuation="position"`` only).
       duration: seconds simulated.
       control_substeps: physics steps per control period (1: control at the
         simulation rate, 500 Hz for the paper model).
@@ -72,6 +76,8 @@ def make_rollout(
       actuation: "torque" (joint torque motors) or "position" (joint
         position commands through the robot's servo, delayed by the
         scenario's ``delay``: ``jaxsync.sim.actuation``).
+      distro: the ros2_controllers release "ros2_admittance" runs
+        (``jaxsync.control.ros2_admittance.DISTROS``).
 
     Example:
       >>> fn = make_rollout(jaxsync.load_model(), "synchronous", duration=2.0)
@@ -80,7 +86,8 @@ def make_rollout(
       >>> traj.pad_forces.shape  # doctest: +SKIP
       (B, 1000, 2, 3)
     """
-    options = ControllerOptions(kind=controller, cross_term=cross_term)
+    options = ControllerOptions(kind=controller, cross_term=cross_term, distro=distro)
+    _ros2_loop.check_actuation(controller, _actuation.check(actuation))
     core = _controlled_rollout(model, duration, control_substeps, remat, truncate_every, start, passes, actuation)
 
     def fn(gains: Gains, s: Scenario) -> Trajectory:
@@ -190,13 +197,20 @@ def _controlled_rollout(
         if remat:  # the solve's outputs are kept: the backward pass does not solve again
             body = jax.checkpoint(body, policy=_physics.REMAT_POLICY)
         held = (jnp.asarray(q0), _actuation.initial_buffer(q0)) if position else ()
-        init = ((d0, _controller.init(), held), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
+        init = ((d0, _controller.init(jnp.asarray(q0)), held), jnp.zeros((len(index.arms), 3), d0.qpos.dtype))
         _, traj = jax.lax.scan(body, init, jnp.arange(n_steps))
         return traj
 
     fn.n_steps = n_steps
     fn.dt = dt
     return fn
+
+
+@programs.memoize(maxsize=8)
+def _jitted_static(model, duration, control_substeps, actuation, controller, distro):
+    """``rollout()``'s program for a controller that no switch holds (ros2_admittance)."""
+    fn = make_rollout(model, controller, duration, control_substeps, actuation=actuation, distro=distro)
+    return jax.jit(fn)
 
 
 @programs.memoize(maxsize=32)
@@ -216,6 +230,7 @@ def rollout(
     cross_term: str = "squeeze",
     backend: str = "mjx",
     actuation: str = "torque",
+    distro: str = "jazzy",
 ) -> Trajectory:
     """Run one closed-loop rollout (or a batch: vmap ``make_rollout`` instead).
 
@@ -223,7 +238,9 @@ def rollout(
     the controller and the cross term are arguments of one program
     (:class:`~jaxsync.control.controller.ControllerSwitch`), so the classical and the
     synchronous rollouts of a comparison share it; ``backend="mujoco"``
-    steps MuJoCo C with the same jitted control law.
+    steps MuJoCo C with the same jitted control law. "ros2_admittance"
+    (position-controlled arms only; ``distro`` its ros2_controllers release)
+    compiles a program of its own.
 
     Example:
       >>> model, s = jaxsync.load_model(), jaxsync.short_task()
@@ -231,6 +248,10 @@ def rollout(
       >>> traj.torque.shape
       (1000, 14)
     """
+    _ros2_loop.check_actuation(controller, _actuation.check(actuation))
+    if backend == "mjx" and controller in POSITION_ONLY:
+        fn = _jitted_static(model, float(duration), int(control_substeps), actuation, controller, distro)
+        return fn(*jax.device_put((_gains.strongly_typed(gains), scenario), _physics.local_device()))
     if backend == "mjx":
         switch = ControllerSwitch.of(ControllerOptions(kind=controller, cross_term=cross_term))
         stack = () if _actuation.check(actuation) == "torque" else (actuation,)  # the torque stack's key as ever
@@ -252,6 +273,7 @@ def rollout(
             control_substeps=control_substeps,
             cross_term=cross_term,
             actuation=actuation,
+            distro=distro,
         )
     raise ConfigError(f"backend must be 'mjx' or 'mujoco', got {backend!r}")
 

@@ -14,6 +14,7 @@ import mujoco
 import numpy as np
 
 from jaxsync.control import controller as _controller
+from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control.controller import ControllerOptions
 from jaxsync.control.gains import Gains
 from jaxsync.physics.model import DualArmModel
@@ -86,6 +87,7 @@ def rollout_mujoco(
     control_substeps: int = 1,
     cross_term: str = "squeeze",
     actuation: str = "torque",
+    distro: str = "jazzy",
 ) -> Trajectory:
     """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment.
 
@@ -96,7 +98,8 @@ def rollout_mujoco(
       >>> float(abs(c.obj_pos - x.obj_pos).max()) < 1e-3  # doctest: +SKIP
       True
     """
-    options = ControllerOptions(kind=controller, cross_term=cross_term)
+    options = ControllerOptions(kind=controller, cross_term=cross_term, distro=distro)
+    _ros2_loop.check_actuation(controller, _actuation.check(actuation))
     consts = _closed_loop.consts(model)
     m = copy.deepcopy(model.mj_model)  # a private copy we can change (a robot file's composed scene too)
     m.opt.iterations, m.opt.ls_iterations = model.mj_model.opt.iterations, model.mj_model.opt.ls_iterations
@@ -134,7 +137,7 @@ def rollout_mujoco(
         return command, _actuation.push(buffer, command), cstate, info, pl
 
     noise = jax.jit(lambda s, k: _closed_loop.noise(s, consts, k))
-    cstate = _controller.init()
+    cstate = _controller.init(jnp.asarray(_closed_loop.initial_command(model, consts)))
     full_m = np.zeros((m.nv, m.nv))
     rows = []
     for k in range(n_steps):

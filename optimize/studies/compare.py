@@ -14,8 +14,8 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import compliance as _compliance
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import default_gains, stability_ratio
+from jaxsync.control.names import ALL_CONTROLLERS, check_actuation
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.studies.compare_video import compare_video
@@ -75,7 +75,7 @@ def run(
 ):
     """Roll out each controller on ``stack``; return ``{name: (trajectory, metrics)}``."""
     check_duration(scenario, duration)
-    controllers = check_controllers(controllers)
+    controllers = check_controllers(controllers, stack)
     results = {}
     for i, name in enumerate(controllers):
         compiles = " (compiled first, unless the compilation cache holds it)" if backend == "mjx" and i == 0 else ""
@@ -116,17 +116,18 @@ SETTLED_KEYS = ("settled_peak_resultant_N", "mean_grip_force_N", "grip_force_err
 
 def controllers_of(summary: dict) -> list[str]:
     """The controllers a comparison's summary holds, in its order."""
-    return list(summary.get("controllers") or [n for n in CONTROLLERS if n in summary])
+    return list(summary.get("controllers") or [n for n in ALL_CONTROLLERS if n in summary])
 
 
-def check_controllers(controllers) -> tuple[str, ...]:
-    """At least two distinct known controller names, as a tuple (else ConfigError naming them)."""
+def check_controllers(controllers, stack: Stack = TORQUE) -> tuple[str, ...]:
+    """At least two distinct known controller names that run on ``stack``, as a tuple (else ConfigError)."""
     names = tuple(controllers)
-    unknown = [n for n in names if n not in CONTROLLERS]
+    unknown = [n for n in names if n not in ALL_CONTROLLERS]
     if unknown:
-        raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(CONTROLLERS)}")
+        raise ConfigError(f"unknown controller(s) {unknown}; known: {', '.join(ALL_CONTROLLERS)}")
     if len(names) < 2 or len(set(names)) != len(names):
         raise ConfigError(f"--controllers must name at least two different controllers, got {', '.join(names)}")
+    check_actuation(names, stack.actuation)
     return names
 
 
@@ -306,12 +307,11 @@ def paper_comparison(
     on N of ``jaxsync tune``'s held-out scenarios on MJX and MuJoCo C with
     the last controller (:func:`jaxsync.sim.crosscheck.sim_to_sim`, recorded as
     ``summary["sim_to_sim"]``). Every input is checked before ``out`` is
-    created. ``stack``: the arms' actuation, control rate and delay
-    (``jaxsync.sim.actuation.Stack``; the scenario carries the delay).
-    Returns the summary and the files.
+    created. ``stack``: the arms' actuation, control rate and delay (``jaxsync.sim.actuation.Stack``; the
+    scenario carries the delay), which each controller must run on. Returns the summary and the files.
     """
     check_duration(scenario, duration)
-    controllers = check_controllers(controllers)
+    controllers = check_controllers(controllers, stack)
     if video_speed is not None:  # say now, not after the rollouts, when no OpenGL backend can render it
         select_gl_backend()
     _results.ensure_writable_dir(out)
