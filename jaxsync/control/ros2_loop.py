@@ -27,10 +27,14 @@ these choices (docs/deploy.md, "ros2_controllers' rule in the loop"):
   the measurement: at rest f_i = f_id + K X). Humble has no wrench reference:
   there the grip force is not held (the rule sees f_i alone).
 - AdmittanceParams as the ros2-admittance export writes them (``jaxsync.io.
-  export``): mass = imp_mass, stiffness = imp_stiffness, damping_ratio =
-  imp_damping / (2 sqrt(M K)) (0 on an axis with K = 0: the rule has no damping
+  export``): stiffness = imp_stiffness (the pad frame is the control frame),
+  the mass per axis of the base where the release applies it there (Jazzy,
+  Kilted, Humble: each pad axis's mass on the world axis it lies along in
+  the plan, ``jaxsync.io.ros2_target.mass_in_base``), damping_ratio =
+  imp_damping / (2 sqrt(M K)) with the mass as written, so that the rule's
+  D is the tuned one (0 on an axis with K = 0: the rule has no damping
   there, as deployed), joint_damping 0, filter_coefficient 1.0, alpha =
-  ``COMMAND_ALPHA``. The pad frame is the control frame: no axis permutation.
+  ``COMMAND_ALPHA``.
 - The joint command is the rule's command.positions (q_ref + its joint offset).
 """
 
@@ -67,10 +71,16 @@ def init(q0: jax.Array) -> Ros2State:
     return Ros2State(q_ref=q0.reshape(2, n), rule=jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), one))
 
 
-def params(gains, arm: int) -> _ra.AdmittanceParams:
+def params(gains, arm: int, pad_rot=None, distro: str = DEFAULT_DISTRO) -> _ra.AdmittanceParams:
     """The rule's parameters of arm ``arm`` (0 right, 1 left) from jaxsync's
-    gains, traced (``make_params`` checks eagerly; these are the export's)."""
+    gains, traced (``make_params`` checks eagerly; these are the export's).
+    ``pad_rot`` (3, 3): the planned pad rotation in the base (the world),
+    which places each pad axis's mass on a base axis where ``distro``
+    applies the mass there; None: the mass in the pad frame's order."""
     m, d, k = gains.imp_mass[arm], gains.imp_damping[arm], gains.imp_stiffness[arm]
+    if pad_rot is not None and not _ra.MASS_IN_CONTROL_FRAME[distro]:
+        along = jnp.argmax(jnp.abs(pad_rot), axis=1)  # base axis i lies along pad axis along[i]
+        m = m[jnp.concatenate([along, along + 3])]
     mk = m * k
     positive = mk > 0.0
     zeta = jnp.where(positive, d / (2.0 * jnp.sqrt(jnp.where(positive, mk, 1.0))), 0.0)
@@ -151,7 +161,7 @@ def step(gains, state: Ros2State, arms, ref, dt: float, distro: str = DEFAULT_DI
         q_ref, rate = reference_step(gains, arm, state.q_ref[i], ref, i, dt)
         w_ref = None if distro == "humble" else -_in_pad(arm.pad_rot, ref.wrench[i])
         command, rs = rule.step(
-            params(gains, i),
+            params(gains, i, ref.pad_rot[i], distro),
             jax.tree_util.tree_map(lambda x, i=i: x[i], state.rule),
             kinematics(arm, q_ref),
             _in_pad(arm.pad_rot, arm.wrench),
