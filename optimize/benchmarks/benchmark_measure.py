@@ -322,8 +322,15 @@ def paired_forward_and_gradient(
     on the same files. Returns each model's best and median times and
     :func:`ratio_of_ratios`."""
     sides = {"robot": {"source": source, "visual": visual}, "paper": {"source": None, "visual": visual}}
+    names = {"robot": os.path.basename(source or "robot"), "paper": "paper"}
     times, rr, n_steps = _paired_rounds(duration, rounds, small, sides)
-    models = {
+    models = _side_figures(times, rr, n_steps, rounds, log, names, "over the paper model's")
+    return {"rounds": rounds, "steps": n_steps, "models": models, "ratio_of_ratios": rr, "times": times}
+
+
+def _side_figures(times: dict, rr: dict, n_steps: int, rounds: int, log, names: dict, over: str) -> dict:
+    """Each side's best and median times from :func:`_paired_rounds`, logged with the ratio."""
+    figures = {
         m: {
             "forward_s": min(t["forward"]),
             "grad_s": min(t["grad"]),
@@ -333,18 +340,17 @@ def paired_forward_and_gradient(
         }
         for m, t in times.items()
     }
-    for m, f in models.items():
+    for m, f in figures.items():
         log(
-            f"  {m if m == 'paper' else os.path.basename(source or 'robot')}: forward {f['forward_s']:.3f} s, "
-            f"value_and_grad {f['grad_s']:.3f} s over {n_steps} steps (best of {rounds} rounds): "
-            f"ratio {f['grad_over_forward']:.2f}"
+            f"  {names[m]}: forward {f['forward_s']:.3f} s, value_and_grad {f['grad_s']:.3f} s over {n_steps} "
+            f"steps (best of {rounds} rounds): ratio {f['grad_over_forward']:.2f}"
         )
     q25, q75 = rr["per_round_quartiles"]
     log(
-        f"  gradient/forward over the paper model's: {rr['of_best']:.2f} of the best times; "
+        f"  gradient/forward {over}: {rr['of_best']:.2f} of the best times; "
         f"round by round median {rr['per_round_median']:.2f} (quartiles {q25:.2f}-{q75:.2f})"
     )
-    return {"rounds": rounds, "steps": n_steps, "models": models, "ratio_of_ratios": rr, "times": times}
+    return figures
 
 
 def _paired_rounds(duration: float, rounds: int, small: bool, sides: dict):
@@ -379,26 +385,8 @@ def paired_stacks(
         "torque": {"source": source, "visual": visual, "stack": TORQUE},
     }
     times, rr, n_steps = _paired_rounds(duration, rounds, small, sides)
-    stacks = {
-        m: {
-            "forward_s": min(t["forward"]),
-            "grad_s": min(t["grad"]),
-            "grad_over_forward": min(t["grad"]) / min(t["forward"]),
-            "forward_median_s": float(np.median(t["forward"])),
-            "grad_median_s": float(np.median(t["grad"])),
-        }
-        for m, t in times.items()
-    }
-    for m, f in stacks.items():
-        log(
-            f"  {m} stack: forward {f['forward_s']:.3f} s, value_and_grad {f['grad_s']:.3f} s over {n_steps} "
-            f"steps (best of {rounds} rounds): ratio {f['grad_over_forward']:.2f}"
-        )
-    q25, q75 = rr["per_round_quartiles"]
-    log(
-        f"  gradient/forward, position over torque: {rr['of_best']:.2f} of the best times; round by round "
-        f"median {rr['per_round_median']:.2f} (quartiles {q25:.2f}-{q75:.2f})"
-    )
+    names = {"position": "position stack", "torque": "torque stack"}
+    stacks = _side_figures(times, rr, n_steps, rounds, log, names, "position over torque")
     return {"rounds": rounds, "steps": n_steps, "stacks": stacks, "ratio_of_ratios": rr, "times": times}
 
 
