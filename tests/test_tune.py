@@ -446,6 +446,31 @@ def test_a_position_stack_tune_runs_its_stack_everywhere_and_records_it(model, t
     assert scale.min() >= 0.7 and scale.max() <= 1.3 and np.ptp(scale) > 0.2
 
 
+def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tuning, capsys):
+    """tune --controller ros2_admittance: refused on the torque stack (library
+    words; the command adds its flags); on the position stack the evaluator
+    and the MuJoCo C check run it, its stiffness figures are the classical
+    law's (the same spring at the pad), and the loss traces to the physics."""
+    with pytest.raises(jaxsync.ConfigError, match="runs on position-controlled arms only") as err:
+        TuneConfig(problem=Problem(controller="ros2_admittance")).validate()
+    assert err.value.inputs == ("controller", "actuation")
+    assert main(["tune", "--controller", "ros2_admittance", "--out", str(tmp_path / "t")]) == 2
+    assert "(--controller, --actuation)" in capsys.readouterr().err and not (tmp_path / "t").exists()
+    cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position", delay=(0, 3))
+    _run_tune(model, tmp_path / "run", cfg, mujoco_check=True)
+    assert calls_of(fake_tuning) == ("ros2_admittance", {"actuation": "position", "control_substeps": 1})
+    assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    g = _gains.default_gains(model, "position")
+    classical = loss_mod.compliance_fn(model, "classical")(g)
+    assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] == pytest.approx(float(classical))
+    assert json.loads((tmp_path / "run" / "gains.json").read_text())["controller"] == "ros2_admittance"
+
+
+def calls_of(calls):
+    return calls["evaluator_controller"], calls["evaluator_stack"]
+
+
 def test_delay_and_servo_draws_span_their_ranges_and_leave_the_rest():
     base = jaxsync.default_scenario()
     plain = sample_scenarios(jax.random.key(3), 8, base, stratified=True)

@@ -48,11 +48,12 @@ def controller_list(minimum: int = 1, known=CONTROLLER_NAMES):
     return parse
 
 
-def add_controller_argument(p: argparse.ArgumentParser, default: str = "synchronous") -> None:
+def add_controller_argument(p: argparse.ArgumentParser, default: str = "synchronous", position: bool = False) -> None:
+    """--controller; ``position``: also the controllers of position-controlled arms only (ros2_admittance)."""
     p.add_argument(
         "--controller",
         default=default,
-        choices=list(CONTROLLER_NAMES),
+        choices=list(ALL_CONTROLLERS if position else CONTROLLER_NAMES),
         help=f"the controller ({default}; docs/controller.md)",
     )
 

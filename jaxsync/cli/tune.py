@@ -74,7 +74,7 @@ def add_parser(sub) -> None:
         description="Gradient-based gain tuning on batches of randomised scenarios, evaluated on held-out "
         "scenarios before and after (docs/tuning.md).",
     )
-    add_controller_argument(p)
+    add_controller_argument(p, position=True)
     bound = "bound the mean first-impact peak pad force, N", "bound the apparent stiffness along the pad normal, N/m"
     p.add_argument("--max-impact", type=positive(float), metavar="N", help=f"{bound[0]} (docs/metrics.md)")
     p.add_argument("--max-stiffness", type=positive(float), metavar="N_PER_M", help=f"{bound[1]} (docs/metrics.md)")

@@ -24,7 +24,7 @@ from jaxsync.io import gains_file
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
 
-ROS2_CONTROLLERS = ("classical", "synchronous")  # the laws a ros2-admittance export runs
+ROS2_CONTROLLERS = ("classical", "synchronous", "ros2_admittance")  # the laws a ros2-admittance export runs
 
 
 class Exported(NamedTuple):
@@ -73,8 +73,8 @@ def export_gains(
     if fmt == "ros2-admittance" and tuned_for not in (None, *ROS2_CONTROLLERS):
         raise ConfigError(
             f"gains {gains} was tuned for the {tuned_for} controller, which ros2_controllers' admittance "
-            f"controller cannot run (it is a per-arm admittance: the {' and '.join(ROS2_CONTROLLERS)} laws, the "
-            "latter with synchronisation.yaml); export it as yaml or json",
+            f"controller cannot run (it is a per-arm admittance: {', '.join(ROS2_CONTROLLERS)}, the synchronous "
+            "law with synchronisation.yaml); export it as yaml or json",
             inputs=("gains",),
         )
     target, loaded = None, None

@@ -27,7 +27,7 @@ import math
 import optax
 
 from jaxsync._errors import ConfigError
-from jaxsync.control.names import CONTROLLERS
+from jaxsync.control.names import ALL_CONTROLLERS, check_actuation
 from jaxsync.optimize.tuning import methods as _methods
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loop import make_optimizer
@@ -53,9 +53,9 @@ class Problem:
         return self.spec if self.spec is not None else TuneSpec(tuned=DEFAULT_TUNED_FOR[self.controller])
 
     def validate(self) -> None:
-        if self.controller not in CONTROLLERS:
+        if self.controller not in ALL_CONTROLLERS:
             raise ConfigError(
-                f"controller must be one of {list(CONTROLLERS)}, got {self.controller!r}", inputs=("controller",)
+                f"controller must be one of {list(ALL_CONTROLLERS)}, got {self.controller!r}", inputs=("controller",)
             )
         for name in ("max_impact_N", "max_stiffness_N_per_m"):
             v = getattr(self, name)
@@ -263,6 +263,7 @@ class TuneConfig:
         for part in PARTS:
             getattr(self, part).validate()
         self.stack()  # a delay or a servo spread needs position-controlled arms
+        check_actuation(self.problem.controller, self.training.actuation)  # ros2_admittance: position arms
         if self.data.servo_spread and self.training.actuation != "position":
             raise ConfigError(
                 f"servo_spread applies to position-controlled arms (actuation='position'), got "

@@ -49,6 +49,7 @@ DEFAULT_TUNED_FOR = {
     "synchronous": DEFAULT_TUNED,
     "object_impedance": IMPEDANCE + OBJECT,
     "task_space": FORCE,
+    "ros2_admittance": IMPEDANCE,  # ros2_controllers' rule: the admittance file's mass, damping, stiffness
 }
 # the gain each tuned name sets
 GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
