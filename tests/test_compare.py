@@ -327,8 +327,8 @@ def test_compare_cli_calls_the_job_prints_it_and_exits_by_it(tmp_path, rollouts,
     assert main(["compare", "--out", str(out), "--controllers", "synchronous,classical", "--no-visual"]) == 6
     assert calls[-1][1]["controllers"] == ("synchronous", "classical") and not calls[-1][1]["visual"]
     argv = ["compare", "--out", str(out), "--actuation", "position", "--delay", "2", "--control-rate", "250"]
-    main(argv)
-    assert calls[-1][1]["stack"] == _actuation.Stack("position", 250.0, (2, 2))
+    main([*argv, "--ros-distro", "humble"])
+    assert calls[-1][1]["stack"] == _actuation.Stack("position", 250.0, (2, 2), "humble")
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert "the synchronous controller's pad forces chattered (RMS change per step 2.5 N > 1 N)" in last
     assert "exit status 6" in last

@@ -10,6 +10,7 @@ the wrong type or length, or leaves a bound.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 
 import jax
@@ -133,6 +134,16 @@ def test_the_pad_axes_travel_to_the_flange_links_axes_and_back(tmp_path):
     back = gains_file.load(tmp_path)
     for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(g), strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-14)
+    # the mass per base axis (Jazzy: the pad's x lies along the base's z at the grasp), in the control
+    # frame on Rolling (the pad's x is the flange link's x); both read back to the same gains
+    g = g._replace(imp_mass=g.imp_mass.at[:, 0].set(5.0))
+    for distro, at in (("jazzy", 2), ("rolling", 0)):
+        out = tmp_path / distro
+        _export.export(g, "ros2-admittance", str(out), dataclasses.replace(target, distro=distro))
+        doc = yaml.safe_load(open(out / "admittance_right.yaml"))["admittance_controller_right"]["ros__parameters"]
+        mass = doc["admittance"]["mass"]
+        assert mass[at] == 5.0 and mass.count(5.0) == 1 and mass[1] == 7.0, (distro, mass)
+        assert gains_file.same_gains(gains_file.load(out), g)
 
 
 def test_the_paper_models_files_load_too_and_bad_options_are_named(tmp_path, capsys):

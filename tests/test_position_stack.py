@@ -149,11 +149,14 @@ def test_actuation_names_what_is_allowed():
 
 
 def test_a_stack_reads_what_a_user_writes_and_refuses_what_does_not_run(model):
-    stack = _actuation.Stack.of("position", 250.0, "2")
-    assert stack == _actuation.Stack("position", 250.0, (2, 2)) and stack.scenario_delay() == 2
-    assert stack.rollout_options(model) == {"actuation": "position", "control_substeps": 2}
+    stack = _actuation.Stack.of("position", 250.0, "2", "rolling")
+    assert stack == _actuation.Stack("position", 250.0, (2, 2), "rolling") and stack.scenario_delay() == 2
+    assert stack.rollout_options(model) == {"actuation": "position", "control_substeps": 2, "distro": "rolling"}
     written = stack.to_dict(model)
     assert written["control_period_s"] == pytest.approx(0.004) and written["delay"] == [2, 2]
+    assert written["ros_distro"] == "rolling"
+    with pytest.raises(ConfigError, match=r"distro must be one of \['jazzy', 'kilted', 'rolling', 'humble'\]"):
+        _actuation.Stack("position", distro="iron")
     assert written["servo"]["source"] == _servo.servo_of(model).source
     assert "servo" not in _actuation.TORQUE.to_dict(model)  # a torque stack has no servo
     with pytest.raises(ConfigError, match="delay applies to position-controlled arms") as err:

@@ -170,14 +170,19 @@ def test_a_position_stack_study_scores_and_tunes_on_its_stack(model, tmp_path, f
         actuation="position",
         delay=(0, 3),
         servo_spread=0.3,
+        distro="humble",
     )
     study_mod.run_study(model, cfg, str(tmp_path / "study"), log=lambda m: None)
     assert len(seen["stacks"]) == 3 and all(
-        s == {"actuation": "position", "control_substeps": 1} for s in seen["stacks"]
+        s == {"actuation": "position", "control_substeps": 1, "distro": "humble"} for s in seen["stacks"]
     )  # the defaults of both controllers, the reference
-    assert seen["tune_stacks"] == [(Stack("position", None, (0, 3)), 0.3)] * 2 and len(calls) == 2
+    assert seen["tune_stacks"] == [(Stack("position", None, (0, 3), "humble"), 0.3)] * 2 and len(calls) == 2
     with pytest.raises(ConfigError, match="servo_spread applies to position-controlled arms"):
         study_mod.StudyConfig(servo_spread=0.3).validate()
+    # the deployed rule takes part on position-controlled arms, and is refused on the torque stack
+    cfg.replace(controllers=("synchronous", "ros2_admittance")).validate()
+    with pytest.raises(ConfigError, match="ros2_admittance.*position-controlled arms only"):
+        study_mod.StudyConfig(controllers=("synchronous", "ros2_admittance")).validate()
 
 
 def test_study_cli_rejects_bad_input(tmp_path, capsys):

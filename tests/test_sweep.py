@@ -103,7 +103,7 @@ def test_a_position_stack_sweep_sweeps_the_delay_and_servo_and_records_the_stack
     stack's one delay and defaults, and its spec (the resume fingerprint) says so."""
     stack = Stack("position", None, (2, 2))
     plan = sweep.make_plan(["delay=0:3:4", "servo_scale=0.7,1.3"], duration=4.0, stack=stack)
-    assert plan.stack_options == ("position", 1) and len(plan.points) == 8
+    assert plan.stack_options == ("position", 1, "jazzy") and len(plan.points) == 8
     g, scen = sweep.build_batch(plan.params, plan.points, plan.base_gains, plan.base_scenario)
     assert sorted(set(np.asarray(scen.delay).tolist())) == [0.0, 1.0, 2.0, 3.0]
     assert sorted(set(np.asarray(scen.servo_scale).tolist())) == [0.7, 1.3]
@@ -111,7 +111,14 @@ def test_a_position_stack_sweep_sweeps_the_delay_and_servo_and_records_the_stack
     base = sweep.make_plan(["k_rk=0,0.5"], duration=4.0, stack=stack)
     assert float(base.base_scenario.delay) == 2.0
     torque = sweep.make_plan(["k_rk=0,0.5"], duration=4.0)
-    assert torque.fingerprint != base.fingerprint and torque.stack_options == ("torque", 1)
+    assert torque.fingerprint != base.fingerprint and torque.stack_options == ("torque", 1, "jazzy")
+    # the deployed rule on its release: part of the stack and of the fingerprint; refused on torque arms
+    humble = sweep.make_plan(
+        ["k_rk=0,0.5"], duration=4.0, stack=Stack("position", None, (2, 2), "humble"), controller="ros2_admittance"
+    )
+    assert humble.stack_options == ("position", 1, "humble") and humble.fingerprint != base.fingerprint
+    with pytest.raises(ConfigError, match="ros2_admittance.*position-controlled arms only"):
+        sweep.make_plan(["k_rk=0,0.5"], duration=4.0, controller="ros2_admittance")
     samples = sweep.make_plan(["delay=0:3"], samples=40, seed=1, duration=4.0, stack=stack)
     assert set(samples.points[:, 0].tolist()) == {0.0, 1.0, 2.0, 3.0}  # whole periods, drawn
 

@@ -435,7 +435,7 @@ def test_a_position_stack_tune_runs_its_stack_everywhere_and_records_it(model, t
     calls = fake_tuning
     cfg = TuneConfig(iterations=1, actuation="position", control_rate=250.0, delay=(0, 3), servo_spread=0.3)
     _run_tune(model, tmp_path / "run", cfg, mujoco_check=True)
-    assert calls["evaluator_stack"] == {"actuation": "position", "control_substeps": 2}
+    assert calls["evaluator_stack"] == {"actuation": "position", "control_substeps": 2, "distro": "jazzy"}
     assert calls["mujoco_stack"] == _actuation.Stack("position", 250.0, (0, 3))
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["stack"]["delay"] == [0, 3] and summary["stack"]["servo"]["source"]
@@ -456,15 +456,22 @@ def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tunin
     assert err.value.inputs == ("controller", "actuation")
     assert main(["tune", "--controller", "ros2_admittance", "--out", str(tmp_path / "t")]) == 2
     assert "(--controller, --actuation)" in capsys.readouterr().err and not (tmp_path / "t").exists()
-    cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position", delay=(0, 3))
+    cfg = TuneConfig(
+        problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position", delay=(0, 3), distro="humble"
+    )
     _run_tune(model, tmp_path / "run", cfg, mujoco_check=True)
-    assert calls_of(fake_tuning) == ("ros2_admittance", {"actuation": "position", "control_substeps": 1})
+    assert calls_of(fake_tuning) == (
+        "ros2_admittance",
+        {"actuation": "position", "control_substeps": 1, "distro": "humble"},
+    )  # the release chosen runs in every evaluation
+    assert fake_tuning["mujoco_stack"].distro == "humble"
     assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     g = _gains.default_gains(model, "position")
     classical = loss_mod.compliance_fn(model, "classical")(g)
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] == pytest.approx(float(classical))
     assert json.loads((tmp_path / "run" / "gains.json").read_text())["controller"] == "ros2_admittance"
+    assert summary["stack"]["ros_distro"] == "humble" and summary["config"]["training"]["distro"] == "humble"
 
 
 def calls_of(calls):
@@ -511,9 +518,9 @@ def test_tune_cli_parses_into_one_job_and_prints_it(tmp_path, monkeypatch, capsy
     assert cfg.stack() == _actuation.TORQUE and cfg.data.servo_spread == 0.0
     assert capsys.readouterr().out == ""
     argv = ["tune", "--out", str(tmp_path / "o"), "--actuation", "position", "--delay", "0:3", "--servo-spread", "0.3"]
-    assert main([*argv, "--control-rate", "250"]) == 0
+    assert main([*argv, "--control-rate", "250", "--ros-distro", "rolling"]) == 0
     cfg = got["cfg"]
-    assert cfg.stack() == _actuation.Stack("position", 250.0, (0, 3)) and cfg.data.servo_spread == 0.3
+    assert cfg.stack() == _actuation.Stack("position", 250.0, (0, 3), "rolling") and cfg.data.servo_spread == 0.3
 
     def refused(model, cfg, *, out, **kw):
         _results.ensure_writable_dir(out)  # the job made the folder, then refused

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxsync.control.names import ALL_CONTROLLERS  # noqa: F401 (compare's --controllers: any of these)
+from jaxsync.control.names import ALL_CONTROLLERS, DEFAULT_DISTRO, DISTROS
 from jaxsync.control.names import CONTROLLERS as CONTROLLER_NAMES
 
 # exit statuses beside 0 (done), 2 (bad input), 3 (internal error) and 130 (interrupted)
@@ -140,6 +140,12 @@ def add_stack_arguments(p: argparse.ArgumentParser, drawn: bool = False) -> None
         metavar="HZ",
         help="the controller's rate; must divide the physics rate (default: the physics rate, 500 Hz)",
     )
+    p.add_argument(
+        "--ros-distro",
+        choices=list(DISTROS),
+        default=DEFAULT_DISTRO,
+        help=f"controller ros2_admittance: the ros2_controllers release whose admittance rule runs ({DEFAULT_DISTRO})",
+    )
     if drawn:
         p.add_argument(
             "--servo-spread",
@@ -154,4 +160,4 @@ def stack_of(args):
     """The parsed stack flags as a ``Stack`` (a JaxsyncError names a bad one)."""
     from jaxsync.sim.actuation import Stack  # here, not at the top: `jaxsync --help` stays fast
 
-    return Stack.of(args.actuation, args.control_rate, args.delay)
+    return Stack.of(args.actuation, args.control_rate, args.delay, args.ros_distro)

@@ -55,7 +55,8 @@ def add_parser(subparsers):
         "--ros-distro",
         default="jazzy",
         choices=list(DISTROS),
-        help="ros2-admittance: the ROS 2 release the files are for (jazzy: also Kilted and Rolling) (jazzy)",
+        help="ros2-admittance: the ROS 2 release the files are for (jazzy); Rolling applies the mass in the "
+        "control frame, the others per axis of kinematics.base",
     )
     p.add_argument(
         "--command-interfaces",

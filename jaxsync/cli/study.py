@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from jaxsync.cli._common import (
+    ALL_CONTROLLERS,
     CONTROLLER_NAMES,
     add_model_argument,
     add_stack_arguments,
@@ -52,6 +53,7 @@ def run(args) -> int:
         grip_spread=args.grip_spread,
         actuation=args.actuation,
         control_rate=args.control_rate,
+        distro=args.ros_distro,
         delay=parse_delay(args.delay),
         servo_spread=args.servo_spread,
     ).validate()  # every input is checked before anything is written or compiled
@@ -86,9 +88,10 @@ def add_parser(subparsers):
     )
     p.add_argument(
         "--controllers",
-        type=controller_list(minimum=2),
+        type=controller_list(minimum=2, known=ALL_CONTROLLERS),
         default=list(CONTROLLER_NAMES),
-        help=f"comma-separated controllers (default all: {','.join(CONTROLLER_NAMES)})",
+        help=f"comma-separated controllers (default all: {','.join(CONTROLLER_NAMES)}; ros2_admittance, "
+        "ros2_controllers' admittance rule as deployed, with --actuation position)",
     )
     p.add_argument(
         "--bounds",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from jaxsync.cli._common import (
+    add_controller_argument,
     add_distributed_arguments,
     add_model_argument,
     add_stack_arguments,
@@ -13,7 +14,6 @@ from jaxsync.cli._common import (
     positive,
     stack_of,
 )
-from jaxsync.control.controller import CONTROLLERS
 from jaxsync.optimize.studies.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.studies.sweep_report import DEFAULT_PLOT_METRICS
 
@@ -41,7 +41,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=None, help="draw this many random points instead of the grid")
     p.add_argument("--seed", type=int, default=0, help="seed of the random points (0)")
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated per rollout (4)")
-    p.add_argument("--controller", default="synchronous", choices=list(CONTROLLERS))
+    add_controller_argument(p, position=True)
     p.add_argument("--solver", default="accurate", choices=["accurate", "unrolled"])
     p.add_argument("--gains", default=None, help="JSON file of base gains (default: built-in)")
     p.add_argument(

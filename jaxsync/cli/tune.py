@@ -38,6 +38,7 @@ def config_from_args(args):
         truncate_every=args.truncate_every or None,
         actuation=args.actuation,
         control_rate=args.control_rate,
+        distro=args.ros_distro,
         delay=parse_delay(args.delay),
         servo_spread=args.servo_spread,
         **{k: getattr(args, k) for k in settings},

@@ -8,6 +8,9 @@ PAPER = ("classical", "synchronous")  # the paper's pair
 # position commands itself, so it runs on position-controlled arms only
 POSITION_ONLY = ("ros2_admittance",)
 ALL_CONTROLLERS = CONTROLLERS + POSITION_ONLY
+# the ros2_controllers releases whose admittance rule jaxsync.control.ros2_admittance ports
+DISTROS = ("jazzy", "kilted", "rolling", "humble")
+DEFAULT_DISTRO = "jazzy"
 
 
 def check_actuation(controllers, actuation: str) -> None:

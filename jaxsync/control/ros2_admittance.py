@@ -38,8 +38,8 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import so3 as _so3
+from jaxsync.control.names import DISTROS
 
-DISTROS = ("jazzy", "kilted", "rolling", "humble")
 # where PR #1139 holds: M^-1 applied in the control frame (R 243-246, 279-281)
 MASS_IN_CONTROL_FRAME = {"jazzy": False, "kilted": False, "rolling": True, "humble": False}
 # kinematics.alpha (YAML default 0.01) is read by the KDL plugin on jazzy and

@@ -43,8 +43,10 @@ from jaxsync.io.ros2_target import (  # noqa: F401  (jaxsync.io.export's public 
     CONTROLLER_TYPE,
     DISTROS,
     KDL_PLUGIN,
+    MASS_IN_CONTROL_FRAME,
     ArmTarget,
     Ros2Target,
+    mass_axes,
     mass_in_base,
     ros2_target,
 )
@@ -174,7 +176,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     order = list(t.axes)  # the control (tip) frame's axes, each carrying a pad-frame axis
     b = np.asarray(g.imp_damping, dtype=float)[arm][order]
     k = np.asarray(g.imp_stiffness, dtype=float)[arm][order]
-    m = mass_in_base(g, arm, t)
+    m = mass_in_base(g, arm, t, target.distro)
     # the controller forms D = 2 zeta sqrt(M K) entry by entry from the arrays as written
     zeta = b / (2.0 * np.sqrt(m * k))  # check_admittance: K > 0 here
     when = f", task phase '{phase}'" if phase else ""
@@ -196,9 +198,16 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
             else "Humble's admittance controller has no wrench set-point (Jazzy and later: ~/wrench_reference)."
         ),
         *([f"# force = f_d * [{normal}], docs/export.md)."] if target.distro != "humble" else []),
-        "# It applies stiffness and damping in the control frame but the mass per axis of kinematics.base:",
-        "# mass is in the base's axis order, each pad axis's mass on the base axis it lies along at the grasp",
-        "# (docs/export.md). joint_damping is 0: jaxsync's law has none (the default, 5, adds joint-space",
+        *(
+            ["# Rolling applies mass, stiffness and damping in the control frame: all in its axis order."]
+            if MASS_IN_CONTROL_FRAME[target.distro]
+            else [
+                "# It applies stiffness and damping in the control frame but the mass per axis of kinematics.base:",
+                "# mass is in the base's axis order, each pad axis's mass on the base axis it lies along at the",
+                "# grasp (docs/export.md).",
+            ]
+        ),
+        "# joint_damping is 0: jaxsync's law has none (the default, 5, adds joint-space",
         "# damping the tuned gains did not see). ft_sensor.filter_coefficient is 1.0: the simulation read the",
         "# sensor unfiltered (the default, 0.05, is a low-pass filter it never modelled).",
         "controller_manager:",
@@ -269,7 +278,7 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
         lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
     lines.append("    # for each kinematics.base axis of admittance_<arm>.yaml's mass, the pad-frame axis it carries")
     for arm, name in enumerate(ARMS):
-        lines.append(f"    mass_axes_{name}: {list(target.arms[arm].base_axes or target.arms[arm].axes)}")
+        lines.append(f"    mass_axes_{name}: {list(mass_axes(target.arms[arm], target.distro))}")
     return "\n".join(lines) + "\n"
 
 

@@ -10,11 +10,12 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
+from jaxsync.control.names import DISTROS
 
 ARMS = ("right", "left")
 
-
-DISTROS = ("jazzy", "humble")
+# where ros2_controllers PR #1139 holds (Rolling): the mass applied in the control frame, not per base axis
+MASS_IN_CONTROL_FRAME = {"jazzy": False, "kilted": False, "rolling": True, "humble": False}
 COMMAND_INTERFACES = ("position", "velocity")
 KDL_PLUGIN = ("kinematics_interface_kdl/KinematicsInterfaceKDL", "kinematics_interface")  # name, package
 CONTROLLER_TYPE = "admittance_controller/AdmittanceController"
@@ -124,14 +125,27 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
     return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
 
 
-def mass_in_base(g: Gains, arm: int, t: ArmTarget) -> np.ndarray:
-    """Arm ``arm``'s admittance mass (6,) per axis of ``kinematics.base``, where
-    the admittance controller applies it (Jazzy, Kilted, Humble): each pad
-    axis's mass on the base axis the pad axis lies along at the grasp
-    (``ArmTarget.base_axes``). Where the pad frame is not so aligned only a
-    mass equal on the axes of each block is the same in every frame; other
-    masses are refused, naming the axes."""
+def mass_axes(t: ArmTarget, distro: str) -> tuple[int, ...]:
+    """For each entry of the written ``admittance.mass``, the pad axis whose mass
+    it is: the control frame's order on Rolling, the base's elsewhere (the
+    control frame's where the pad is not aligned with the base: then only a
+    mass equal per block is written, the same in every frame)."""
+    if MASS_IN_CONTROL_FRAME[distro] or t.base_axes is None:
+        return t.axes
+    return t.base_axes
+
+
+def mass_in_base(g: Gains, arm: int, t: ArmTarget, distro: str = "jazzy") -> np.ndarray:
+    """Arm ``arm``'s admittance mass (6,) in the frame the admittance controller
+    applies it: per axis of ``kinematics.base`` on Jazzy, Kilted and Humble,
+    each pad axis's mass on the base axis the pad axis lies along at the grasp
+    (``ArmTarget.base_axes``); in the control frame on Rolling. Where the pad
+    frame is not aligned with the base only a mass equal on the axes of each
+    block is the same in every frame; other masses are refused, naming the
+    axes."""
     m = np.asarray(g.imp_mass, dtype=float)[arm]
+    if MASS_IN_CONTROL_FRAME[distro]:
+        return m[list(t.axes)]
     if t.base_axes is not None:
         return m[list(t.base_axes)]
     for block, names in ((slice(0, 3), "x, y, z"), (slice(3, 6), "rx, ry, rz")):

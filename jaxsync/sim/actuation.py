@@ -23,10 +23,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.control.names import DEFAULT_DISTRO, DISTROS
 from jaxsync.physics.servo import servo_of
 from jaxsync.sim.scenario import MAX_DELAY
 
 ACTUATIONS = ("torque", "position")
+
+
+def check_distro(distro: str) -> str:
+    if distro not in DISTROS:
+        raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", inputs=("distro",))
+    return distro
 
 
 def check(actuation: str) -> str:
@@ -49,9 +56,11 @@ class Stack:
     actuation: str = "torque"
     control_rate: float | None = None  # Hz; None: every physics step
     delay: tuple[int, int] = (0, 0)
+    distro: str = DEFAULT_DISTRO  # the ros2_controllers release controller "ros2_admittance" runs
 
     def __post_init__(self):
         check(self.actuation)
+        check_distro(self.distro)
         lo, hi = parse_delay(f"{self.delay[0]}:{self.delay[1]}")
         if hi > 0 and self.actuation != "position":
             raise ConfigError(
@@ -61,16 +70,18 @@ class Stack:
             )
 
     @classmethod
-    def of(cls, actuation: str = "torque", control_rate: float | None = None, delay="0") -> Stack:
+    def of(
+        cls, actuation: str = "torque", control_rate: float | None = None, delay="0", distro=DEFAULT_DISTRO
+    ) -> Stack:
         """From what a user writes: ``delay`` "N" or "lo:hi"."""
-        return cls(actuation, control_rate, parse_delay(delay))
+        return cls(actuation, control_rate, parse_delay(delay), distro)
 
     def substeps(self, model) -> int:
         return substeps_for_rate(model, self.control_rate)
 
     def rollout_options(self, model) -> dict:
-        """``actuation`` and ``control_substeps`` for ``rollout``/``make_rollout``."""
-        return {"actuation": self.actuation, "control_substeps": self.substeps(model)}
+        """``actuation``, ``control_substeps`` and ``distro`` for ``rollout``/``make_rollout``."""
+        return {"actuation": self.actuation, "control_substeps": self.substeps(model), "distro": self.distro}
 
     def scenario_delay(self) -> int:
         """The one delay of a job that runs one scenario; refuses a range."""
@@ -85,6 +96,8 @@ class Stack:
 
     def to_dict(self, model=None) -> dict:
         out = {"actuation": self.actuation, "control_rate_Hz": self.control_rate, "delay": list(self.delay)}
+        if self.actuation == "position":
+            out["ros_distro"] = self.distro
         if model is not None:
             out["control_period_s"] = float(model.mj_model.opt.timestep) * self.substeps(model)
             if self.actuation == "position":

@@ -87,7 +87,7 @@ class StudyConfig:
         return StudyConfig(**{**now, "bootstrap": self.bootstrap, "tuning": self.tuning, **own}, **fields)
 
     def validate(self) -> StudyConfig:
-        check_controllers(self.controllers)
+        check_controllers(self.controllers, self.tuning.stack())
         if not self.bounds or any(not (b > 0 and np.isfinite(b)) for b in self.bounds):
             raise ConfigError(f"bounds must be positive factors, e.g. 0.7,1,1.5, got {self.bounds}", inputs=("bounds",))
         if len(set(self.bounds)) != len(self.bounds):

@@ -50,16 +50,22 @@ def evaluator(
     visual: bool = True,
     actuation: str = "torque",
     control_substeps: int = 1,
+    distro: str = "jazzy",
 ):
     """jit(shard_map(vmap(metrics of one rollout))) over the 'batch' mesh axis,
-    on the arms' stack (``actuation``, ``control_substeps``).
+    on the arms' stack (``actuation``, ``control_substeps``, ``distro``).
 
     Each device evaluates its slice of the chunk with a plain vmap: no
     communication, and the same per-environment arithmetic as one device.
     """
 
     fn = make_rollout(
-        _model(solver, model, visual), controller, duration, actuation=actuation, control_substeps=control_substeps
+        _model(solver, model, visual),
+        controller,
+        duration,
+        actuation=actuation,
+        control_substeps=control_substeps,
+        distro=distro,
     )
     local = jax.vmap(lambda g, s: summarize(fn(g, s), s))
     if n_devices == 1:
@@ -73,7 +79,16 @@ def evaluator(
 
 @programs.memoize(maxsize=8)
 def _compiled(
-    solver, controller, duration, chunk, n_devices, gdtypes, sdtypes, model=None, visual=True, stack=("torque", 1)
+    solver,
+    controller,
+    duration,
+    chunk,
+    n_devices,
+    gdtypes,
+    sdtypes,
+    model=None,
+    visual=True,
+    stack=("torque", 1, "jazzy"),
 ):
 
     fn, _ = evaluator(solver, controller, duration, n_devices, model, visual, *stack)

@@ -17,8 +17,8 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
-from jaxsync.control.controller import CONTROLLERS
 from jaxsync.control.gains import Gains
+from jaxsync.control.names import ALL_CONTROLLERS, check_actuation
 from jaxsync.optimize.studies.sweep_spec import (
     PHASE_FIELDS,
     POSITION_FIELDS,
@@ -60,10 +60,10 @@ class Plan:
     stack: Stack = TORQUE  # the arms' stack every point runs (its one delay is the base scenario's)
 
     @property
-    def stack_options(self) -> tuple[str, int]:
-        """(actuation, control_substeps) of the evaluator's rollouts."""
+    def stack_options(self) -> tuple[str, int, str]:
+        """(actuation, control_substeps, distro) of the evaluator's rollouts."""
         o = self.stack.rollout_options(loaded_model(self.solver, self.model, self.visual))
-        return o["actuation"], o["control_substeps"]
+        return o["actuation"], o["control_substeps"], o["distro"]
 
     @property
     def spec(self) -> dict:
@@ -119,8 +119,9 @@ def make_plan(
         raise ConfigError("give at least one --param NAME=VALUES")
     if samples is not None and samples < 1:
         raise ConfigError(f"--samples must be a positive number of points, got {samples}")
-    if controller not in CONTROLLERS:
-        raise ConfigError(f"--controller must be one of {', '.join(CONTROLLERS)}, got {controller!r}")
+    if controller not in ALL_CONTROLLERS:
+        raise ConfigError(f"--controller must be one of {', '.join(ALL_CONTROLLERS)}, got {controller!r}")
+    check_actuation(controller, stack.actuation)  # ros2_admittance: position-controlled arms
     if not (isinstance(duration, (int, float)) and math.isfinite(duration) and duration > 0):
         raise ConfigError(f"--duration must be a positive number of seconds, got {duration}")
     params = [parse_param(t, random=samples is not None) for t in param_texts]

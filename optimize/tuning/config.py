@@ -82,9 +82,11 @@ class Training:
     truncate_every: int | None = None  # exact full-horizon gradient; a window length truncates it
     actuation: str = "torque"  # or "position": joint commands through the servo (jaxsync.sim.actuation)
     control_rate: float | None = None  # Hz; None: the controller runs every physics step
+    distro: str = "jazzy"  # controller "ros2_admittance": the ros2_controllers release its rule is
 
     def validate(self) -> None:
         _actuation.check(self.actuation)
+        _actuation.check_distro(self.distro)
         r = self.control_rate
         if r is not None and not (r > 0 and math.isfinite(r)):
             raise ConfigError(
@@ -276,7 +278,7 @@ class TuneConfig:
         """The arms' stack the job runs: the training's actuation and control
         rate, the data's delay range."""
         t = self.training
-        return _actuation.Stack(t.actuation, t.control_rate, tuple(self.data.delay))
+        return _actuation.Stack(t.actuation, t.control_rate, tuple(self.data.delay), t.distro)
 
     def program(self) -> tuple[Problem, Training]:
         """What the training loss's compiled program depends on (and is keyed by)."""

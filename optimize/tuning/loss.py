@@ -64,6 +64,7 @@ def make_loss(model, base: _gains.Gains, cfg: TuneConfig, *, differentiated: boo
         start=training.train_start,
         actuation=training.actuation,
         control_substeps=substeps_for_rate(model, training.control_rate),
+        distro=training.distro,
     )
 
     stiffness = compliance_fn(model, problem.controller) if max_stiffness else None
@@ -128,12 +129,19 @@ def compliance_fn(model, controller: str, axis: str | None = "normal"):
 
 @programs.memoize(maxsize=8)
 def make_evaluator(
-    model, duration: float, controller: str = "synchronous", actuation: str = "torque", control_substeps: int = 1
+    model,
+    duration: float,
+    controller: str = "synchronous",
+    actuation: str = "torque",
+    control_substeps: int = 1,
+    distro: str = "jazzy",
 ):
     """evaluate(gains, scenarios) -> batched Metrics on the full task (accurate solver);
-    one per configuration and process (a study's runs share it); ``actuation``
-    and ``control_substeps``: the arms' stack (``Stack.rollout_options``)."""
-    fn = make_rollout(model, controller, duration, actuation=actuation, control_substeps=control_substeps)
+    one per configuration and process (a study's runs share it); ``actuation``,
+    ``control_substeps`` and ``distro``: the arms' stack (``Stack.rollout_options``)."""
+    fn = make_rollout(
+        model, controller, duration, actuation=actuation, control_substeps=control_substeps, distro=distro
+    )
     return jax.jit(jax.vmap(lambda g, s: _metrics.summarize(fn(g, s), s), in_axes=(None, 0)))
 
 
