@@ -62,8 +62,8 @@ def test_every_format_round_trips(tmp_path, fmt, kind):
     gains = _tuned_like() if kind == "constant" else _schedule_like()
     paths = _export.export(gains, fmt, str(tmp_path))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else tmp_path)  # what compare --gains reads
-    # yaml/json carry the values as written; ros2 carries the damping as a ratio (one rounding)
-    _same(back, gains, rtol=0 if fmt != "ros2-admittance" else 1e-14)
+    # every format carries the values exactly (ros2: the damping ratio's D kept in synchronisation.yaml)
+    _same(back, gains, rtol=0)
 
 
 def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
@@ -83,6 +83,37 @@ def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
     assert "Not carried over" in text and "synchronisation.yaml" in text
     sync = yaml.safe_load((tmp_path / "synchronisation.yaml").read_text())["dual_arm_synchronisation"]
     assert sync["ros__parameters"]["k_lk"] == pytest.approx(0.97)
+
+
+def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_win(tmp_path):
+    """synchronisation.yaml names its schema and every key docs/export.md lists;
+    a damping_ratio edited in an admittance file is what is read back (the D
+    kept beside it only while the ratio still gives it); a newer schema, or a
+    file written before the schema had a version, is said."""
+    g = _tuned_like()
+    _export.export(g, "ros2-admittance", str(tmp_path))
+    path = tmp_path / "synchronisation.yaml"
+    sync = yaml.safe_load(path.read_text())["dual_arm_synchronisation"]["ros__parameters"]
+    assert sync["schema_version"] == _export.SYNC_SCHEMA == 1
+    documented = open(os.path.join(os.path.dirname(__file__), "..", "docs", "export.md")).read()
+    for key in sync:
+        assert f"`{key}`" in documented, f"synchronisation.yaml key {key} is not documented in docs/export.md"
+    assert sync["controllers"] == ["admittance_controller_right", "admittance_controller_left"]
+    assert sync["update_rate"] == 500 and sync["ros_distro"] == "jazzy" and sync["alpha"] == 0.01
+    right = tmp_path / "admittance_right.yaml"
+    doc = yaml.safe_load(right.read_text())
+    adm = doc["admittance_controller_right"]["ros__parameters"]["admittance"]
+    adm["damping_ratio"][0] = 0.5
+    right.write_text(yaml.safe_dump(doc))
+    back = gains_file.load(tmp_path)  # the paper model: control axes = pad axes; the mass per base axis
+    expected = 2 * 0.5 * np.sqrt(adm["mass"][0] * adm["stiffness"][0])
+    assert float(back.imp_damping[0, 0]) == pytest.approx(expected, rel=1e-12) != float(g.imp_damping[0, 0])
+    np.testing.assert_array_equal(np.asarray(back.imp_damping)[1], np.asarray(g.imp_damping)[1])
+    written = path.read_text()
+    for version, message in ((2, "schema_version 2 is not one this jaxsync reads"), ("one", "'one'")):
+        path.write_text(written.replace("schema_version: 1", f"schema_version: {version}"))
+        with pytest.raises(ConfigError, match=message):
+            gains_file.load(tmp_path)
 
 
 def test_yaml_names_every_gain_with_its_unit(tmp_path):
@@ -163,7 +194,7 @@ def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
     src.write_text(json.dumps({"gains": _schedule.to_file_dict(tuned)}))
     assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "f")]) == 0
     out = capsys.readouterr().out
-    assert "note: " not in out and "the same gains" in out
+    assert "note: " not in out and "the same gains, bit for bit" in out
     # a pad frame not aligned with the base: only a mass equal on a block's axes has a base-frame form
     tilted = dataclasses.replace(right, base_axes=None)
     with pytest.raises(ConfigError, match=r"right arm's pad frame is not aligned with kinematics.base .* x, y, z"):

@@ -21,7 +21,7 @@ def run(args) -> int:
         force=args.force,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
-    print("read back: " + ("the same gains (relative difference <= 1e-12)" if r.same else "DIFFERENT gains"))
+    print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
     for line in r.notes:
         print(f"note: {line}")
     return 0 if r.same else 1

@@ -257,28 +257,43 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     return "\n".join(lines) + "\n"
 
 
+SYNC_SCHEMA = 1  # synchronisation.yaml's schema version (docs/export.md, "synchronisation.yaml")
+SYNC_NODE = "dual_arm_synchronisation"
+
+
 def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     lines = [
-        "# jaxsync: what the paper's synchronous controller adds to two admittance controllers"
-        + (f" (task phase '{phase}')" if phase else ""),
-        "# (docs/controller.md): relative-error factors k_rk, k_lk (eq. 13), compliant-offset factors",
-        "# k_rl, k_ll (eq. 17), the inner position loop kp_pos, kd_pos and the null-space gains (eq. 18).",
-        "dual_arm_synchronisation:",
+        f"# jaxsync synchronisation.yaml, schema {SYNC_SCHEMA} (docs/export.md names every key): what the paper's"
+        + (f" synchronous controller adds (task phase '{phase}')" if phase else " synchronous controller adds"),
+        "# to the two admittance controllers of admittance_right.yaml and admittance_left.yaml, for a dual-arm",
+        "# controller to read (docs/deploy.md gives its update): relative-error factors k_rk, k_lk (eq. 13),",
+        "# compliant-offset factors k_rl, k_ll (eq. 17), the joint-command loop kp_pos, kd_pos, kp_null, kd_null.",
+        f"{SYNC_NODE}:",
         "  ros__parameters:",
+        f"    schema_version: {SYNC_SCHEMA}",
+        f"    ros_distro: {target.distro}",
+        f"    update_rate: {target.update_rate}  # Hz",
+        f"    controllers: [{', '.join(f'admittance_controller_{n}' for n in ARMS)}]  # right, left",
+        f"    admittance_files: [{', '.join(f'admittance_{n}.yaml' for n in ARMS)}]",
     ]
     for name in SYNC_FIELDS:
         symbol, unit = MEANING[name]
         lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
+    lines.append(f"    alpha: {COMMAND_ALPHA!r}  # the joint command's damped least squares, (J^T J + alpha I)^-1 J^T")
+    lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
+    for arm, name in enumerate(ARMS):
+        lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
+    lines.append("    # for each entry of admittance_<arm>.yaml's mass, the pad-frame axis whose mass it is")
+    for arm, name in enumerate(ARMS):
+        lines.append(f"    mass_axes_{name}: {list(mass_axes(target.arms[arm], target.distro))}")
+    lines.append("    # the damping D (pad-frame axes) each damping_ratio was formed from, as tuned: read back")
+    lines.append("    # where the ratio still gives it to rounding, so that the files re-simulate bit for bit")
+    for arm, name in enumerate(ARMS):
+        lines.append(f"    damping_{name}: {_yaml_list(np.asarray(g.imp_damping, dtype=float)[arm])}")
     lines.append("    # the baselines' gains (docs/controller.md): no ros2 controller reads them; jaxsync does")
     for name in BASELINE_FIELDS:
         values = [float(x) for x in np.asarray(getattr(g, name), dtype=float)]
         lines.append(f"    {name}: {values!r}")
-    lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
-    for arm, name in enumerate(ARMS):
-        lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
-    lines.append("    # for each kinematics.base axis of admittance_<arm>.yaml's mass, the pad-frame axis it carries")
-    for arm, name in enumerate(ARMS):
-        lines.append(f"    mass_axes_{name}: {list(mass_axes(target.arms[arm], target.distro))}")
     return "\n".join(lines) + "\n"
 
 
@@ -323,25 +338,37 @@ def _ros2_load(folder: str) -> Gains:
     path = os.path.join(folder, "synchronisation.yaml")
     doc = _read_yaml(path)
     try:
-        sync = doc["dual_arm_synchronisation"]["ros__parameters"]
+        sync = doc[SYNC_NODE]["ros__parameters"]
     except (KeyError, TypeError):
-        raise ConfigError(f"{path}: expected dual_arm_synchronisation: ros__parameters:") from None
+        raise ConfigError(f"{path}: expected {SYNC_NODE}: ros__parameters:") from None
+    version = sync.get("schema_version", 0)  # 0: written before the schema had a version
+    if not isinstance(version, int) or not 0 <= version <= SYNC_SCHEMA:
+        raise ConfigError(
+            f"{path}: schema_version {version!r} is not one this jaxsync reads (0 to {SYNC_SCHEMA}): "
+            "a newer jaxsync wrote it"
+        )
     fields = {}
     for name, (m, zeta, k) in zip(ARMS, per_arm, strict=True):
-        axes = sync.get(f"pad_axes_{name}", list(range(6)))
-        if sorted(axes) != list(range(6)):
-            raise ConfigError(f"{path}: pad_axes_{name} must order the 6 axes 0-5, got {axes}")
+        axes = _axes(sync, f"pad_axes_{name}", list(range(6)), path)
         inv = np.argsort(axes)  # pad axis j sits at control-frame position inv[j]
-        mass_axes = sync.get(f"mass_axes_{name}", axes)
-        if sorted(mass_axes) != list(range(6)):
-            raise ConfigError(f"{path}: mass_axes_{name} must order the 6 axes 0-5, got {mass_axes}")
-        d = 2.0 * zeta * np.sqrt(m * k)  # as the controller forms it, entry by entry
-        fields.setdefault("imp_mass", []).append(m[np.argsort(mass_axes)])
+        mass_order = _axes(sync, f"mass_axes_{name}", axes, path)
+        d = (2.0 * zeta * np.sqrt(m * k))[inv]  # as the controller forms it, entry by entry; pad order
+        tuned = np.asarray(sync.get(f"damping_{name}", d), dtype=float)
+        if tuned.shape == (6,) and np.allclose(tuned, d, rtol=1e-12, atol=0.0):
+            d = tuned  # the D the ratio was formed from, exactly (an edited damping_ratio wins)
+        fields.setdefault("imp_mass", []).append(m[np.argsort(mass_order)])
         fields.setdefault("imp_stiffness", []).append(k[inv])
-        fields.setdefault("imp_damping", []).append(d[inv])
+        fields.setdefault("imp_damping", []).append(d)
     d = {k: np.stack(v).tolist() for k, v in fields.items()}
     d.update({k: sync[k] for k in SYNC_FIELDS + BASELINE_FIELDS if k in sync})
     return _gains.from_dict(d)
+
+
+def _axes(sync: dict, key: str, default, path: str) -> list:
+    axes = sync.get(key, default)
+    if not isinstance(axes, list) or sorted(axes) != list(range(6)):
+        raise ConfigError(f"{path}: {key} must order the 6 axes 0-5, got {axes}")
+    return axes
 
 
 def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings=()) -> list[str]:

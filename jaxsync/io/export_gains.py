@@ -33,7 +33,7 @@ class Exported(NamedTuple):
     paths: list[str]  # the files (ros2-admittance: each phase's folder of a schedule)
     kind: str  # "constant gains" or "a gain schedule"
     origin: str  # whose gains: the file, or "the default gains of ..."
-    same: bool  # the export read back to the same gains (relative difference <= 1e-12)
+    same: bool  # the export read back to the same gains, bit for bit
     notes: list[str]  # what the ros2_control files cannot carry over as jaxsync runs it
 
 
@@ -114,7 +114,7 @@ def export_gains(
         paths=paths,
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
-        same=gains_file.same_gains(back, g),
+        same=gains_file.same_gains(back, g, rtol=0.0),
         notes=warnings + (_distro_notes(distro) if fmt == "ros2-admittance" else []),
     )
 
