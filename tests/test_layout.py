@@ -144,6 +144,7 @@ PARSE_ONLY = {
     ),
     "jaxsync.cli.export": (
         "jaxsync.io.export_gains:export_gains",
+        "jaxsync.io.golden:golden_job",
         "jaxsync.io.export:COMMAND_INTERFACES",
         "jaxsync.io.export:DISTROS",
         "jaxsync.io.export:FORMATS",

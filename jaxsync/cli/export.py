@@ -2,12 +2,29 @@
 
 from __future__ import annotations
 
-from jaxsync.cli._common import add_gains_argument, add_model_argument, model_options, model_source
+import sys
+
+from jaxsync.cli._common import (
+    ALL_CONTROLLERS,
+    add_gains_argument,
+    add_model_argument,
+    model_options,
+    model_source,
+    positive,
+)
 from jaxsync.io.export import COMMAND_INTERFACES, DISTROS, FORMATS
 from jaxsync.io.export_gains import export_gains
+from jaxsync.io.golden import golden_job
 
 
 def run(args) -> int:
+    if args.format == "golden":
+        return _golden(args)
+    if args.steps is not None or args.controller is not None:
+        flags = ", ".join(f for f, v in (("--steps", args.steps), ("--controller", args.controller)) if v is not None)
+        print(f"jaxsync export: error: {flags}: only --format golden records a rollout, got --format {args.format}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     r = export_gains(
         args.gains,
         args.format,
@@ -17,7 +34,7 @@ def run(args) -> int:
         distro=args.ros_distro,
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
         any_model=args.any_model,
-        actuation=args.actuation,
+        actuation=args.actuation or "torque",
         force=args.force,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
@@ -25,6 +42,27 @@ def run(args) -> int:
     for line in r.notes:
         print(f"note: {line}")
     return 0 if r.same else 1
+
+
+def _golden(args) -> int:
+    r = golden_job(
+        args.gains,
+        args.out,
+        model=model_source(args),
+        **model_options(args),
+        controller=args.controller,
+        steps=1000 if args.steps is None else args.steps,
+        actuation=args.actuation or "position",
+        control_rate=args.control_rate,
+        delay=args.delay,
+        distro=args.ros_distro,
+        any_model=args.any_model,
+    )
+    d = r.delay
+    print(f"wrote {r.controller}'s golden files ({d} period{'s' * (d != 1)} of delay): " + ", ".join(r.paths))
+    said = "gives the recorded outputs" if r.exact else "DIFFERS from the recorded outputs"
+    print(f"replayed: jaxsync's step on the recorded inputs {said} (largest difference {r.worst:.3g})")
+    return 0 if r.exact else 1
 
 
 def add_parser(subparsers):
@@ -42,13 +80,19 @@ def add_parser(subparsers):
         "gains of --robot's robot (or of the paper model)",
         positional=True,
     )
-    p.add_argument("--format", required=True, choices=list(FORMATS), help="output format")
+    p.add_argument(
+        "--format",
+        required=True,
+        choices=[*FORMATS, "golden"],
+        help="output format; golden: a rollout's control periods, what the controller read and wrote, for a "
+        "port's unit test (docs/export.md)",
+    )
     p.add_argument(
         "--actuation",
         choices=["torque", "position"],
-        default="torque",
+        default=None,
         help="without a gains file: the default gains of this stack (position: joint commands through the "
-        "robot's servo) (torque)",
+        "robot's servo) (torque; golden: position, the only one it records)",
     )
     add_model_argument(p)
     p.add_argument(
@@ -70,6 +114,16 @@ def add_parser(subparsers):
         help="ros2-admittance: write gains the admittance rule would run unstably or within its margin, with a "
         "WARNING in each file (refused otherwise)",
     )
+    g = p.add_argument_group("golden", "the rollout --format golden records (MuJoCo C, the comparison scenario)")
+    g.add_argument("--steps", type=positive(int), default=None, help="control periods recorded (1000)")
+    g.add_argument(
+        "--controller",
+        default=None,
+        choices=list(ALL_CONTROLLERS),
+        help="the controller recorded (the one the gains file was tuned for, else synchronous)",
+    )
+    g.add_argument("--delay", default="0", metavar="N", help="control periods of command delay (0)")
+    g.add_argument("--control-rate", type=positive(float), default=None, metavar="HZ", help="(the physics rate)")
     p.add_argument("--out", default="results/export", help="output folder (results/export)")
     p.set_defaults(func=run)
     return p

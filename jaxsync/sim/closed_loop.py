@@ -110,10 +110,11 @@ def control(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt):
 
 def control_position(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt, command):
     """Plan, desired wrench and one controller step on position-controlled
-    arms: the next joint position commands (2 n,)."""
+    arms: the next joint position commands (2 n,), the state, info, the plan
+    and the reference the controller read."""
     gains, ref, pl = _planned(gains, s, c, pad_start, t)
     command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command)
-    return command, cstate, info, pl
+    return command, cstate, info, pl, ref
 
 
 def initial_command(model: DualArmModel, c: Consts) -> np.ndarray:

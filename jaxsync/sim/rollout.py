@@ -158,7 +158,7 @@ def _controlled_rollout(
             arms = (sensed.right, sensed.left)
             if position:
                 command, buffer = held
-                command, cstate, info, pl = _closed_loop.control_position(
+                command, cstate, info, pl, _ = _closed_loop.control_position(
                     options, gains, s, consts, cstate, arms, pad_start, t, dt, command
                 )
                 buffer = _actuation.push(buffer, command)

@@ -88,8 +88,13 @@ def rollout_mujoco(
     cross_term: str = "squeeze",
     actuation: str = "torque",
     distro: str = "jazzy",
+    on_control=None,
 ) -> Trajectory:
     """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment.
+
+    ``on_control`` (position-controlled arms): called each control period k
+    with ``(k, arms, ref, command_in, state_in, command, state)``, what the
+    controller read and wrote (``jaxsync.io.golden`` records them).
 
     Example:
       >>> model, s = jaxsync.load_model(), jaxsync.short_task()
@@ -131,10 +136,10 @@ def rollout_mujoco(
 
     @jax.jit
     def control_position(gains, s, cstate, arms, k, command, buffer):
-        command, cstate, info, pl = _closed_loop.control_position(
+        command, cstate, info, pl, ref = _closed_loop.control_position(
             options, gains, s, consts, cstate, arms, pad_start, k * dt, dt, command
         )
-        return command, _actuation.push(buffer, command), cstate, info, pl
+        return command, _actuation.push(buffer, command), cstate, info, pl, ref
 
     noise = jax.jit(lambda s, k: _closed_loop.noise(s, consts, k))
     cstate = _controller.init(jnp.asarray(_closed_loop.initial_command(model, consts)))
@@ -157,7 +162,10 @@ def rollout_mujoco(
         qpos, qvel = d.qpos.copy(), d.qvel.copy()
         va = idx.object_dof_adr
         if position:
-            command, buffer, cstate, info, pl = control_position(gains, scenario, cstate, arms, k, command, buffer)
+            before = (command, cstate)
+            command, buffer, cstate, info, pl, ref = control_position(gains, scenario, cstate, arms, k, command, buffer)
+            if on_control is not None:
+                on_control(k, arms, ref, *before, command, cstate)
             acting, acting_vel = (np.asarray(x) for x in _actuation.acting(buffer, delay, dt))
             for sub in range(control_substeps):
                 if sub:
