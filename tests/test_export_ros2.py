@@ -22,6 +22,7 @@ import jaxsync
 from jaxsync.cli import main
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
+from jaxsync.io import ros2_target as ros2_target_mod
 
 # name -> (type, fixed size or None); every one of these has no default
 NO_DEFAULT = {
@@ -159,3 +160,63 @@ def test_the_paper_models_files_load_too_and_bad_options_are_named(tmp_path, cap
     rc = main(["export", "--format", "yaml", "--out", str(tmp_path / "y")])
     assert rc == 0 and "from the default gains of the paper model" in capsys.readouterr().out
     assert gains_file.same_gains(gains_file.load(str(tmp_path / "y" / "gains.yaml")), jaxsync.default_gains())
+
+
+def test_the_compliance_can_be_centred_at_the_pad(tmp_path):
+    """--compliance-at pad: the files name a pad link as tip, control, sensor and
+    gravity frame, in jaxsync's pad axes; pad_links.urdf fixes it to the flange
+    link where the model's pad is; the sensor's tool transform is the pad in
+    the sensor frame; the gains read back bit for bit."""
+    import xml.etree.ElementTree as ET  # noqa: PLC0415 -- this test alone reads URDF
+
+    import mujoco  # noqa: PLC0415 -- the model's own pad and flange poses
+
+    path = os.path.join(os.path.dirname(jaxsync.default_model_path()), "robots", "ur5e_twice.yaml")
+    model = jaxsync.load_model(path, visual=False)
+    g = jaxsync.default_gains(model, "position")
+    out = tmp_path / "pad"
+    argv = ["export", "--format", "ros2-admittance", "--robot", path, "--no-visual", "--actuation", "position"]
+    assert main([*argv, "--compliance-at", "pad", "--out", str(out)]) == 0
+    m, d = model.mj_model, mujoco.MjData(model.mj_model)
+    mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "grasp"))
+    mujoco.mj_kinematics(m, d)
+    joints = {j.find("child").get("link"): j for j in ET.parse(out / "pad_links.urdf").getroot().iter("joint")}
+    for arm, side in ((0, "r"), (1, "l")):
+        name = ("right", "left")[arm]
+        p = yaml.safe_load(open(out / f"admittance_{name}.yaml"))[f"admittance_controller_{name}"]["ros__parameters"]
+        pad_link = p["kinematics"]["tip"]
+        assert pad_link == f"{name}_jaxsync_pad" and pad_link in joints
+        assert p["control"]["frame"]["id"] == p["ft_sensor"]["frame"]["id"] == pad_link
+        assert p["gravity_compensation"]["frame"]["id"] == pad_link
+        assert p["admittance"]["stiffness"] == np.asarray(g.imp_stiffness)[arm].tolist()  # the pad's axis order
+        # the fixed joint puts the pad link where the model's pad is, in the flange link's frame
+        ee = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{side}_ee")
+        tip = int(m.body_parentid[ee])
+        pad = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
+        origin = joints[pad_link].find("origin")
+        xyz = np.array(origin.get("xyz").split(), dtype=float)
+        roll, pitch, yaw = np.array(origin.get("rpy").split(), dtype=float)
+        R_tip = d.xmat[tip].reshape(3, 3)
+        np.testing.assert_allclose(xyz, R_tip.T @ (d.site_xpos[pad] - d.xpos[tip]), atol=1e-9)
+        np.testing.assert_allclose(_rpy_matrix(roll, pitch, yaw), R_tip.T @ d.site_xmat[pad].reshape(3, 3), atol=1e-9)
+        assert abs(xyz[1]) == pytest.approx(0.1356, abs=1e-4)  # the UR5e-like pad sits 0.136 m out
+    text = open(out / "admittance_right.yaml").read()
+    assert "transform xyz [0, 0, 0.036] m, rpy [0, 0, 0] rad" in text  # the pad 36 mm out from the wrist sensor
+    assert gains_file.same_gains(gains_file.load(out), g, rtol=0.0)
+    with pytest.raises(SystemExit):
+        main([*argv, "--compliance-at", "tcp", "--out", str(tmp_path / "x")])
+
+
+def _rpy_matrix(roll, pitch, yaw):
+    c, s = np.cos, np.sin
+    rx = np.array([[1, 0, 0], [0, c(roll), -s(roll)], [0, s(roll), c(roll)]])
+    ry = np.array([[c(pitch), 0, s(pitch)], [0, 1, 0], [-s(pitch), 0, c(pitch)]])
+    rz = np.array([[c(yaw), -s(yaw), 0], [s(yaw), c(yaw), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def test_urdf_angles_rebuild_the_rotation():
+    rng = np.random.default_rng(3)
+    for angles in [rng.uniform(-3, 3, 3) for _ in range(20)] + [(0.3, np.pi / 2, 0.0), (0.2, -np.pi / 2, 0.0)]:
+        R = _rpy_matrix(*angles)
+        np.testing.assert_allclose(_rpy_matrix(*ros2_target_mod.rpy_of(R)), R, atol=1e-12)

@@ -146,6 +146,7 @@ PARSE_ONLY = {
         "jaxsync.io.export_gains:export_gains",
         "jaxsync.io.golden:golden_job",
         "jaxsync.io.export:COMMAND_INTERFACES",
+        "jaxsync.io.export:COMPLIANCE_FRAMES",
         "jaxsync.io.export:DISTROS",
         "jaxsync.io.export:FORMATS",
     ),

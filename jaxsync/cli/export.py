@@ -12,7 +12,7 @@ from jaxsync.cli._common import (
     model_source,
     positive,
 )
-from jaxsync.io.export import COMMAND_INTERFACES, DISTROS, FORMATS
+from jaxsync.io.export import COMMAND_INTERFACES, COMPLIANCE_FRAMES, DISTROS, FORMATS
 from jaxsync.io.export_gains import export_gains
 from jaxsync.io.golden import golden_job
 
@@ -36,6 +36,7 @@ def run(args) -> int:
         any_model=args.any_model,
         actuation=args.actuation or "torque",
         force=args.force,
+        compliance_at=args.compliance_at,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
@@ -107,6 +108,13 @@ def add_parser(subparsers):
         default="position",
         help=f"ros2-admittance: the joint command interfaces, comma-separated, of {list(COMMAND_INTERFACES)} "
         "(position)",
+    )
+    p.add_argument(
+        "--compliance-at",
+        choices=list(COMPLIANCE_FRAMES),
+        default="flange",
+        help="ros2-admittance: the frame the controller's compliance is centred at: the flange link (default), "
+        "or a pad link the files name and pad_links.urdf fixes to the flange, where jaxsync centres it",
     )
     p.add_argument(
         "--force",

@@ -40,6 +40,7 @@ from jaxsync.io import results as _results
 from jaxsync.io.ros2_target import (  # noqa: F401  (jaxsync.io.export's public names)
     ARMS,
     COMMAND_INTERFACES,
+    COMPLIANCE_FRAMES,
     CONTROLLER_TYPE,
     DISTROS,
     KDL_PLUGIN,
@@ -185,8 +186,20 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
         *(f"# {w}" for w in warnings),
         f"# jaxsync gains for the {name} arm{when}, in the schema of {ADMITTANCE_SOURCE}",
         f"# ({target.distro}; docs/export.md cites the definition's commit). Every parameter without a default",
-        f"# is set. Axis order x, y, z, rx, ry, rz of the control frame, the flange link '{t.tip}' (jaxsync's pad",
-        f"# frame is that link's axes {list(t.axes[:3])} reordered; the pad normal in it is [{normal}]).",
+        *(
+            [
+                f"# is set. Axis order x, y, z, rx, ry, rz of the control frame, the pad link '{t.tip}' (jaxsync's pad",
+                "# frame: z the pad normal), which pad_links.urdf fixes to the flange link: add it to your robot",
+                "# description. The F/T reading must be expressed at the pad: give the sensor's driver the tool",
+                f"# transform xyz {_numbers(t.sensor_to_pad[0])} m, rpy {_numbers(t.sensor_to_pad[1])} rad (the pad",
+                "# in the sensor's frame), or the torque about the pad misses the lever arm (docs/export.md).",
+            ]
+            if t.pad_joint is not None
+            else [
+                f"# is set. Axis order x, y, z, rx, ry, rz of the control frame, the flange link '{t.tip}' (jaxsync's",
+                f"# pad frame is that link's axes {list(t.axes[:3])} reordered; the pad normal in it is [{normal}]).",
+            ]
+        ),
         "# damping_ratio = D / (2 sqrt(M K)), the admittance controller's convention.",
         "# Not carried over (the admittance controller has no parameter for it): the paper's",
         "# synchronisation (absolute and relative errors between the arms, eqs. 12-17, k_rk k_lk k_rl",
@@ -297,10 +310,39 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _numbers(v) -> str:
+    return "[" + ", ".join(f"{x:.9g}" for x in v) + "]"
+
+
+def pad_links_urdf(target: Ros2Target) -> str:
+    """The pad links a compliance-at-pad export names, fixed to each flange link (URDF)."""
+    lines = [
+        '<?xml version="1.0"?>',
+        "<!-- jaxsync: the pad links the admittance files name as tip, control, sensor and gravity frames.",
+        "     Add them to your robot description (each fixed to its arm's flange link at jaxsync's pad: the",
+        "     face centre, z the pad normal). docs/export.md. -->",
+        '<robot name="jaxsync_pads">',
+    ]
+    for t in target.arms:
+        parent, (xyz, rpy) = t.pad_joint
+        lines += [
+            f'  <link name="{t.tip}"/>',
+            f'  <joint name="{t.tip}_joint" type="fixed">',
+            f'    <parent link="{parent}"/>',
+            f'    <child link="{t.tip}"/>',
+            f'    <origin xyz="{" ".join(repr(x) for x in xyz)}" rpy="{" ".join(repr(x) for x in rpy)}"/>',
+            "  </joint>",
+        ]
+    return "\n".join([*lines, "</robot>"]) + "\n"
+
+
 def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()) -> list[str]:
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
+    if target.arms[0].pad_joint is not None:
+        paths.append(os.path.join(out, "pad_links.urdf"))
+        _results.atomic_write_text(paths[-1], pad_links_urdf(target))
     for arm, name in enumerate(ARMS):
         path = os.path.join(out, f"admittance_{name}.yaml")
         text = _admittance_yaml(g, arm, f"admittance_controller_{name}", phase, target, warnings)

@@ -49,6 +49,7 @@ def export_gains(
     any_model: bool = False,
     actuation: str = "torque",
     force: bool = False,
+    compliance_at: str = "flange",
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -66,6 +67,9 @@ def export_gains(
     the admittance rule would run an axis of any phase unstable or within its
     margin at the exported update rate (:func:`deployed_stability`); with
     ``force`` it is written, each file and the notes saying so in a WARNING.
+    ``compliance_at="pad"``: the files name a pad link (``pad_links.urdf``
+    fixes it to the flange) as tip, control, sensor and gravity frame, so that
+    the compliance is centred at the pad as simulated.
     """
     _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
@@ -84,7 +88,11 @@ def export_gains(
             gains_file.check_model(gains, loaded, any_model)
         if fmt == "ros2-admittance":
             target = _export.ros2_target(
-                loaded.mj_model, loaded.robot, distro=distro, command_interfaces=tuple(command_interfaces)
+                loaded.mj_model,
+                loaded.robot,
+                distro=distro,
+                command_interfaces=tuple(command_interfaces),
+                compliance_at=compliance_at,
             )
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     warnings = []

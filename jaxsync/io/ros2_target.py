@@ -17,6 +17,7 @@ ARMS = ("right", "left")
 # where ros2_controllers PR #1139 holds (Rolling): the mass applied in the control frame, not per base axis
 MASS_IN_CONTROL_FRAME = {"jazzy": False, "kilted": False, "rolling": True, "humble": False}
 COMMAND_INTERFACES = ("position", "velocity")
+COMPLIANCE_FRAMES = ("flange", "pad")
 KDL_PLUGIN = ("kinematics_interface_kdl/KinematicsInterfaceKDL", "kinematics_interface")  # name, package
 CONTROLLER_TYPE = "admittance_controller/AdmittanceController"
 
@@ -35,6 +36,10 @@ class ArmTarget:
     ft_sensor: str
     # for each of kinematics.base's 6 axes, the pad axis it carries at the grasp (None: no signed permutation)
     base_axes: tuple[int, ...] | None = None
+    # compliance at the pad: the pad link the files name, a fixed joint from the flange link (parent, xyz, rpy),
+    # and the pad pose in the F/T sensor's frame (xyz, rpy) for the sensor's tool transform
+    pad_joint: tuple | None = None
+    sensor_to_pad: tuple | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,12 +63,15 @@ def _signed_permutation(R: np.ndarray, what: str) -> tuple[int, ...]:
 
 
 def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_interfaces=("position",),
-                ft_sensors=None) -> Ros2Target:  # fmt: skip
+                ft_sensors=None, compliance_at: str = "flange") -> Ros2Target:  # fmt: skip
     """The robot facts the admittance controller's parameters take, from a
     loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
     paper model's MJCF names). A robot file's names are its own, each arm's
     joints and links (base, tip: every frame the files name) with the arm's
-    ``ros_prefix`` before them."""
+    ``ros_prefix`` before them. ``compliance_at="pad"``: the tip, control,
+    sensor and gravity frames are a pad link (``<arm>_jaxsync_pad`` after the
+    prefix) fixed to the flange link at the pad, with jaxsync's pad axes, so
+    that the controller's compliance is centred where jaxsync's is."""
     # imported here, not at the top: the export of yaml/json gains needs no MuJoCo
     import mujoco  # noqa: PLC0415
 
@@ -72,6 +80,11 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
 
     if distro not in DISTROS:
         raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", inputs=("distro",))
+    if compliance_at not in COMPLIANCE_FRAMES:
+        raise ConfigError(
+            f"compliance_at must be one of {list(COMPLIANCE_FRAMES)}, got {compliance_at!r}",
+            inputs=("compliance_at",),
+        )
     bad = [c for c in command_interfaces if c not in COMMAND_INTERFACES]
     if bad or not command_interfaces:
         raise ConfigError(
@@ -91,18 +104,31 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
         pad = ident(mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
         tip_id = int(m.body_parentid[ee]) if robot is not None else ee
         R_tip = d.xmat[tip_id].reshape(3, 3)
-        R = R_tip.T @ d.site_xmat[pad].reshape(3, 3)  # pad axes (columns) in the tip frame
-        perm = _signed_permutation(R, f"{name} arm")
+        R_pad = d.site_xmat[pad].reshape(3, 3)
+        R = R_tip.T @ R_pad  # pad axes (columns) in the tip frame
+        at_pad = compliance_at == "pad"
+        perm = (0, 1, 2) if at_pad else _signed_permutation(R, f"{name} arm")
         cog = R_tip.T @ (d.xipos[ee] - d.xpos[tip_id])
+        pad_joint = sensor_to_pad = None
+        if at_pad:
+            flange = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, tip_id)
+            ft = ident(mujoco.mjtObj.mjOBJ_SITE, f"{side}_ft")
+            R_ft = d.site_xmat[ft].reshape(3, 3)
+            pad_joint = (flange, _pose(R_tip, d.xpos[tip_id], R_pad, d.site_xpos[pad]))
+            sensor_to_pad = _pose(R_ft, d.site_xpos[ft], R_pad, d.site_xpos[pad])
+            cog = R_pad.T @ (d.xipos[ee] - d.site_xpos[pad])
         if robot is not None:
             ros = robot_names.ros_prefix(m, name)  # arms.<side>.ros_prefix; a base of "world" is everyone's
             joints, links = tuple(ros + j for j in robot.joint_names[name]), robot.links[name]
             base, tip = links["base"] if links["base"] == "world" else ros + links["base"], ros + links["tip"]
+            if at_pad:
+                pad_joint = (tip, pad_joint[1])
         else:
             jids = arm_joint_ids(m, side)
             joints = tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, j) for j in jids)
             base = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, int(m.body_parentid[m.jnt_bodyid[jids[0]]]))
             tip = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, ee)
+            ros = ""
         base_body = int(m.body_parentid[m.jnt_bodyid[arm_joint_ids(m, side)[0]]])
         in_base = d.xmat[base_body].reshape(3, 3).T @ d.site_xmat[pad].reshape(3, 3)
         idx = np.argmax(np.abs(in_base), axis=1)
@@ -113,16 +139,35 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
             ArmTarget(
                 joints,
                 base,
-                tip,
+                f"{ros or name + '_'}jaxsync_pad" if at_pad else tip,
                 perm + tuple(3 + i for i in perm),
                 tuple(float(x) for x in cog),
                 float(m.body_mass[ee] * 9.81),
-                tuple(float(x) for x in R[:, 2]),
+                (0.0, 0.0, 1.0) if at_pad else tuple(float(x) for x in R[:, 2]),
                 sensor,
                 base_axes,
+                pad_joint,
+                sensor_to_pad,
             )  # fmt: skip
         )
     return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
+
+
+def _pose(R_parent, p_parent, R_child, p_child) -> tuple:
+    """(xyz, rpy) of a child frame in its parent's, as URDF writes a fixed joint's
+    origin: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    R = R_parent.T @ R_child
+    xyz = R_parent.T @ (p_child - p_parent)
+    clean = lambda v: tuple(round(float(x), 12) + 0.0 for x in v)  # noqa: E731 -- no -0.0 or 1e-17 noise
+    return clean(xyz), clean(rpy_of(R))
+
+
+def rpy_of(R: np.ndarray) -> tuple[float, float, float]:
+    """URDF's roll, pitch, yaw of a rotation matrix (R = Rz(yaw) Ry(pitch) Rx(roll))."""
+    pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
+    if abs(R[2, 0]) < 1.0 - 1e-12:
+        return float(np.arctan2(R[2, 1], R[2, 2])), pitch, float(np.arctan2(R[1, 0], R[0, 0]))
+    return float(np.arctan2(-R[1, 2], R[1, 1])), pitch, 0.0  # gimbal lock: all of the rotation in roll
 
 
 def mass_axes(t: ArmTarget, distro: str) -> tuple[int, ...]:
