@@ -124,6 +124,74 @@ def test_an_export_re_simulates_bit_for_bit(model, loop_runs, tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def test_the_rule_plus_the_coupling_nests_the_rule_and_holds_the_ball(model, loop_runs):
+    """ros2_synchronous with every coupling factor zero is ros2_admittance, to the
+    bit; with the synchronous defaults' factors it holds the ball."""
+    s, g = loop_runs["scenario"], loop_runs["gains"]
+    zero = g._replace(**{k: jnp.zeros(()) for k in ("k_rk", "k_lk", "k_rl", "k_ll")})
+    run = lambda x: jaxsync.rollout(  # noqa: E731
+        model, x, s, controller="ros2_synchronous", duration=TEST_DURATION, actuation="position"
+    )
+    nested, coupled = run(zero), run(g)
+    for a, b in zip(*(jax.tree_util.tree_leaves(r) for r in (nested, loop_runs["default"][0])), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert _holds(_metrics.summarize(coupled, s))
+    assert float(jnp.abs(coupled.pad_pos - nested.pad_pos).max()) > 1e-6  # the coupling moved the pads
+
+
+def test_the_coupled_reference_is_the_papers_offset_on_the_plan(model):
+    """coupled_reference: x_id + k_ik (delta_r - delta_l) + k_il (e_i - e_j) (the
+    squeeze reading) with e_i = J_i dq_i, and the rates k_il (edot_i - edot_j)."""
+    rng = np.random.default_rng(5)
+    n = 7
+    g = jaxsync.default_gains(model, "position")._replace(
+        k_rk=jnp.asarray(0.3), k_lk=jnp.asarray(-0.2), k_rl=jnp.asarray(0.4), k_ll=jnp.asarray(0.6)
+    )
+    rot = [_so3.exp(jnp.asarray(rng.normal(0, 0.3, 3))) for _ in range(4)]
+    arms = tuple(
+        ArmState(
+            q=jnp.asarray(rng.normal(size=n)),
+            qd=jnp.zeros(n),
+            pad_pos=jnp.asarray(rng.normal(0, 0.1, 3)),
+            pad_rot=rot[i],
+            pad_vel=jnp.zeros(6),
+            jac=jnp.asarray(rng.normal(size=(6, n))),
+            jac_dot_qd=jnp.zeros(6),
+            mass=jnp.eye(n),
+            bias=jnp.zeros(n),
+            wrist_raw=jnp.zeros(6),
+            wrench=jnp.zeros(6),
+        )
+        for i in range(2)
+    )
+    ref = _controller.Reference(
+        pad_pos=jnp.asarray(rng.normal(0, 0.1, (2, 3))),
+        pad_rot=jnp.stack(rot[2:]),
+        pad_vel=jnp.asarray(rng.normal(0, 0.1, (2, 6))),
+        pad_acc=jnp.zeros((2, 6)),
+        wrench=jnp.zeros((2, 6)),
+        q_rest=jnp.zeros((2, n)),
+    )
+    state = _ros2_loop.init(jnp.zeros(2 * n))
+    dq = jnp.asarray(rng.normal(0, 1e-3, (2, n)))
+    dq_dot = jnp.asarray(rng.normal(0, 1e-2, (2, n)))
+    state = state._replace(rule=state.rule._replace(joint_pos=dq, joint_vel=dq_dot))
+    out = _ros2_loop.coupled_reference(g, state, arms, ref)
+    delta = [
+        np.concatenate([ref.pad_pos[i] - arms[i].pad_pos, _so3.rotation_error(ref.pad_rot[i], arms[i].pad_rot)])
+        for i in range(2)
+    ]
+    e = [np.asarray(arms[i].jac @ dq[i]) for i in range(2)]
+    e_dot = [np.asarray(arms[i].jac @ dq_dot[i]) for i in range(2)]
+    k_ik, k_il = (0.3, -0.2), (0.4, 0.6)
+    for i, j in ((0, 1), (1, 0)):
+        off = k_ik[i] * (delta[0] - delta[1]) + k_il[i] * (e[i] - e[j])
+        np.testing.assert_allclose(out.pad_pos[i], ref.pad_pos[i] + off[:3], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(out.pad_rot[i], _so3.exp(off[3:]) @ ref.pad_rot[i], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(out.pad_vel[i], ref.pad_vel[i] + k_il[i] * (e_dot[i] - e_dot[j]), atol=1e-15)
+    assert USED["ros2_synchronous"] == USED["ros2_admittance"] + ("k_rk", "k_lk", "k_rl", "k_ll")
+
+
 def test_the_torque_stack_refuses_the_rule(model):
     s = fast_scenario()
     g = jaxsync.default_gains(model)

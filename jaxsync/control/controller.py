@@ -285,7 +285,8 @@ def _ros2_admittance(options, gains, state, arms, ref, dt):
     delta = jnp.stack(
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
     )
-    command, ros2, off = _ros2_loop.step(gains, state.ros2, arms, ref, dt, options.distro)
+    coupled = options.kind == "ros2_synchronous"
+    command, ros2, off = _ros2_loop.step(gains, state.ros2, arms, ref, dt, options.distro, coupled, options.cross_term)
     info = ControlInfo(offset=off, delta=delta, force_error=pads.wrench - ref.wrench)
     return command, state._replace(ros2=ros2), info
 

@@ -66,6 +66,8 @@ USED = {
     # ros2_controllers' rule: mass, D (as its damping ratio) and K per arm; its reference joints follow
     # the plan with the joint-space law's gains
     "ros2_admittance": IMPEDANCE_FIELDS,
+    # the rule plus the coupling: its relative-error and cross-term factors
+    "ros2_synchronous": IMPEDANCE_FIELDS + ("k_rk", "k_lk", "k_rl", "k_ll"),
 }
 
 

@@ -5,8 +5,9 @@ from jaxsync._errors import ConfigError
 CONTROLLERS = ("classical", "synchronous", "object_impedance", "task_space")  # Cartesian offsets: either stack
 PAPER = ("classical", "synchronous")  # the paper's pair
 # ros2_controllers' admittance rule run per arm as deployed (jaxsync.control.ros2_loop): it makes joint
-# position commands itself, so it runs on position-controlled arms only
-POSITION_ONLY = ("ros2_admittance",)
+# position commands itself, so it runs on position-controlled arms only; "ros2_synchronous" is that rule
+# plus the paper's coupling (eqs. 12-17) in the reference each arm's rule offsets
+POSITION_ONLY = ("ros2_admittance", "ros2_synchronous")
 ALL_CONTROLLERS = CONTROLLERS + POSITION_ONLY
 # the ros2_controllers releases whose admittance rule jaxsync.control.ros2_admittance ports
 DISTROS = ("jazzy", "kilted", "rolling", "humble")

@@ -48,6 +48,7 @@ import jax.numpy as jnp
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import so3 as _so3
+from jaxsync.control import sync as _sync
 from jaxsync.control.names import check_actuation  # noqa: F401 (re-exported)
 from jaxsync.physics.sensing import ArmState
 
@@ -146,19 +147,57 @@ def reference_step(gains, arm: ArmState, q_ref: jax.Array, ref, i: int, dt: floa
     return q_ref + dt * rate, rate
 
 
-def step(gains, state: Ros2State, arms, ref, dt: float, distro: str = DEFAULT_DISTRO):
+def coupled_reference(gains, state: Ros2State, arms, ref, cross_term: str = "squeeze"):
+    """The plan with the paper's coupling (eqs. 12-17) added, what each arm's
+    rule offsets under ``"ros2_synchronous"``: x_id + delta_ik + k_il x_ild,
+    its rate xdot_id + k_il xdot_ild, where delta_ik = k_ik (delta_r - delta_l)
+    from the sensed pads (eqs. 12, 13) and x_ild the cross term (eq. 16) of
+    the rules' Cartesian offsets e_i = J_i dq_i (their rates J_i dqdot_i)
+    from the last period. All k zero: the plan, and the rule alone."""
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
+    )
+    e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
+    e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
+    k_il = jnp.stack([gains.k_rl, gains.k_ll])
+    off = _sync.synchronous_offset(
+        _sync.relative_compensation(delta, gains.k_rk, gains.k_lk),
+        k_il,
+        _sync.cross_mapped(e, ref.pad_pos, cross_term),
+    )
+    off_vel = k_il[:, None] * _sync.cross_mapped(e_dot, ref.pad_pos, cross_term)
+    return ref._replace(
+        pad_pos=ref.pad_pos + off[:, :3],
+        pad_rot=jnp.stack([_so3.exp(off[i, 3:]) @ ref.pad_rot[i] for i in range(2)]),
+        pad_vel=ref.pad_vel + off_vel,
+    )
+
+
+def step(
+    gains,
+    state: Ros2State,
+    arms,
+    ref,
+    dt: float,
+    distro: str = DEFAULT_DISTRO,
+    coupled: bool = False,
+    cross_term: str = "squeeze",
+):
     """One control period of both arms' rules.
 
     Args: gains; state; arms (right, left) sensed ``ArmState``; ref a
     ``jaxsync.control.controller.Reference``; dt the period, s; distro the
-    release (static). Returns (2 n,) the joint position commands, the new
+    release (static); coupled (static): the reference each rule offsets
+    carries the paper's coupling (:func:`coupled_reference`), cross_term its
+    reading of eq. 16. Returns (2 n,) the joint position commands, the new
     state and (2, 6) the rules' Cartesian offsets J dq (world frame, at the pad).
     """
     rule = _ra.admittance_rule(distro)
+    target = coupled_reference(gains, state, arms, ref, cross_term) if coupled else ref
     out, q_refs, rules, offsets = [], [], [], []
     for i in range(2):
         arm = arms[i]
-        q_ref, rate = reference_step(gains, arm, state.q_ref[i], ref, i, dt)
+        q_ref, rate = reference_step(gains, arm, state.q_ref[i], target, i, dt)
         w_ref = None if distro == "humble" else -_in_pad(arm.pad_rot, ref.wrench[i])
         command, rs = rule.step(
             params(gains, i, ref.pad_rot[i], distro),

@@ -24,7 +24,12 @@ from jaxsync.io import gains_file
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
 
-ROS2_CONTROLLERS = ("classical", "synchronous", "ros2_admittance")  # the laws a ros2-admittance export runs
+ROS2_CONTROLLERS = (
+    "classical",
+    "synchronous",
+    "ros2_admittance",
+    "ros2_synchronous",
+)  # the laws a ros2-admittance export runs
 
 
 class Exported(NamedTuple):

@@ -53,6 +53,7 @@ STATE_PARTS = {
     "object_impedance": ("impedance", "object"),
     "task_space": ("force_integral",),
     "ros2_admittance": ("ros2",),
+    "ros2_synchronous": ("ros2",),
 }
 # what a controller's step reads of each arm: (field, meaning)
 ARM_FIELDS = (

@@ -50,6 +50,7 @@ DEFAULT_TUNED_FOR = {
     "object_impedance": IMPEDANCE + OBJECT,
     "task_space": FORCE,
     "ros2_admittance": IMPEDANCE,  # ros2_controllers' rule: the admittance file's mass, damping, stiffness
+    "ros2_synchronous": DEFAULT_TUNED,  # the rule's, and the coupling's factors
 }
 # the gain each tuned name sets
 GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
