@@ -36,6 +36,18 @@ def _translational_mass(g, mass):
     return g._replace(imp_mass=g.imp_mass.at[:, :3].set(mass))
 
 
+def compile_ahead():
+    """The rule's and the coupled rule's MJX programs (tests/conftest.py: compiled ahead in a second process)."""
+    from conftest import paper_model
+
+    m = paper_model()
+    s = fast_scenario(delay=float(DELAY))
+    for controller in ("ros2_admittance", "ros2_synchronous"):
+        g = jaxsync.default_gains(m, "position")
+        traj = jaxsync.rollout(m, g, s, controller=controller, duration=TEST_DURATION, actuation="position")
+        traj.time.block_until_ready()
+
+
 @pytest.fixture(scope="module")
 def loop_runs(model):
     s = fast_scenario(delay=float(DELAY))
