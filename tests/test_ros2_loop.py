@@ -373,3 +373,21 @@ def test_a_period_is_differentiable_in_the_gains(model):
     for name in ("imp_mass", "imp_damping", "imp_stiffness", "kp_pos", "kd_pos", "kp_null", "kd_null"):
         assert np.all(np.isfinite(np.asarray(getattr(grad, name)))), name
     assert float(jnp.abs(grad.imp_mass).max()) > 0.0
+
+
+def test_the_compliance_probe_reads_the_rules_stand_in(model):
+    """The probe (jaxsync.control.compliance) reads ros2_admittance as the
+    classical law at the pad and ros2_synchronous as that plus its coupling:
+    the same figure with every factor zero, a softer squeeze with k_il > 0."""
+    from jaxsync.control import compliance as _compliance  # noqa: PLC0415 -- this test alone probes
+
+    g = jaxsync.default_gains(model, "position")
+    zero = g._replace(**{k: jnp.zeros(()) for k in ("k_rk", "k_lk", "k_rl", "k_ll")})
+    classical = _compliance.stiffness_at_pad(model, "classical", g)
+    assert _compliance.stiffness_at_pad(model, "ros2_admittance", g) == classical
+    nested = _compliance.stiffness_at_pad(model, "ros2_synchronous", zero)
+    assert nested["normal"] == pytest.approx(classical["normal"], rel=1e-9)
+    coupled = _compliance.stiffness_at_pad(
+        model, "ros2_synchronous", g._replace(k_rk=jnp.zeros(()), k_lk=jnp.zeros(()))
+    )
+    assert coupled["normal"] < 0.9 * classical["normal"]  # the cross term adds k_rl e_r to the right pad's yield

@@ -23,7 +23,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.control import controller as _controller
-from jaxsync.control.names import POSITION_ONLY
 from jaxsync.physics.inertia import pad_frames
 
 PROBE_TIME = 0.1  # s: of the order of a contact's first impact and of the task's phases
@@ -88,10 +87,9 @@ def apparent_stiffness(kind: str, gains, pads_pos, pads_rot, dt: float, cross_te
 def stiffness_at_pad(model, controller: str, gains) -> dict | None:
     """The apparent stiffness at the right pad of constant ``gains`` on
     ``model`` at the grasp, N/m by axis (:func:`apparent_stiffness`, jitted).
-    None for ros2_admittance, whose offsets come from joint space, not the
-    Cartesian offsets this probe reads."""
-    if controller in POSITION_ONLY:
-        return None
+    For the controllers of position-controlled arms, whose offsets come from
+    joint space, the probe reads a Cartesian stand-in: the same mass, damping
+    and spring at the pad (and ros2_synchronous's coupling)."""
     pos, rot = probe_geometry(model)
     dt = float(model.mj_model.opt.timestep)
     k = jax.jit(lambda g: apparent_stiffness(controller, g, pos, rot, dt))(gains)

@@ -183,7 +183,7 @@ def offsets(options, gains: Gains, state: ControllerState, pads: Pads, ref: Refe
         def cross(v):
             return _sync.cross_mapped(v, ref.pad_pos, options.cross_term)
 
-        out, state = _LAWS[options.kind](*args, cross)
+        out, state = (_LAWS.get(options.kind) or _CARTESIAN_STANDINS[options.kind])(*args, cross)
     return out, state, delta, force_error
 
 
@@ -340,3 +340,20 @@ _LAWS = {
     "object_impedance": _object_impedance,
     "task_space": _task_space,
 }
+
+
+def _rule_coupled(gains, state, ref, force_error, delta, dt, cross):
+    """ros2_synchronous's offsets as Cartesian ones, for the compliance probe
+    (``jaxsync.control.compliance``): the rule's offset e_i, taken as the
+    classical filter's at the pad, plus the coupling delta_ik + k_il x_ild."""
+    imp, dde = _impedance_filters(gains, state, ref, force_error, dt)
+    k_il = jnp.stack([gains.k_rl, gains.k_ll])
+    delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
+    off = imp.offset + _sync.synchronous_offset(delta_k, k_il, cross(imp.offset))
+    out = (off, imp.rate + k_il[:, None] * cross(imp.rate), dde + k_il[:, None] * cross(dde))
+    return out, state._replace(impedance=imp)
+
+
+# the controllers of position-controlled arms integrate in joint space; what the compliance probe reads of
+# them is a Cartesian stand-in (the same mass, damping and spring at the pad, and the coupling)
+_CARTESIAN_STANDINS = {"ros2_admittance": _classical, "ros2_synchronous": _rule_coupled}

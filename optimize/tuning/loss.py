@@ -18,7 +18,6 @@ import numpy as np
 from jaxsync.control import compliance as _compliance
 from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.names import POSITION_ONLY
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.optimize.tuning.cost import cost, cost_terms
 from jaxsync.optimize.tuning.params import TuneSpec  # noqa: F401  (the docstring's example)
@@ -109,9 +108,8 @@ def compliance_fn(model, controller: str, axis: str | None = "normal"):
     a schedule's is the largest over its phases. ros2_admittance's is the
     classical law's: the same mass, damping and spring at the pad, whose
     static offset under a force is the same (an approximation: its offsets
-    are integrated in joint space)."""
-    if controller in POSITION_ONLY:
-        controller = "classical"
+    are integrated in joint space); ros2_synchronous's that plus its coupling
+    (``jaxsync.control.controller._rule_coupled``)."""
     pos, rot = _compliance.probe_geometry(model)
     dt = float(model.mj_model.opt.timestep)
 
