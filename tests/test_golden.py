@@ -62,6 +62,9 @@ def test_the_replay_sees_a_changed_input(recorded, tmp_path):
     lines[STEPS] = ",".join(row)
     (tmp_path / "inputs.csv").write_text("\n".join(lines) + "\n")
     assert golden.replay(str(tmp_path)) > 1e-9
+    (tmp_path / "outputs.csv").write_text("t,command[0]\n0.0\n")  # a row cut short
+    with pytest.raises(ConfigError, match="outputs.csv: not a golden table"):
+        golden.read(str(tmp_path))
 
 
 def test_bad_requests_are_refused_before_anything_is_written(model, tmp_path, capsys):

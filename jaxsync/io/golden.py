@@ -209,9 +209,13 @@ def read(folder: str) -> tuple[dict, dict, dict]:
         raise ConfigError(f"{folder}: golden format {meta.get('format')!r}, this jaxsync reads {GOLDEN_FORMAT}")
     tables = []
     for name in ("inputs.csv", "outputs.csv"):
-        with open(os.path.join(folder, name), newline="") as f:
-            rows = list(csv.reader(f))
-        data = np.asarray(rows[1:], dtype=float)
+        path = os.path.join(folder, name)
+        try:
+            with open(path, newline="") as f:
+                rows = list(csv.reader(f))
+            data = np.asarray(rows[1:], dtype=float).reshape(len(rows) - 1, len(rows[0]))
+        except (OSError, ValueError, IndexError) as err:
+            raise ConfigError(f"{path}: not a golden table ({err})") from None
         tables.append({h: data[:, i] for i, h in enumerate(rows[0])})
     return tables[0], tables[1], meta
 
