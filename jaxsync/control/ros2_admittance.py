@@ -17,7 +17,7 @@ line of that file at these commits:
 commit, ``KDL`` ``kinematics_interface_kdl/src/kinematics_interface_kdl.cpp``
 of ros-controls/kinematics_interface (jazzy 0f3df4e218e5, master 38f56c733ac8,
 humble 5c20d171d2b2), ``TB`` ``control_toolbox/filters.hpp`` of
-ros-controls/control_toolbox (jazzy 05de3c67f1ac). ``docs/deploy.md`` gives
+ros-controls/control_toolbox (jazzy 05de3c67f1ac). ``docs/ros2-rule.md`` gives
 the equations in the order they run.
 
 Pure functions in optax's manner: ``rule = admittance_rule(distro,

@@ -3,7 +3,7 @@
 
 Each arm runs ``jaxsync.control.ros2_admittance`` (the port of
 ``AdmittanceRule::update``) as a deployment would, one instance per arm, with
-these choices (docs/deploy.md, "ros2_controllers' rule in the loop"):
+these choices (docs/ros2-rule.md, "ros2_controllers' rule in the loop"):
 
 - The joint reference the rule offsets is the plan without compliance: q_ref,
   integrated with the position stack's CLIK (``jaxsync.control.joint_space.
