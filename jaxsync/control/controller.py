@@ -15,6 +15,8 @@ sensing and ends in the same joint-space law (eqs. 18, 19).
 On position-controlled arms only (``jaxsync.control.ros2_loop``):
 ``ros2_admittance``: ros2_controllers' admittance rule per arm, as deployed,
 offsetting a reference joint trajectory that follows the plan.
+``ros2_synchronous``: the same rule, the reference it offsets following the
+plan plus the synchronous offsets of eqs. 12-17.
 """
 
 from __future__ import annotations

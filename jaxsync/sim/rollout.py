@@ -54,7 +54,7 @@ def make_rollout(
     Args:
       model: from :func:`jaxsync.load_model` (its solver setting is used).
       controller: one of ``jaxsync.control.names.ALL_CONTROLLERS``
-        ("ros2_admittance" with ``actuation="position"`` only).
+        ("ros2_admittance" and "ros2_synchronous" with ``actuation="position"`` only).
       duration: seconds simulated.
       control_substeps: physics steps per control period (1: control at the
         simulation rate, 500 Hz for the paper model).
