@@ -41,7 +41,10 @@ IMPEDANCE = ("imp_mass", "imp_stiffness", "imp_damping_ratio")
 OBJECT = ("obj_mass", "obj_stiffness", "obj_damping_ratio")
 FORCE = ("force_p", "force_i")
 VECTORS = OBJECT + FORCE  # (6,) gains: one value per axis, not per arm
-TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE
+# the joint-command loop every controller ends in: kp_pos (log space, kd_pos kept), so that on
+# position-controlled arms its bandwidth lambda = 2 kp_pos / kd_pos is tuned (on torque arms: its stiffness)
+LOOP = ("kp_pos",)
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
 DEFAULT_TUNED_FOR = {
@@ -59,9 +62,9 @@ GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping
 def check_tuned(tuned, controller: str) -> None:
     """ConfigError when a tuned parameter is one ``controller`` never reads
     (its gradient would be zero and the search would wander in it)."""
-    unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller]]
+    unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller] and n not in LOOP]
     if unused:
-        usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller]]
+        usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller] or n in LOOP]
         raise ConfigError(f"the {controller} controller does not use {', '.join(unused)}; it tunes {', '.join(usable)}")
 
 
@@ -153,6 +156,12 @@ class TuneSpec:
                     f"damping ratio); start from a positive {name}, or freeze {','.join(logs)}",
                     inputs=("frozen",),
                 )
+        if "kp_pos" in self.tuned and not float(np.asarray(base.kp_pos)) > 0:
+            raise ConfigError(
+                f"the starting gains' kp_pos is {float(np.asarray(base.kp_pos))}: tuning it needs kp_pos > 0 (it "
+                "is tuned in log space)",
+                inputs=("frozen",),
+            )
         for name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
             if (name in self.tuned or (name.startswith("obj") and "obj_damping_ratio" in self.tuned)) and not np.all(
                 np.asarray(getattr(base, name)) > 0
@@ -171,6 +180,8 @@ class TuneSpec:
                 theta[name] = jnp.asarray(_logit((self._reduce_vector(zeta) - ZETA_MIN) / (ZETA_MAX - ZETA_MIN)))
             elif name in SYNC:
                 theta[name] = jnp.asarray(np.arctanh(np.clip(float(getattr(base, name)), -0.999, 0.999)))
+            elif name in LOOP:
+                theta[name] = jnp.asarray(np.log(float(np.asarray(getattr(base, name)))))
             elif name == "imp_mass":
                 theta[name] = jnp.asarray(np.log(self._reduce(base.imp_mass)))
             elif name == "imp_stiffness":
@@ -199,6 +210,9 @@ class TuneSpec:
         for name in SYNC:
             if name in theta:
                 g[name] = jnp.tanh(theta[name])
+        for name in LOOP:
+            if name in theta:
+                g[name] = jnp.exp(theta[name])
         zeta = damping_ratio(base)
         if "imp_mass" in theta:
             g["imp_mass"] = self._expand(jnp.exp(theta["imp_mass"]))
@@ -244,7 +258,7 @@ class TuneSpec:
         """How many scalars are tuned."""
         arms = 2 if self.per_arm else 1
         axes = 2 if self.isotropic else 6
-        n = sum(1 if name in SYNC else axes if name in VECTORS else arms * axes for name in self.tuned)
+        n = sum(1 if name in SYNC + LOOP else axes if name in VECTORS else arms * axes for name in self.tuned)
         return n * (len(_schedule.PHASES) if self.schedule else 1)
 
     def describe(self) -> dict:
