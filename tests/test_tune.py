@@ -10,6 +10,7 @@ import json
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import tqdm as tqdm_module
@@ -26,7 +27,7 @@ from jaxsync.optimize.tuning.config import Problem
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.loss import make_loss
 from jaxsync.optimize.tuning.methods import LBFGS, Oracle
-from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, damping_ratio
+from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, check_tuned, damping_ratio
 from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
 from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text, summary_lines
@@ -81,6 +82,22 @@ def test_spec_sharing_and_errors():
         TuneConfig(learning_rate=0.0).validate()
     with pytest.raises(jaxsync.ConfigError, match="batch"):
         TuneConfig(batch=0).validate()
+
+
+def test_the_joint_command_loops_gain_is_tunable_in_log_space():
+    """kp_pos (tune on request): positive for any theta, kd_pos kept, one
+    scalar, every controller may tune it (each ends in that loop)."""
+    base = _gains.default_gains()
+    spec = TuneSpec(tuned=("k_rk", "kp_pos"))
+    theta = spec.init(base)
+    assert spec.size() == 2 and float(spec.to_gains(theta, base).kp_pos) == pytest.approx(float(base.kp_pos))
+    g = spec.to_gains({**theta, "kp_pos": theta["kp_pos"] + np.log(0.25)}, base)
+    assert float(g.kp_pos) == pytest.approx(0.25 * float(base.kp_pos)) and float(g.kd_pos) == float(base.kd_pos)
+    assert float(spec.to_gains({**theta, "kp_pos": jnp.asarray(-800.0)}, base).kp_pos) >= 0.0
+    for controller in ("task_space", "ros2_admittance"):
+        check_tuned(("kp_pos",), controller)
+    with pytest.raises(jaxsync.ConfigError, match="kp_pos > 0"):
+        spec.init(base._replace(kp_pos=jnp.asarray(0.0)))
 
 
 def test_scenario_sampling_is_seeded_and_in_range():
