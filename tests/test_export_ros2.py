@@ -220,3 +220,12 @@ def test_urdf_angles_rebuild_the_rotation():
     for angles in [rng.uniform(-3, 3, 3) for _ in range(20)] + [(0.3, np.pi / 2, 0.0), (0.2, -np.pi / 2, 0.0)]:
         R = _rpy_matrix(*angles)
         np.testing.assert_allclose(_rpy_matrix(*ros2_target_mod.rpy_of(R)), R, atol=1e-12)
+
+
+def test_the_files_carry_the_ft_filter_the_gains_were_tuned_with(tmp_path, capsys):
+    argv = ["export", "--format", "ros2-admittance", "--actuation", "position"]
+    assert main([*argv, "--ft-filter", "0.2", "--out", str(tmp_path / "f")]) == 0
+    doc = yaml.safe_load(open(tmp_path / "f" / "admittance_left.yaml"))["admittance_controller_left"]
+    assert doc["ros__parameters"]["ft_sensor"]["filter_coefficient"] == 0.2
+    assert main([*argv, "--ft-filter", "0.1:1", "--out", str(tmp_path / "r")]) == 2
+    assert "one coefficient here" in capsys.readouterr().err and not (tmp_path / "r").exists()

@@ -86,7 +86,7 @@ def test_bad_requests_are_refused_before_anything_is_written(model, tmp_path, ca
         main(["export", "--format", "golden", "--controller", "bang_bang", "--out", str(tmp_path / "a")])
     assert "invalid choice: 'bang_bang'" in capsys.readouterr().err
     assert main(["export", "--format", "yaml", "--steps", "5", "--out", str(tmp_path / "y")]) == 2
-    assert "only --format golden records a rollout" in capsys.readouterr().err
+    assert "--steps: not for --format yaml" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "y").exists()
     assert main(["export", "--format", "golden", "--steps", "3", "--out", str(tmp_path / "g")]) == 0
     said = capsys.readouterr().out

@@ -375,6 +375,22 @@ def test_a_period_is_differentiable_in_the_gains(model):
     assert float(jnp.abs(grad.imp_mass).max()) > 0.0
 
 
+def test_the_rules_ft_filter_comes_from_the_scenario(model, loop_runs):
+    """Scenario.ft_filter is the rule's ft_sensor.filter_coefficient: a filtered
+    sensor changes the rule's run (the same program), not jaxsync's own laws."""
+    s, g = loop_runs["scenario"], loop_runs["gains"]
+    assert float(_ros2_loop.params(g, 0, ft_filter=0.2).filter_coefficient) == 0.2
+    filtered = s._replace(ft_filter=jnp.asarray(0.2))
+    run = lambda c, x: jaxsync.rollout(  # noqa: E731
+        model, g, x, controller=c, duration=TEST_DURATION, actuation="position"
+    )
+    a = run("ros2_admittance", filtered)
+    assert float(jnp.abs(a.pad_forces - loop_runs["default"][0].pad_forces).max()) > 1e-3
+    assert _holds(_metrics.summarize(a, filtered))
+    b, c = run("synchronous", filtered), run("synchronous", s)
+    np.testing.assert_array_equal(np.asarray(b.pad_forces), np.asarray(c.pad_forces))
+
+
 def test_the_compliance_probe_reads_the_rules_stand_in(model):
     """The probe (jaxsync.control.compliance) reads ros2_admittance as the
     classical law at the pad and ros2_synchronous as that plus its coupling:

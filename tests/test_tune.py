@@ -495,6 +495,22 @@ def calls_of(calls):
     return calls["evaluator_controller"], calls["evaluator_stack"]
 
 
+def test_the_ft_filter_is_drawn_log_uniform_from_its_own_key():
+    base = jaxsync.default_scenario()
+    plain = sample_scenarios(jax.random.key(3), 8, base, stratified=True)
+    drawn = sample_scenarios(jax.random.key(3), 8, base, stratified=True, ft_filter=(0.05, 1.0))
+    a = np.sort(np.asarray(drawn.ft_filter))
+    np.testing.assert_allclose(a, np.exp(np.linspace(np.log(0.05), 0.0, 8)), rtol=1e-12)  # evenly in log
+    assert np.all(np.asarray(plain.ft_filter) == 1.0)
+    np.testing.assert_array_equal(np.asarray(plain.object_mass), np.asarray(drawn.object_mass))
+    cfg = TuneConfig(actuation="position", ft_filter=(0.1, 0.5)).validate()
+    held = np.asarray(scenarios.heldout_scenarios(cfg).ft_filter)
+    assert held.min() >= 0.1 - 1e-12 and held.max() <= 0.5 + 1e-12 and len(set(held.tolist())) > 1
+    for bad in ((0.5, 0.1), (0.0, 1.0), (0.5, 2.0)):
+        with pytest.raises(jaxsync.ConfigError, match="ft_filter must be a range"):
+            TuneConfig(ft_filter=bad).validate()
+
+
 def test_delay_and_servo_draws_span_their_ranges_and_leave_the_rest():
     base = jaxsync.default_scenario()
     plain = sample_scenarios(jax.random.key(3), 8, base, stratified=True)

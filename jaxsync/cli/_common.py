@@ -154,6 +154,13 @@ def add_stack_arguments(p: argparse.ArgumentParser, drawn: bool = False) -> None
             metavar="SHARE",
             help="position arms: every scenario's servo gains scaled by 1 +- SHARE, drawn (0; e.g. 0.3)",
         )
+        p.add_argument(
+            "--ft-filter",
+            default="1",
+            metavar="A|LO:HI",
+            help="the admittance rule's F/T filter coefficient (ros2_admittance, ros2_synchronous), or a range "
+            "drawn log-uniform per scenario (1: unfiltered; e.g. 0.05:1)",
+        )
 
 
 def stack_of(args):

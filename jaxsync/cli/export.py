@@ -20,10 +20,12 @@ from jaxsync.io.golden import golden_job
 def run(args) -> int:
     if args.format == "golden":
         return _golden(args)
-    if args.steps is not None or args.controller is not None:
-        flags = ", ".join(f for f, v in (("--steps", args.steps), ("--controller", args.controller)) if v is not None)
-        print(f"jaxsync export: error: {flags}: only --format golden records a rollout, got --format {args.format}",
-              file=sys.stderr)  # fmt: skip
+    given = (("--steps", args.steps), ("--controller", args.controller))
+    given += (("--ft-filter", None if args.ft_filter == "1" or args.format == "ros2-admittance" else 1),)
+    if any(v is not None for _, v in given):
+        flags = ", ".join(f for f, v in given if v is not None)
+        print(f"jaxsync export: error: {flags}: not for --format {args.format} (--steps and --controller: golden "
+              "only; --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
         return 2
     r = export_gains(
         args.gains,
@@ -37,6 +39,7 @@ def run(args) -> int:
         actuation=args.actuation or "torque",
         force=args.force,
         compliance_at=args.compliance_at,
+        ft_filter=args.ft_filter,
     )
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
@@ -58,6 +61,7 @@ def _golden(args) -> int:
         delay=args.delay,
         distro=args.ros_distro,
         any_model=args.any_model,
+        ft_filter=args.ft_filter,
     )
     d = r.delay
     print(f"wrote {r.controller}'s golden files ({d} period{'s' * (d != 1)} of delay): " + ", ".join(r.paths))
@@ -115,6 +119,13 @@ def add_parser(subparsers):
         default="flange",
         help="ros2-admittance: the frame the controller's compliance is centred at: the flange link (default), "
         "or a pad link the files name and pad_links.urdf fixes to the flange, where jaxsync centres it",
+    )
+    p.add_argument(
+        "--ft-filter",
+        default="1",
+        metavar="A",
+        help="ros2-admittance: ft_sensor.filter_coefficient, the F/T filter the gains were tuned with; golden: the "
+        "one the recorded scenario runs (1: unfiltered)",
     )
     p.add_argument(
         "--force",

@@ -36,7 +36,7 @@ def run(args) -> int:
     from jaxsync.optimize.studies import study as _study
     from jaxsync.optimize.studies import study_report as _report
     from jaxsync.physics.model import load_model
-    from jaxsync.sim.actuation import parse_delay
+    from jaxsync.sim.actuation import parse_delay, parse_ft_filter
 
     cfg = _study.StudyConfig(
         controllers=tuple(args.controllers),
@@ -56,6 +56,7 @@ def run(args) -> int:
         distro=args.ros_distro,
         delay=parse_delay(args.delay),
         servo_spread=args.servo_spread,
+        ft_filter=parse_ft_filter(args.ft_filter),
     ).validate()  # every input is checked before anything is written or compiled
     model = load_model(model_source(args), **model_options(args))
     n = len(cfg.controllers) * len(cfg.bounds) * len(cfg.seeds)

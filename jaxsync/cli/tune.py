@@ -22,7 +22,7 @@ def config_from_args(args):
     from jaxsync.optimize.tuning.config import Problem, TuneConfig
     from jaxsync.optimize.tuning.cost import parse_weights
     from jaxsync.optimize.tuning.params import spec_for
-    from jaxsync.sim.actuation import parse_delay
+    from jaxsync.sim.actuation import parse_delay, parse_ft_filter
 
     names = lambda text: [t.strip() for t in text.split(",") if t.strip()] if text else []  # noqa: E731
     spec = spec_for(args.controller, names(args.tune), names(args.freeze), per_arm=args.per_arm,
@@ -41,6 +41,7 @@ def config_from_args(args):
         distro=args.ros_distro,
         delay=parse_delay(args.delay),
         servo_spread=args.servo_spread,
+        ft_filter=parse_ft_filter(args.ft_filter),
         **{k: getattr(args, k) for k in settings},
     )
 

@@ -245,6 +245,7 @@ def step_position(
     ref: Reference,
     dt: float,
     command: jax.Array,
+    ft_filter=1.0,
 ) -> tuple[jax.Array, ControllerState, ControlInfo]:
     """One control period on position-controlled arms: the same offsets as
     :func:`step`, then each arm's joint position command integrated toward its
@@ -255,11 +256,12 @@ def step_position(
     rules' J dq.
 
     Args: as :func:`step`, and ``command`` (2 n,) the last joint position
-    commands (right arm's n, then left's). Returns the next commands (2 n,),
+    commands (right arm's n, then left's); ``ft_filter`` the rule's F/T
+    filter coefficient (``Scenario.ft_filter``; the rule's controllers only). Returns the next commands (2 n,),
     the new state and info.
     """
     if not isinstance(options, ControllerSwitch) and options.kind in POSITION_ONLY:
-        return _ros2_admittance(options, gains, state, arms, ref, dt)
+        return _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter)
     (off, off_vel, _), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
     n = command.shape[0] // 2
     out = []
@@ -282,13 +284,15 @@ def step_position(
     return jnp.concatenate(out), state, info
 
 
-def _ros2_admittance(options, gains, state, arms, ref, dt):
+def _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter):
     pads = Pads.of(arms)
     delta = jnp.stack(
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
     )
     coupled = options.kind == "ros2_synchronous"
-    command, ros2, off = _ros2_loop.step(gains, state.ros2, arms, ref, dt, options.distro, coupled, options.cross_term)
+    command, ros2, off = _ros2_loop.step(
+        gains, state.ros2, arms, ref, dt, options.distro, coupled, options.cross_term, ft_filter
+    )
     info = ControlInfo(offset=off, delta=delta, force_error=pads.wrench - ref.wrench)
     return command, state._replace(ros2=ros2), info
 

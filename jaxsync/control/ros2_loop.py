@@ -72,12 +72,13 @@ def init(q0: jax.Array) -> Ros2State:
     return Ros2State(q_ref=q0.reshape(2, n), rule=jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), one))
 
 
-def params(gains, arm: int, pad_rot=None, distro: str = DEFAULT_DISTRO) -> _ra.AdmittanceParams:
+def params(gains, arm: int, pad_rot=None, distro: str = DEFAULT_DISTRO, ft_filter=1.0) -> _ra.AdmittanceParams:
     """The rule's parameters of arm ``arm`` (0 right, 1 left) from jaxsync's
     gains, traced (``make_params`` checks eagerly; these are the export's).
     ``pad_rot`` (3, 3): the planned pad rotation in the base (the world),
     which places each pad axis's mass on a base axis where ``distro``
-    applies the mass there; None: the mass in the pad frame's order."""
+    applies the mass there; None: the mass in the pad frame's order.
+    ``ft_filter``: ft_sensor.filter_coefficient (the scenario's)."""
     m, d, k = gains.imp_mass[arm], gains.imp_damping[arm], gains.imp_stiffness[arm]
     if pad_rot is not None and not _ra.MASS_IN_CONTROL_FRAME[distro]:
         along = jnp.argmax(jnp.abs(pad_rot), axis=1)  # base axis i lies along pad axis along[i]
@@ -91,7 +92,7 @@ def params(gains, arm: int, pad_rot=None, distro: str = DEFAULT_DISTRO) -> _ra.A
         damping_ratio=zeta,
         stiffness=k,
         joint_damping=zero,
-        filter_coefficient=zero + 1.0,
+        filter_coefficient=zero + ft_filter,
         alpha=zero + _joint_space.COMMAND_ALPHA,
         cog_pos=jnp.zeros(3, m.dtype),
         cog_force=zero,
@@ -182,6 +183,7 @@ def step(
     distro: str = DEFAULT_DISTRO,
     coupled: bool = False,
     cross_term: str = "squeeze",
+    ft_filter=1.0,
 ):
     """One control period of both arms' rules.
 
@@ -189,7 +191,7 @@ def step(
     ``jaxsync.control.controller.Reference``; dt the period, s; distro the
     release (static); coupled (static): the reference each rule offsets
     carries the paper's coupling (:func:`coupled_reference`), cross_term its
-    reading of eq. 16. Returns (2 n,) the joint position commands, the new
+    reading of eq. 16; ft_filter the rule's F/T filter coefficient. Returns (2 n,) the joint position commands, the new
     state and (2, 6) the rules' Cartesian offsets J dq (world frame, at the pad).
     """
     rule = _ra.admittance_rule(distro)
@@ -200,7 +202,7 @@ def step(
         q_ref, rate = reference_step(gains, arm, state.q_ref[i], target, i, dt)
         w_ref = None if distro == "humble" else -_in_pad(arm.pad_rot, ref.wrench[i])
         command, rs = rule.step(
-            params(gains, i, ref.pad_rot[i], distro),
+            params(gains, i, ref.pad_rot[i], distro, ft_filter),
             jax.tree_util.tree_map(lambda x, i=i: x[i], state.rule),
             kinematics(arm, q_ref),
             _in_pad(arm.pad_rot, arm.wrench),

@@ -10,6 +10,7 @@ Example:
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import NamedTuple
 
@@ -55,6 +56,7 @@ def export_gains(
     actuation: str = "torque",
     force: bool = False,
     compliance_at: str = "flange",
+    ft_filter: float = 1.0,
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -74,7 +76,9 @@ def export_gains(
     ``force`` it is written, each file and the notes saying so in a WARNING.
     ``compliance_at="pad"``: the files name a pad link (``pad_links.urdf``
     fixes it to the flange) as tip, control, sensor and gravity frame, so that
-    the compliance is centred at the pad as simulated.
+    the compliance is centred at the pad as simulated. ``ft_filter``: the
+    files' ``ft_sensor.filter_coefficient`` (the rule's F/T filter the gains
+    were tuned with, ``Scenario.ft_filter``; 1: unfiltered).
     """
     _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
@@ -99,6 +103,7 @@ def export_gains(
                 command_interfaces=tuple(command_interfaces),
                 compliance_at=compliance_at,
             )
+            target = dataclasses.replace(target, filter_coefficient=_actuation.parse_ft_filter(ft_filter, one=True)[0])
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     warnings = []
     if fmt == "ros2-admittance":

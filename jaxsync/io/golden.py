@@ -161,6 +161,7 @@ def export_golden(
         "dt_s": dt,
         "steps": len(inputs),
         "stack": stack.to_dict(model),
+        "ft_filter": float(scenario.ft_filter),  # the rule's F/T filter coefficient (its controllers only)
         "joints": names,
         "arm_fields": dict(ARM_FIELDS),
         "reference_fields": dict(REF_FIELDS),
@@ -245,7 +246,8 @@ def replay(folder: str) -> float:
             state = state._replace(**{part: jax.tree_util.tree_unflatten(tree, [jnp.asarray(v) for v in values])})
         return state
 
-    step = jax.jit(lambda g, s, arms, ref, c: _controller.step_position(options, g, s, arms, ref, meta["dt_s"], c))
+    a = meta.get("ft_filter", 1.0)
+    step = jax.jit(lambda g, s, arms, ref, c: _controller.step_position(options, g, s, arms, ref, meta["dt_s"], c, a))
     worst = 0.0
     for k in range(int(meta["steps"])):
         arms = tuple(
@@ -309,6 +311,7 @@ def golden_job(
     delay="0",
     distro: str = "jazzy",
     any_model: bool = False,
+    ft_filter: float = 1.0,
 ) -> Golden:
     """``jaxsync export --format golden``: load ``model`` (a loaded model, an MJCF
     or robot file, None: the paper model) and ``gains`` (a gains file, refused
@@ -316,17 +319,22 @@ def golden_job(
     defaults), write the golden files of the stack (``actuation``,
     ``control_rate``, ``delay`` one number of periods, ``distro``) and replay
     them. ``controller`` None: the one the gains file was tuned for, else
-    synchronous."""
+    synchronous. ``ft_filter``: the rule's F/T filter coefficient in the
+    scenario recorded."""
     from jaxsync.io import gains_file  # noqa: PLC0415 -- gains_file reads exports through this layer's export
     from jaxsync.physics.model import as_model  # noqa: PLC0415 -- the model only once the inputs are checked
 
     stack = _actuation.Stack.of(actuation, control_rate, delay, distro)
     lag = stack.scenario_delay()
+    coefficient = _actuation.parse_ft_filter(ft_filter, one=True)[0]
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
     if controller is None:
         controller = (gains_file.controller_of(gains) if from_file else None) or "synchronous"
     loaded = as_model(model, visual=visual)
     g = gains_file.load_or_default(gains, loaded, any_model, stack.actuation)
-    paths = export_golden(loaded, g, out, controller=controller, steps=steps, stack=stack)
+    from jaxsync.sim.scenario import default_scenario  # noqa: PLC0415 -- the comparison scenario, loaded model
+
+    scenario = default_scenario(loaded)._replace(delay=np.float64(lag), ft_filter=np.float64(coefficient))
+    paths = export_golden(loaded, g, out, controller=controller, steps=steps, stack=stack, scenario=scenario)
     worst = replay(out)
     return Golden(paths, controller, lag, worst, worst <= REPLAY_TOLERANCE)

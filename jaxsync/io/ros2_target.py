@@ -48,6 +48,7 @@ class Ros2Target:
     distro: str = "jazzy"
     command_interfaces: tuple[str, ...] = ("position",)
     update_rate: int = 500  # Hz: the control rate the gains were tuned at
+    filter_coefficient: float = 1.0  # ft_sensor.filter_coefficient: the F/T filter the gains were simulated with
 
 
 def _signed_permutation(R: np.ndarray, what: str) -> tuple[int, ...]:

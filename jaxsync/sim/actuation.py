@@ -223,5 +223,23 @@ def parse_delay(text) -> tuple[int, int]:
     return lo, hi
 
 
+def parse_ft_filter(text, one: bool = False) -> tuple[float, float]:
+    """``"A"`` or ``"lo:hi"`` F/T filter coefficients -> (lo, hi), 0.001 <= lo <= hi <= 1;
+    ``one``: a single coefficient only (what one file or one scenario holds)."""
+    parts = str(text).split(":")
+    try:
+        lo, hi = (float(parts[0]), float(parts[-1])) if len(parts) in (1, 2) else (None, None)
+    except ValueError:
+        lo = hi = None
+    if lo is None or not 1e-3 <= lo <= hi <= 1.0:
+        raise ConfigError(
+            f"ft_filter must be a filter coefficient A or a range lo:hi within 0.001..1 (1: unfiltered), got {text!r}",
+            inputs=("ft_filter",),
+        )
+    if one and lo != hi:
+        raise ConfigError(f"ft_filter: one coefficient here, got the range {text!r}", inputs=("ft_filter",))
+    return lo, hi
+
+
 TORQUE = Stack()
 """The ideal torque-controlled stack: every job's default."""

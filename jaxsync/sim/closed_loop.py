@@ -113,7 +113,7 @@ def control_position(options, gains, s, c: Consts, cstate, arms, pad_start, t, d
     arms: the next joint position commands (2 n,), the state, info, the plan
     and the reference the controller read."""
     gains, ref, pl = _planned(gains, s, c, pad_start, t)
-    command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command)
+    command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command, s.ft_filter)
     return command, cstate, info, pl, ref
 
 

@@ -44,6 +44,11 @@ class Scenario(NamedTuple):
       ``MAX_DELAY``, a float holding a whole number).
     servo_scale: factor on the joint servos' stiffness and damping
       (position-controlled arms only; 1: as the robot states them).
+    ft_filter: the F/T filter of ros2_controllers' admittance rule,
+      ``ft_sensor.filter_coefficient`` (the weight of each new sample; 1:
+      unfiltered), read by the controllers that run the rule
+      (ros2_admittance, ros2_synchronous); jaxsync's own laws read the
+      wrench unfiltered.
     """
 
     object_mass: jax.Array
@@ -64,6 +69,7 @@ class Scenario(NamedTuple):
     noise_key: jax.Array
     delay: jax.Array
     servo_scale: jax.Array
+    ft_filter: jax.Array
 
 
 def model_object(model) -> dict:
@@ -105,6 +111,7 @@ def default_scenario(model=None, /, **overrides) -> Scenario:
         noise_key=np.asarray(jax.random.key_data(jax.random.key(0))),
         delay=0.0,
         servo_scale=1.0,
+        ft_filter=1.0,
     )
     unknown = set(overrides) - set(values)
     if unknown:
@@ -161,6 +168,7 @@ def validate(s: Scenario) -> Scenario:
         "torque_noise": (0.0, 1.0),
         "delay": (0.0, MAX_DELAY),
         "servo_scale": (0.1, 10.0),
+        "ft_filter": (1e-3, 1.0),
     }
     for name, (lo, hi) in checks.items():
         v = np.asarray(getattr(s, name))

@@ -30,7 +30,7 @@ AXIS_GAINS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i") 
 SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS + AXIS_GAINS)
 VECTOR_FIELDS = ("object_offset", "lift")
 # the position stack's fields (delay, servo scale): swept on position-controlled arms only (make_plan)
-POSITION_FIELDS = ("delay", "servo_scale")
+POSITION_FIELDS = ("delay", "servo_scale", "ft_filter")
 SCALAR_FIELDS = tuple(f for f in Scenario._fields if f not in VECTOR_FIELDS + ("noise_key",))
 PHASE_FIELDS = ("t_close", "t_squeeze", "t_carry", "settle_time")
 

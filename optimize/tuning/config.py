@@ -121,12 +121,19 @@ class Data:
     heldout_batch: int = 16
     delay: tuple[int, int] = (0, 0)  # command delay, control periods: every scenario draws one in [lo, hi]
     servo_spread: float = 0.0  # every scenario's servo gains scaled by 1 +- this share (position arms)
+    ft_filter: tuple[float, float] = (1.0, 1.0)  # the rule's F/T filter coefficient, drawn log-uniform in [lo, hi]
 
     def validate(self) -> None:
         d = self.delay
         if not (isinstance(d, tuple | list) and len(d) == 2):
             raise ConfigError(f"delay must be a range (lo, hi) of control periods, got {d!r}", inputs=("delay",))
         _actuation.parse_delay(f"{d[0]}:{d[1]}")
+        f = self.ft_filter
+        if not (isinstance(f, tuple | list) and len(f) == 2 and 1e-3 <= f[0] <= f[1] <= 1.0):
+            raise ConfigError(
+                f"ft_filter must be a range (lo, hi) of filter coefficients, 0.001 <= lo <= hi <= 1, got {f!r}",
+                inputs=("ft_filter",),
+            )
         if not 0.0 <= self.servo_spread < 1.0:
             raise ConfigError(
                 f"servo_spread must be a share in [0, 1), got {self.servo_spread}", inputs=("servo_spread",)
@@ -294,7 +301,8 @@ class TuneConfig:
         out["problem"]["spec"] = self.problem.tuned.describe()
         for k in ("scenario", "train_scenario"):
             out["training"][k] = [list(x) for x in out["training"][k]]
-        out["data"]["delay"] = list(out["data"]["delay"])
+        for k in ("delay", "ft_filter"):
+            out["data"][k] = list(out["data"][k])
         return out
 
     def settings(self) -> dict:

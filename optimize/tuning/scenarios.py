@@ -31,6 +31,7 @@ def sample_scenarios(
     grip_spread: float = 0.0,
     delay: tuple[int, int] = (0, 0),
     servo_spread: float = 0.0,
+    ft_filter: tuple[float, float] = (1.0, 1.0),
 ) -> _scenario.Scenario:
     """A batch of randomised scenarios around ``base``: object mass +-30 % (the
     controller keeps the nominal estimate), offset along the clamping axis
@@ -38,9 +39,10 @@ def sample_scenarios(
     noise 0.05-0.15 N, fresh noise keys; with ``grip_spread`` g > 0 also the
     desired grip force, +-g relative; with ``delay`` (lo, hi), hi > lo, the
     command delay, whole control periods from lo to hi; with ``servo_spread``
-    s > 0 the servo gains' scale, 1 +- s (position-controlled arms). Each of
-    the last three from its own key: the other draws stay as they are
-    without them.
+    s > 0 the servo gains' scale, 1 +- s (position-controlled arms); with
+    ``ft_filter`` (lo, hi) other than (1, 1) the admittance rule's F/T filter
+    coefficient, log-uniform in [lo, hi]. Each of the last four from its own
+    key: the other draws stay as they are without them.
 
     Each quantity is drawn independently and uniformly over its range. With
     ``stratified`` the batch is a Latin hypercube on the ranges' ends instead:
@@ -90,6 +92,10 @@ def sample_scenarios(
         batch = batch._replace(
             servo_scale=(1.0 - servo_spread + 2.0 * servo_spread * own(4)).astype(batch.servo_scale.dtype)
         )
+    lo, hi = ft_filter
+    if (lo, hi) != (1.0, 1.0):  # log-uniform: a coefficient of 0.05 is as far from 0.1 as 0.5 from 1
+        coefficient = jnp.exp(jnp.log(lo) + (jnp.log(hi) - jnp.log(lo)) * own(5))
+        batch = batch._replace(ft_filter=coefficient.astype(batch.ft_filter.dtype))
     return batch._replace(
         object_mass=base.object_mass * u(0, 0.7, 1.3),
         object_offset=offset,
@@ -112,7 +118,12 @@ def training_batch(cfg, iteration: int, base: _scenario.Scenario) -> _scenario.S
 
 def _draws(data) -> dict:
     """What every sampled scenario of ``data`` (a TuneConfig's) draws beyond the task's ranges."""
-    return {"grip_spread": data.grip_spread, "delay": tuple(data.delay), "servo_spread": data.servo_spread}
+    return {
+        "grip_spread": data.grip_spread,
+        "delay": tuple(data.delay),
+        "servo_spread": data.servo_spread,
+        "ft_filter": tuple(data.ft_filter),
+    }
 
 
 def heldout_scenarios(cfg) -> _scenario.Scenario:
