@@ -20,12 +20,13 @@ from jaxsync.io.golden import golden_job
 def run(args) -> int:
     if args.format == "golden":
         return _golden(args)
-    given = (("--steps", args.steps), ("--controller", args.controller))
+    given = (("--steps", args.steps), ("--controller", args.controller), ("--control-rate", args.control_rate))
+    given += (("--delay", None if args.delay == "0" else 1),)
     given += (("--ft-filter", None if args.ft_filter == "1" or args.format == "ros2-admittance" else 1),)
     if any(v is not None for _, v in given):
         flags = ", ".join(f for f, v in given if v is not None)
-        print(f"jaxsync export: error: {flags}: not for --format {args.format} (--steps and --controller: golden "
-              "only; --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
+        print(f"jaxsync export: error: {flags}: not for --format {args.format} (--steps, --controller, --delay, "
+              "--control-rate: golden only; --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
         return 2
     r = export_gains(
         args.gains,
