@@ -49,10 +49,11 @@ from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
-from jaxsync.control.names import check_actuation  # noqa: F401 (re-exported)
+from jaxsync.control.names import (
+    DEFAULT_DISTRO,
+    check_actuation,  # noqa: F401 (re-exported)
+)
 from jaxsync.physics.sensing import ArmState
-
-DEFAULT_DISTRO = "jazzy"
 
 
 class Ros2State(NamedTuple):

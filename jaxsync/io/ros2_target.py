@@ -11,11 +11,10 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
 from jaxsync.control.names import DISTROS
+from jaxsync.control.ros2_admittance import MASS_IN_CONTROL_FRAME  # PR #1139: Rolling's mass in the control frame
 
 ARMS = ("right", "left")
 
-# where ros2_controllers PR #1139 holds (Rolling): the mass applied in the control frame, not per base axis
-MASS_IN_CONTROL_FRAME = {"jazzy": False, "kilted": False, "rolling": True, "humble": False}
 COMMAND_INTERFACES = ("position", "velocity")
 COMPLIANCE_FRAMES = ("flange", "pad")
 KDL_PLUGIN = ("kinematics_interface_kdl/KinematicsInterfaceKDL", "kinematics_interface")  # name, package
