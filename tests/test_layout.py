@@ -15,7 +15,7 @@ import pytest
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 # the packages from the bottom of the data's way to the top: a module imports
 # from its own layer or the ones below it, never from one above
-LAYERS = ("_errors", "runtime", "physics", "control", "sim", "io", "optimize", "cli")
+LAYERS = ("_errors", "runtime", "physics", "control", "sim", "io", "calibrate", "optimize", "cli")
 MAX_LINES = 500
 
 

@@ -23,7 +23,19 @@ from jaxsync.runtime import distributed as _distributed
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
 
-COMMANDS = ("info", "compare", "tune", "study", "sensitivity", "export", "sweep", "bench", "render")
+COMMANDS = (
+    "info",
+    "compare",
+    "tune",
+    "study",
+    "sensitivity",
+    "export",
+    "sweep",
+    "bench",
+    "render",
+    "excite",
+    "calibrate",
+)
 
 
 def _setup_jax(args: argparse.Namespace) -> None:

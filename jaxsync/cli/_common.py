@@ -128,10 +128,10 @@ def add_stack_arguments(p: argparse.ArgumentParser, drawn: bool = False) -> None
     )
     p.add_argument(
         "--delay",
-        default="0",
+        default=None,
         metavar="N|LO:HI",
-        help="control periods a position command waits before the servo acts on it (0; a range where "
-        "scenarios are drawn)",
+        help="control periods a position command waits before the servo acts on it (default: the robot file's "
+        "delay, else 0; a range where scenarios are drawn)",
     )
     p.add_argument(
         "--control-rate",
@@ -167,4 +167,15 @@ def stack_of(args):
     """The parsed stack flags as a ``Stack`` (a JaxsyncError names a bad one)."""
     from jaxsync.sim.actuation import Stack  # here, not at the top: `jaxsync --help` stays fast
 
-    return Stack.of(args.actuation, args.control_rate, args.delay, args.ros_distro)
+    return Stack.of(args.actuation, args.control_rate, delay_text(args), args.ros_distro)
+
+
+def delay_text(args, actuation: str | None = None) -> str:
+    """--delay as given, else the robot file's delay for position-controlled arms, else "0"."""
+    from jaxsync.sim.actuation import robot_delay  # here, not at the top: `jaxsync --help` stays fast
+
+    if args.delay is not None:
+        return args.delay
+    if (actuation or args.actuation) != "position":
+        return "0"
+    return robot_delay(model_source(args), args.control_rate)

@@ -8,6 +8,7 @@ from jaxsync.cli._common import (
     ALL_CONTROLLERS,
     add_gains_argument,
     add_model_argument,
+    delay_text,
     model_options,
     model_source,
     positive,
@@ -21,7 +22,7 @@ def run(args) -> int:
     if args.format == "golden":
         return _golden(args)
     given = (("--steps", args.steps), ("--controller", args.controller), ("--control-rate", args.control_rate))
-    given += (("--delay", None if args.delay == "0" else 1),)
+    given += (("--delay", None if args.delay in (None, "0") else 1),)
     given += (("--ft-filter", None if args.ft_filter == "1" or args.format == "ros2-admittance" else 1),)
     if any(v is not None for _, v in given):
         flags = ", ".join(f for f, v in given if v is not None)
@@ -59,7 +60,7 @@ def _golden(args) -> int:
         steps=1000 if args.steps is None else args.steps,
         actuation=args.actuation or "position",
         control_rate=args.control_rate,
-        delay=args.delay,
+        delay=delay_text(args, args.actuation or "position"),
         distro=args.ros_distro,
         any_model=args.any_model,
         ft_filter=args.ft_filter,
@@ -142,7 +143,9 @@ def add_parser(subparsers):
         choices=list(ALL_CONTROLLERS),
         help="the controller recorded (the one the gains file was tuned for, else synchronous)",
     )
-    g.add_argument("--delay", default="0", metavar="N", help="control periods of command delay (0)")
+    g.add_argument(
+        "--delay", default=None, metavar="N", help="control periods of command delay (the robot file's, else 0)"
+    )
     g.add_argument("--control-rate", type=positive(float), default=None, metavar="HZ", help="(the physics rate)")
     p.add_argument("--out", default="results/export", help="output folder (results/export)")
     p.set_defaults(func=run)

@@ -10,6 +10,7 @@ from jaxsync.cli._common import (
     add_model_argument,
     add_stack_arguments,
     controller_list,
+    delay_text,
     model_options,
     model_source,
     positive,
@@ -54,7 +55,7 @@ def run(args) -> int:
         actuation=args.actuation,
         control_rate=args.control_rate,
         distro=args.ros_distro,
-        delay=parse_delay(args.delay),
+        delay=parse_delay(delay_text(args)),
         servo_spread=args.servo_spread,
         ft_filter=parse_ft_filter(args.ft_filter),
     ).validate()  # every input is checked before anything is written or compiled

@@ -23,8 +23,12 @@ the horizontal direction from the right arm's base to the left arm's),
 ``stand`` (true: a stand under the object, the default) and ``servo`` (each
 joint's position servo, for ``actuation="position"``: ``{stiffness: [...],
 damping: [...]}``, N m/rad and N m s/rad per joint, or ``{bandwidth: HZ,
-damping_ratio: 1.0}``; without it the servo is the MJCF's own position
-actuators, ``jaxsync.physics.servo``).
+damping_ratio: 1.0}``, or per arm ``{right: {stiffness: [...], damping:
+[...]}, left: {...}}`` as ``jaxsync calibrate`` writes it; without it the
+servo is the MJCF's own position actuators, ``jaxsync.physics.servo``) and
+``delay`` (``{periods: N, control_rate: HZ}``: the control periods a
+position command waits before the servo acts on it, at that rate; the
+default ``--delay`` of position-controlled jobs on this robot).
 
 :func:`load_robot` validates everything it can without compiling the MJCF
 (the composer, ``jaxsync.physics.compose``, checks the rest against the
@@ -44,7 +48,7 @@ from jaxsync._errors import ConfigError
 
 SCHEMA_VERSION = 1
 ARM_NAMES = ("right", "left")
-_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo"}
+_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo", "delay"}
 _SERVO_FORMS = ({"stiffness", "damping"}, {"bandwidth", "damping_ratio"})
 _ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
 _ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
@@ -79,7 +83,9 @@ class Robot:
     model: str | None = None  # absolute path of the bimanual MJCF
     clamp_axis: tuple[float, float, float] | None = None
     stand: bool = True
-    servo: dict | None = None  # {"stiffness": (n,), "damping": (n,)} or {"bandwidth": Hz, "damping_ratio": z}
+    servo: dict | None = None  # {"stiffness": (n,), "damping": (n,)}, {"bandwidth": Hz, "damping_ratio": z}
+    # or {"right": {"stiffness": (n,), "damping": (n,)}, "left": {...}}
+    delay: tuple[int, float] | None = None  # (control periods, at control_rate Hz)
 
     @property
     def arms(self) -> tuple[ArmSpec, ArmSpec]:
@@ -248,29 +254,59 @@ def load_robot(path: str | os.PathLike) -> Robot:
     stand = doc.get("stand", True)
     if not isinstance(stand, bool):
         raise ConfigError(f"{_where(path, 'stand')} must be true or false, got {stand!r}")
-    servo = _servo(doc["servo"], len(right.joints), path) if "servo" in doc else None
-    if servo is not None and len(left.joints) != len(right.joints):
-        raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
+    servo = None
+    if isinstance(doc.get("servo"), dict) and set(doc["servo"]) & set(ARM_NAMES):
+        _unknown(doc["servo"], set(ARM_NAMES), path, "servo")
+        missing = [a for a in ARM_NAMES if a not in doc["servo"]]
+        if missing:
+            raise ConfigError(f"{_where(path, 'servo')}: per arm, both arms: missing {missing[0]!r}")
+        servo = {}
+        for arm_name, arm in zip(ARM_NAMES, (right, left), strict=True):
+            one = _servo(doc["servo"][arm_name], len(arm.joints), path, f"servo.{arm_name}")
+            if "stiffness" not in one:
+                raise ConfigError(f"{_where(path, 'servo.' + arm_name)}: per arm, stiffness and damping per joint")
+            servo[arm_name] = one
+    elif "servo" in doc:
+        servo = _servo(doc["servo"], len(right.joints), path)
+        if len(left.joints) != len(right.joints):
+            raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
+    delay = _delay(doc["delay"], path) if "delay" in doc else None
     return Robot(
         name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand,
-        servo,
+        servo, delay,
     )  # fmt: skip
 
 
-def _servo(doc, n: int, path: str) -> dict:
+def _delay(doc, path: str) -> tuple[int, float]:
+    """``delay``: {periods: N, control_rate: HZ}."""
+    where = _where(path, "delay")
+    if not isinstance(doc, dict) or set(doc) != {"periods", "control_rate"}:
+        raise ConfigError(f"{where} must be {{periods: N, control_rate: HZ}}, got {doc!r}")
+    n, rate = doc["periods"], doc["control_rate"]
+    if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n <= 8:
+        raise ConfigError(f"{where}.periods must be a whole number of control periods in 0..8, got {n!r}")
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or not 1 <= rate <= 100000:
+        raise ConfigError(f"{where}.control_rate must be a rate in [1, 100000] Hz, got {rate!r}")
+    return int(n), float(rate)
+
+
+def _servo(doc, n: int, path: str, key: str = "servo") -> dict:
     """``servo``: per-joint stiffness and damping, or a bandwidth (both arms alike)."""
-    forms = "{stiffness: [N m/rad per joint], damping: [N m s/rad per joint]} or {bandwidth: Hz, damping_ratio: z}"
+    forms = (
+        "{stiffness: [N m/rad per joint], damping: [N m s/rad per joint]}, {bandwidth: Hz, damping_ratio: z} "
+        "or {right: {stiffness: [...], damping: [...]}, left: {...}}"
+    )
     if not isinstance(doc, dict) or ("stiffness" in doc) == ("bandwidth" in doc):
-        raise ConfigError(f"{_where(path, 'servo')} must be {forms}, got {doc!r}")
+        raise ConfigError(f"{_where(path, key)} must be {forms}, got {doc!r}")
     form = _SERVO_FORMS[0] if "stiffness" in doc else _SERVO_FORMS[1]
-    _unknown(doc, form, path, "servo")
+    _unknown(doc, form, path, key)
     if "stiffness" in doc:
         if "damping" not in doc:
-            raise ConfigError(f"{_where(path, 'servo')}: missing 'damping' (N m s/rad, one per joint)")
-        kp = _numbers(doc["stiffness"], n, path, "servo.stiffness", "N m/rad, one per joint")
-        kv = _numbers(doc["damping"], n, path, "servo.damping", "N m s/rad, one per joint")
+            raise ConfigError(f"{_where(path, key)}: missing 'damping' (N m s/rad, one per joint)")
+        kp = _numbers(doc["stiffness"], n, path, f"{key}.stiffness", "N m/rad, one per joint")
+        kv = _numbers(doc["damping"], n, path, f"{key}.damping", "N m s/rad, one per joint")
         if min(kp) <= 0 or min(kv) < 0:
-            raise ConfigError(f"{_where(path, 'servo')}: stiffness must be > 0 and damping >= 0, got {kp}, {kv}")
+            raise ConfigError(f"{_where(path, key)}: stiffness must be > 0 and damping >= 0, got {kp}, {kv}")
         return {"stiffness": kp, "damping": kv}
     out = {}
     for key, default, lo, hi, unit in (("bandwidth", None, 0.1, 500.0, "Hz"), ("damping_ratio", 1.0, 0.05, 10.0, "")):

@@ -94,7 +94,10 @@ def servo_of(model) -> Servo:
         if "bandwidth" in robot.servo:
             return from_bandwidth(model, robot.servo["bandwidth"], robot.servo["damping_ratio"],
                                   f"{robot.file}: servo, {robot.servo['bandwidth']:g} Hz")  # fmt: skip
-        kp, kv = (np.array([robot.servo[k]] * 2) for k in ("stiffness", "damping"))
+        if "right" in robot.servo:  # per arm (what jaxsync calibrate writes)
+            kp, kv = (np.array([robot.servo[a][k] for a in ("right", "left")]) for k in ("stiffness", "damping"))
+        else:
+            kp, kv = (np.array([robot.servo[k]] * 2) for k in ("stiffness", "damping"))
         return Servo(kp, kv, f"{robot.file}: servo")
     servos = robot.position_servos or {}
     missing = [arm for arm in ("right", "left") if servos.get(arm) is None]

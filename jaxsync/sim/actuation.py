@@ -208,6 +208,26 @@ def substeps_for_rate(model, control_rate: float | None) -> int:
     return int(round(n))
 
 
+def robot_delay(source, control_rate: float | None = None) -> str:
+    """The delay a robot file states (``delay: {periods, control_rate}``), in periods of
+    ``control_rate`` (None: the physics rate), as ``--delay`` text; "0" for anything else."""
+    # the robot file is read here, not at the top: an MJCF model has none
+    from jaxsync.physics.robot import is_robot_file, load_robot
+
+    if source is None or not is_robot_file(source):
+        return "0"
+    robot = load_robot(source)
+    if robot.delay is None:
+        return "0"
+    periods, rate = robot.delay
+    if control_rate is None:  # the physics rate of a robot file's scene
+        from jaxsync.physics.compose import PHYSICS  # only here: the scene's one physics step
+
+        control_rate = 1.0 / PHYSICS["timestep"]
+    n = periods * float(control_rate) / rate
+    return str(int(round(n)))
+
+
 def parse_delay(text) -> tuple[int, int]:
     """``"N"`` or ``"lo:hi"`` control periods -> (lo, hi), 0 <= lo <= hi <= MAX_DELAY."""
     parts = str(text).split(":")

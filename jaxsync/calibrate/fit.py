@@ -1,0 +1,310 @@
+"""Each joint's servo and the command delay, fitted to a recording with MuJoCo's identification toolbox.
+
+Built on ``mujoco.sysid``: the parameters are its ``Parameter``s (each
+joint's servo stiffness and damping as a factor on the position stack's,
+optionally its joint damping, friction loss and armature), the residual its
+``build_residual_fn`` over ``ModelSequences`` of short windows, each started
+from the recorded state, rolled out by :mod:`jaxsync.calibrate.replay` (the
+position stack's own servo and delay) as the toolbox's custom rollout; the
+fit its bounded least squares with MuJoCo's finite-difference Jacobians
+(``optimize``), the intervals ``calculate_intervals``, the HTML report
+``default_report``.
+
+The delay is whole control periods: at each candidate the continuous
+parameters are fitted joint by joint (each joint's windows, both arms'
+parameters of that joint: four at a time), the candidates compared on every
+window, and at the best one all parameters are fitted together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import time
+
+import mujoco
+import numpy as np
+
+from jaxsync._errors import ConfigError
+from jaxsync.calibrate.excite import bag_joint_names
+from jaxsync.calibrate.replay import FIELDS, Joints, Replay
+
+SIGMA_Q = 1e-3  # rad: a position residual of one
+SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
+FACTOR_BOUNDS = (0.1, 10.0)  # stiffness and damping, as factors on the position stack's
+ABSOLUTE_BOUNDS = {"joint_damping": (0.0, 100.0), "frictionloss": (0.0, 20.0), "armature": (0.0, 5.0)}
+FACTORS = ("stiffness", "damping")
+POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the model does not explain it
+
+
+@dataclasses.dataclass
+class Calibration:
+    """What ``calibrate`` found (arrays (2 n,), right arm then left)."""
+
+    joints: tuple[str, ...]
+    delay: int  # control periods
+    period: float  # s
+    fitted: Joints
+    nominal: Joints
+    intervals: dict  # field -> (2 n,) 95 % half-widths, in the field's units
+    rms_before: np.ndarray  # rad
+    rms_after: np.ndarray  # rad
+    motion: np.ndarray  # rad, RMS of each joint's recorded motion about its pose
+    delay_costs: dict  # delay -> sum of squared residuals after its fit
+    fields: tuple[str, ...]
+    seconds: float
+    windows: int
+
+    @property
+    def poor(self) -> list[str]:
+        """The joints whose motion the fitted model does not explain (RMS error over ``POOR_FIT`` of it)."""
+        return [j for j, e, s in zip(self.joints, self.rms_after, self.motion, strict=True) if e > POOR_FIT * s]
+
+
+def _spec(model):
+    """The model's spec with joint position and velocity sensors on the arm joints (what a window records)."""
+    robot = getattr(model, "robot", None)
+    spec = robot.spec.copy() if robot is not None else mujoco.MjSpec.from_file(model.path)
+    for s in list(spec.sensors):
+        spec.delete(s)
+    m = model.mj_model
+    names = bag_joint_names(model)
+    dofs = [i for a in model.index.arms for i in a.dof_adr]
+    for kind, suffix in ((mujoco.mjtSensor.mjSENS_JOINTPOS, "q"), (mujoco.mjtSensor.mjSENS_JOINTVEL, "dq")):
+        for name, dof in zip(names, dofs, strict=True):
+            joint = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, int(m.dof_jntid[dof]))
+            spec.add_sensor(name=f"{name} {suffix}", type=kind, objtype=mujoco.mjtObj.mjOBJ_JOINT, objname=joint)
+    return spec
+
+
+class Problem:
+    """The recording cut into windows, as the toolbox's model sequences, and its residual."""
+
+    def __init__(self, model, rec, window: float = 0.5, timestep: float | None = None):
+        # the toolbox is imported here, not at the top: only calibration needs it (mujoco[sysid])
+        from mujoco import sysid
+
+        self.sysid = sysid
+        self.replay = Replay(model, timestep=timestep)
+        self.names = bag_joint_names(model)
+        if tuple(rec.joints) != self.names:
+            raise ConfigError(f"the recording's joints {rec.joints} are not the model's {self.names}")
+        self.rec = rec
+        self.period = rec.command_period
+        h = self.replay.timestep
+        self.n_steps = int(round(window / h))
+        if self.n_steps < 5 or window > rec.duration / 2:
+            raise ConfigError(
+                f"window must be 5 physics steps to half the recording, got {window} s", inputs=("window",)
+            )
+        self.delay = 0
+        spec = _spec(model)
+        nu = self.replay.m.nu
+        acts = self.replay.pc.actuator_ids
+        starts = np.arange(0, len(rec.state_times), max(1, int(round(window / np.median(np.diff(rec.state_times))))))
+        self.dominant = []
+        states, controls, sensors, seq = [], [], [], []
+        mapping = None
+        for i in starts:
+            t0 = rec.state_times[i]
+            inside = (rec.state_times > t0) & (rec.state_times <= t0 + window - 1e-9)
+            if inside.sum() < 3 or t0 + window > rec.state_times[-1]:
+                continue
+            dq0 = rec.dq[i] if rec.dq is not None else np.zeros(len(self.names))
+            states.append(self.replay.state(rec.q[i], dq0, t0))
+            lo = max(0, np.searchsorted(rec.command_times, t0, side="right") - 12)
+            hi = np.searchsorted(rec.command_times, t0 + window, side="right") + 1
+            ctrl = np.zeros((hi - lo, nu))
+            ctrl[:, acts] = rec.commands[lo:hi]
+            controls.append(sysid.TimeSeries(rec.command_times[lo:hi], ctrl))
+            meas = np.column_stack(
+                [rec.q[inside], rec.dq[inside] if rec.dq is not None else np.zeros_like(rec.q[inside])]
+            )
+            if mapping is None:
+                mapping = sysid.TimeSeries.compute_all_sensor_mapping(spec.compile())
+            sensors.append(sysid.TimeSeries(rec.state_times[inside], meas, mapping))
+            seq.append(f"{t0:.2f} s")
+            moved = np.ptp(rec.commands[lo:hi], axis=0)
+            self.dominant.append(int(np.argmax(moved)) % (len(self.names) // 2) if moved.max() > 1e-6 else -1)
+        if len(states) < 2:
+            raise ConfigError(f"the recording ({rec.duration:.2f} s) holds fewer than two windows of {window} s")
+        self.sequences = sysid.ModelSequences("arms", spec, seq, states, controls, sensors)
+        self.velocity = rec.dq is not None
+        self.residual_fn = sysid.build_residual_fn(
+            models_sequences=[self.sequences],
+            build_model=lambda params, spec: self.replay.m,
+            custom_rollout=self._rollout,
+            modify_residual=self._residual,
+            resample_true=False,
+            n_threads=1,
+        )
+
+    # the toolbox's hooks ------------------------------------------------------------------------
+    def _rollout(self, models, datas, control_signal, initial_states, param_dicts, **_):
+        n_chunks = len(models) // len(param_dicts)
+        acts = self.replay.pc.actuator_ids
+        out = []
+        for i, (ctrl, state) in enumerate(zip(control_signal, initial_states, strict=True)):
+            joints = self.joints_of(param_dicts[i // n_chunks])
+            t, q, dq = self.replay.run(joints, state, self.n_steps, ctrl.times, ctrl.data[:, acts], self.delay,
+                                       self.period)  # fmt: skip
+            sens = self.sysid.TimeSeries(t, np.column_stack([q, dq]))
+            out.append(self.sysid.SystemTrajectory(models[i], ctrl, sens, state,
+                                                   self.sysid.TimeSeries(t, np.column_stack([t, q]))))  # fmt: skip
+        return out
+
+    def _residual(self, params, pred, meas, model, return_pred_all, **_):
+        p = np.column_stack([np.interp(meas.times, pred.times, pred.data[:, c]) for c in range(pred.data.shape[1])])
+        n = p.shape[1] // 2
+        sigma = np.concatenate([np.full(n, SIGMA_Q), np.full(n, SIGMA_DQ)])
+        err = (p - meas.data) / sigma
+        if not self.velocity:
+            err = err[:, :n]
+        return err.ravel(), self.sysid.TimeSeries(meas.times, p, meas.signal_mapping), meas
+
+    # parameters ------------------------------------------------------------------------------------
+    def parameters(self, nominal: Joints, fields) -> object:
+        pd = self.sysid.ParameterDict()
+        for field in fields:
+            for k, name in enumerate(self.names):
+                if field in FACTORS:
+                    pd.add(self.sysid.Parameter(f"{name} {field}", 1.0, *FACTOR_BOUNDS))
+                else:
+                    lo, hi = ABSOLUTE_BOUNDS[field]
+                    pd.add(self.sysid.Parameter(f"{name} {field}", float(getattr(nominal, field)[k]), lo, hi))
+        self.nominal = nominal
+        return pd
+
+    def joints_of(self, pd) -> Joints:
+        out = {}
+        for field in FIELDS:
+            base = np.array(getattr(self.nominal, field), float)
+            for k, name in enumerate(self.names):
+                key = f"{name} {field}"
+                if key in pd:
+                    v = float(pd[key].value[0])
+                    base[k] = base[k] * v if field in FACTORS else v
+            out[field] = base
+        return Joints(**out)
+
+    def intervals_of(self, pd, half: np.ndarray) -> dict:
+        """The toolbox's half-widths (in the parameters' own units) in the fields' units."""
+        out, i = {}, 0
+        for key in pd.get_non_frozen_parameter_names():
+            name, field = key.rsplit(" ", 1)
+            k = self.names.index(name)
+            scale = getattr(self.nominal, field)[k] if field in FACTORS else 1.0
+            out.setdefault(field, np.full(len(self.names), np.nan))[k] = half[i] * scale
+            i += 1
+        return out
+
+    def cost(self, pd) -> float:
+        res, _, _ = self.residual_fn(pd.as_vector(), pd)
+        r = np.concatenate(res)
+        return float(r @ r)
+
+    def tracking(self, pd):
+        """(per joint RMS position error, rad; the recorded q, the simulated q, their times) over every window."""
+        _, preds, records = self.residual_fn(pd.as_vector(), pd, return_pred_all=True)
+        n = len(self.names)
+        records, preds = [r[0] for r in records], [p[0] for p in preds]
+        t = np.concatenate([r.times for r in records])
+        q_rec = np.concatenate([r.data[:, :n] for r in records])
+        q_sim = np.concatenate([p.data[:, :n] for p in preds])
+        return np.sqrt(np.mean((q_sim - q_rec) ** 2, axis=0)), t, q_rec, q_sim
+
+    def fit(self, pd, free=None, max_iters: int = 20):
+        """The toolbox's least squares over the parameters named in ``free`` (all: None)."""
+        work = pd.copy()
+        for key in work.keys():
+            work[key].frozen = free is not None and key not in free
+        if work.size == 0:
+            return work, None
+        opt, result = self.sysid.optimize(work, self.residual_fn, optimizer="mujoco", verbose=False,
+                                          max_iters=max_iters, eps=1e-6, output=io.StringIO())  # fmt: skip
+        for key in opt.keys():
+            opt[key].frozen = False
+        return opt, result
+
+
+def calibrate(
+    model,
+    rec,
+    *,
+    delays=range(0, 5),
+    fields=FACTORS,
+    window: float = 0.5,
+    timestep: float | None = None,
+    scan_iters: int = 4,
+    final_iters: int = 4,
+    progress=None,
+) -> tuple[Calibration, Problem, object, object, object]:
+    """Fit each joint's servo (and optionally joint damping, friction loss, armature) and the delay.
+
+    Returns the :class:`Calibration` and, for the report, the problem, the
+    starting and fitted ``ParameterDict`` and the toolbox's result."""
+    unknown = [f for f in fields if f not in FIELDS]
+    if unknown or not set(FACTORS) <= set(fields):
+        raise ConfigError(f"fields must hold {list(FACTORS)} and any of {list(FIELDS[2:])}, got {list(fields)}",
+                          inputs=("fit",))  # fmt: skip
+    say = progress or (lambda text: None)
+    start = time.perf_counter()
+    prob = Problem(model, rec, window, timestep)
+    nominal = prob.replay.nominal()
+    pd0 = prob.parameters(nominal, fields)
+    n = len(prob.names) // 2
+    blocks = []
+    for j in range(n):
+        keys = [f"{prob.names[a * n + j]} {f}" for a in (0, 1) for f in fields]
+        blocks.append((j, keys, [i for i, d in enumerate(prob.dominant) if d == j]))
+    subsets = {j: _subset(prob, rows) for j, _, rows in blocks if rows}
+    costs, fitted = {}, {}
+    for delay in delays:
+        if len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values()) and max(costs) > min(costs, key=costs.get):
+            break  # past the best delay and well above it: the cost rises from here on
+        prob.delay = int(delay)
+        pd = pd0.copy()
+        for j, keys, rows in blocks:
+            if rows:
+                pd, _ = subsets[j].fit(pd, free=keys, max_iters=scan_iters)
+        costs[int(delay)] = prob.cost(pd)
+        fitted[int(delay)] = pd
+        say(f"delay {delay}: joint-by-joint fit, cost {costs[int(delay)]:.4g} ({time.perf_counter() - start:.1f} s)")
+    best = min(costs, key=costs.get)
+    prob.delay = best
+    pd, result = prob.fit(fitted[best], max_iters=final_iters)
+    say(f"delay {best}: all {pd.size} parameters together ({time.perf_counter() - start:.1f} s)")
+    half = np.full(pd.size, np.nan)
+    if result is not None and result.jac is not None:
+        res, _, _ = prob.residual_fn(pd.as_vector(), pd)
+        _, half = prob.sysid.calculate_intervals(res, np.asarray(result.jac))
+    before = prob.tracking(pd0)[0]
+    after = prob.tracking(pd)[0]
+    motion = np.sqrt(np.mean((rec.q - rec.q.mean(axis=0)) ** 2, axis=0))
+    cal = Calibration(
+        joints=prob.names, delay=best, period=prob.period, fitted=prob.joints_of(pd), nominal=nominal,
+        intervals=prob.intervals_of(pd, np.asarray(half)), rms_before=before, rms_after=after, motion=motion,
+        delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
+        windows=len(prob.sequences.sequence_name),
+    )  # fmt: skip
+    return cal, prob, pd0, pd, result
+
+
+def _subset(prob: Problem, rows) -> Problem:
+    """The same problem over the windows ``rows`` only."""
+    ms = prob.sequences
+    sub = object.__new__(Problem)
+    sub.__dict__.update(prob.__dict__)
+    sub.sequences = prob.sysid.ModelSequences(
+        ms.name, ms.spec, [ms.sequence_name[i] for i in rows], [ms.initial_state[i] for i in rows],
+        [ms.control[i] for i in rows], [ms.sensordata[i] for i in rows],
+    )  # fmt: skip
+    sub.residual_fn = prob.sysid.build_residual_fn(
+        models_sequences=[sub.sequences],
+        build_model=lambda params, spec: prob.replay.m,
+        custom_rollout=prob._rollout,
+        modify_residual=prob._residual,
+        resample_true=False,
+        n_threads=1,
+    )
+    return sub

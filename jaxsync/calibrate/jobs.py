@@ -1,0 +1,175 @@
+"""The two jobs behind ``jaxsync excite`` and ``jaxsync calibrate``: files in, files out.
+
+Each writes into a new folder beside ``out`` and moves it there complete, so
+an interrupted or failed run leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from jaxsync._errors import ConfigError
+from jaxsync.calibrate import excite as _excite
+from jaxsync.calibrate.replay import UNITS
+from jaxsync.io import bags
+
+
+@contextlib.contextmanager
+def _new_folder(out):
+    """A temporary folder that becomes ``out`` when the block ends without an error."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(f"{out} exists and is not an empty folder", inputs=("out",))
+    parent = out.parent if str(out.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=parent))
+    try:
+        yield tmp
+        if out.exists():
+            out.rmdir()
+        os.replace(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def excite_job(out, model, *, command_topic: str = bags.COMMAND_TOPIC, storage: str = "mcap", **kw) -> dict:
+    """``out``/excitation (a rosbag2 of the commands), excitation.csv and excitation.yaml (what it is)."""
+    ex = _excite.excitation(model, **kw)
+    with _new_folder(out) as tmp:
+        store = bags._typestore()
+        msgs = [(command_topic, bags.MULTI_ARRAY, 1.0e9 + t, bags.multi_array(c, store))
+                for t, c in zip(ex.times, ex.commands, strict=True)]  # fmt: skip
+        bags.write_bag(tmp / "excitation", msgs, storage)
+        _excite.write_csv(tmp / "excitation.csv", ex)
+        about = ex.describe() | {"command_topic": command_topic, "message_type": bags.MULTI_ARRAY,
+                                 "controller_joints": list(ex.joints)}  # fmt: skip
+        (tmp / "excitation.yaml").write_text(yaml.safe_dump(about, sort_keys=False))
+    return about
+
+
+def fragment(cal, source: str, model_name: str) -> str:
+    """The robot-file lines ``--robot`` reads: ``servo:`` per arm and ``delay:``."""
+    n = len(cal.joints) // 2
+    rnd = lambda a: [float(f"{v:.6g}") for v in a]  # noqa: E731
+    doc = {
+        "servo": {
+            arm: {"stiffness": rnd(cal.fitted.stiffness[sl]), "damping": rnd(cal.fitted.damping[sl])}
+            for arm, sl in (("right", slice(0, n)), ("left", slice(n, 2 * n)))
+        },
+        "delay": {"periods": int(cal.delay), "control_rate": float(f"{1.0 / cal.period:.6g}")},
+    }
+    head = (
+        f"# jaxsync calibrate, {datetime.date.today().isoformat()}: {source} on {model_name}\n"
+        "# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay;\n"
+        "# put these keys in the robot file (they replace its servo:)\n"
+    )
+    text = head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+    extra = [f for f in cal.fields if f not in ("stiffness", "damping")]
+    if extra:
+        text += "# fitted as well, not read from a robot file: set them on the MJCF's joints\n"
+        for f in extra:
+            text += f"#   {f} ({UNITS[f]}): {rnd(getattr(cal.fitted, f))}\n"
+    return text
+
+
+def _plot(path, prob, pd0, pd, title: str) -> None:
+    # matplotlib is imported here, not at the top: only the job that draws loads it
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # after choosing the file backend: no display needed
+
+    _, t, q_rec, q0 = prob.tracking(pd0)
+    _, _, _, q1 = prob.tracking(pd)
+    n = len(prob.names) // 2
+    fig, axes = plt.subplots(n, 2, figsize=(12, 1.7 * n + 1), sharex=True, squeeze=False)
+    for a in range(2):
+        for j in range(n):
+            ax, c = axes[j, a], a * n + j
+            ax.plot(t, q_rec[:, c], ".", ms=1, color="k", label="recorded")
+            ax.plot(t, q0[:, c], ".", ms=1, color="tab:red", label="simulated, before")
+            ax.plot(t, q1[:, c], ".", ms=1, color="tab:blue", label="simulated, fitted")
+            ax.set_ylabel(f"{prob.names[c]}\nrad", fontsize=7)
+            ax.tick_params(labelsize=7)
+    axes[0, 0].legend(fontsize=7, markerscale=8, loc="upper right")
+    axes[-1, 0].set_xlabel("s")
+    axes[-1, 1].set_xlabel("s")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def calibrate_job(
+    out,
+    model,
+    bag,
+    *,
+    state_topic: str = bags.STATE_TOPIC,
+    command_topic: str = bags.COMMAND_TOPIC,
+    joints=None,
+    command_joints=None,
+    min_samples: int = 500,
+    report: bool = True,
+    progress=None,
+    **fit_kw,
+) -> dict:
+    """Read ``bag``, fit, and write ``out``: calibration.yaml (the robot-file lines), calibration.json
+    (every figure), calibration.png (recorded against simulated) and report/report.html (the toolbox's)."""
+    # the fit is imported here, not at the top: it loads the identification toolbox
+    from jaxsync.calibrate.fit import calibrate
+
+    names = tuple(joints) if joints else _excite.bag_joint_names(model)
+    if len(names) != len(_excite.bag_joint_names(model)):
+        raise ConfigError(f"joints: {len(names)} names given, the robot has {len(_excite.bag_joint_names(model))}",
+                          inputs=("joints",))  # fmt: skip
+    rec = bags.read_recording(bag, names, state_topic, command_topic, command_joints, min_samples)
+    rec = bags.Recording(_excite.bag_joint_names(model), rec.state_times, rec.q, rec.dq, rec.command_times,
+                         rec.commands, rec.source)  # fmt: skip
+    with _new_folder(out) as tmp:
+        cal, prob, pd0, pd, result = calibrate(model, rec, progress=progress, **fit_kw)
+        model_name = model.robot.name if getattr(model, "robot", None) else os.path.basename(model.path)
+        (tmp / "calibration.yaml").write_text(fragment(cal, str(bag), model_name))
+        summary = {
+            "bag": str(bag),
+            "duration_s": rec.duration,
+            "state_samples": len(rec.state_times),
+            "command_period_s": cal.period,
+            "delay_periods": cal.delay,
+            "delay_costs": {str(k): v for k, v in cal.delay_costs.items()},
+            "windows": cal.windows,
+            "seconds": cal.seconds,
+            "joints": {
+                name: {
+                    **{f"{f}_{UNITS[f]}": float(getattr(cal.fitted, f)[k]) for f in cal.fields},
+                    **{f"{f}_before": float(getattr(cal.nominal, f)[k]) for f in cal.fields},
+                    **{
+                        f"{f}_interval95": float(cal.intervals.get(f, np.full(len(cal.joints), np.nan))[k])
+                        for f in cal.fields
+                    },
+                    "rms_before_rad": float(cal.rms_before[k]),
+                    "rms_after_rad": float(cal.rms_after[k]),
+                    "motion_rms_rad": float(cal.motion[k]),
+                }
+                for k, name in enumerate(cal.joints)
+            },
+            "poor_fit": cal.poor,
+        }
+        (tmp / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
+        _plot(tmp / "calibration.png", prob, pd0, pd, f"{bag}: delay {cal.delay} periods")
+        if report and result is not None:
+            (tmp / "report").mkdir()
+            prob.sysid.default_report(
+                [prob.sequences], pd0, pd, prob.residual_fn, result, title=f"jaxsync calibrate: {bag}",
+                save_path=tmp / "report", build_model=lambda p, spec: prob.replay.m, generate_videos=False,
+            )  # fmt: skip
+    return summary | {"calibration": cal}

@@ -1,0 +1,169 @@
+"""Recorded position commands replayed through the position stack's servo and delay, on MuJoCo C.
+
+The same servo law the position stack simulates (``jaxsync.sim.actuation.
+servo_torque``, the robot's compensation of its own bias forces included):
+on every physics step the servo holds the command of ``delay`` control
+periods ago (the latest command received by then) and its velocity (its
+difference with the one before, over the command period). The arms move
+without the object (it is not there while a calibration trajectory is
+played), so contacts are off.
+
+The same code writes the recordings the tests and the benchmark fit: a
+replay on a model with another physics step and integrator, a known servo
+and delay, and sensor noise.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import mujoco
+import numpy as np
+
+from jaxsync.physics.servo import servo_of
+from jaxsync.sim import actuation as _actuation
+from jaxsync.sim import closed_loop as _closed_loop
+
+FIELDS = ("stiffness", "damping", "joint_damping", "frictionloss", "armature")
+UNITS = {"stiffness": "N m/rad", "damping": "N m s/rad", "joint_damping": "N m s/rad", "frictionloss": "N m",
+         "armature": "kg m^2"}  # fmt: skip
+
+
+@dataclasses.dataclass(frozen=True)
+class Joints:
+    """Each arm joint's servo and joint parameters, (2 n,) each in the position stack's order (right, then left)."""
+
+    stiffness: np.ndarray
+    damping: np.ndarray
+    joint_damping: np.ndarray
+    frictionloss: np.ndarray
+    armature: np.ndarray
+
+    def replace(self, **kw) -> Joints:
+        return dataclasses.replace(self, **{k: np.asarray(v, float) for k, v in kw.items()})
+
+
+class Replay:
+    """A model of the arms for replaying commands (contacts off, the motors' range opened)."""
+
+    def __init__(self, model, timestep: float | None = None, integrator: str | None = None):
+        self.model = model
+        m = copy.deepcopy(model.mj_model)
+        m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        if timestep is not None:
+            m.opt.timestep = float(timestep)
+        if integrator is not None:
+            m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
+        self.pc = _actuation.position_consts(model)
+        for name, where, value in _actuation.model_updates(self.pc, 1.0):
+            getattr(m, name)[where] = value
+        self.m = m
+        self.d = mujoco.MjData(m)
+        self.limit = np.asarray(_closed_loop.consts(model).torque_limit, float)
+        self.base_qpos = np.asarray(model.keyframe_qpos("grasp"), float)
+
+    @property
+    def timestep(self) -> float:
+        return float(self.m.opt.timestep)
+
+    def nominal(self) -> Joints:
+        """What the model holds: the position stack's servo and the MJCF's joint parameters."""
+        servo, m, dofs = servo_of(self.model), self.model.mj_model, self.pc.dof_adr
+        return Joints(
+            servo.stiffness.reshape(-1).astype(float),
+            servo.damping.reshape(-1).astype(float),
+            np.asarray(m.dof_damping)[dofs].astype(float),
+            np.asarray(m.dof_frictionloss)[dofs].astype(float),
+            np.asarray(m.dof_armature)[dofs].astype(float),
+        )
+
+    def state(self, q, dq, t: float) -> np.ndarray:
+        """A ``mjSTATE_FULLPHYSICS`` state: the arms at (q, dq) at time t, the rest at the grasp keyframe."""
+        m, d = self.m, self.d
+        mujoco.mj_resetData(m, d)
+        d.qpos[:] = self.base_qpos
+        d.qpos[self.pc.qpos_adr] = q
+        d.qvel[self.pc.dof_adr] = dq
+        d.time = t
+        out = np.empty(mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS))
+        mujoco.mj_getState(m, d, out, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        return out
+
+    def acting(self, times: np.ndarray, command_times: np.ndarray, commands: np.ndarray, delay: int, period: float):
+        """The command the servo holds at each of ``times`` after ``delay`` periods, and its velocity.
+        A command counts as received by ``t`` when stamped up to a quarter period after it (stamps jitter)."""
+        k = np.searchsorted(command_times, times + 0.25 * period, side="right") - 1 - int(delay)
+        k = np.clip(k, 0, len(commands) - 1)
+        prev = np.clip(k - 1, 0, len(commands) - 1)
+        return commands[k], (commands[k] - commands[prev]) / period
+
+    def run(self, joints: Joints, state: np.ndarray, n_steps: int, command_times, commands, delay: int, period: float):
+        """``n_steps`` physics steps from ``state``: (times after each step, q, dq), each (n_steps, ...)."""
+        m, d, pc = self.m, self.d, self.pc
+        dofs, qadr, acts = pc.dof_adr, pc.qpos_adr, pc.actuator_ids
+        m.dof_damping[dofs] = joints.joint_damping + joints.damping
+        m.dof_frictionloss[dofs] = joints.frictionloss
+        m.dof_armature[dofs] = joints.armature
+        mujoco.mj_setState(m, d, state, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        h = float(m.opt.timestep)
+        t0 = float(d.time)
+        times = t0 + h * np.arange(n_steps)
+        cmd, vel = self.acting(times, command_times, commands, delay, period)
+        k, b, lim = joints.stiffness, joints.damping, self.limit
+        ff = k * cmd + b * vel  # the servo's terms that do not depend on the state
+        qs, ds, us = _view(qadr), _view(dofs), _view(acts)
+        qpos, qvel, bias, ctrl = d.qpos, d.qvel, d.qfrc_bias, d.ctrl
+        t1, t2, nlim = np.empty(len(dofs)), np.empty(len(dofs)), -lim
+        q_out, dq_out = np.empty((n_steps, len(dofs))), np.empty((n_steps, len(dofs)))
+        for i in range(n_steps):
+            mujoco.mj_step1(m, d)
+            dq = qvel[ds]
+            np.multiply(k, qpos[qs], out=t1)
+            np.subtract(ff[i], t1, out=t1)
+            np.multiply(b, dq, out=t2)
+            t1 -= t2
+            t1 += bias[ds]
+            np.clip(t1, nlim, lim, out=t1)  # tau = clip(k (q_cmd - q) + b (dq_cmd - dq) + c, +-limit)
+            t1 += t2  # the damping b dq' acts implicitly (jaxsync.sim.actuation)
+            ctrl[us] = t1
+            mujoco.mj_step2(m, d)
+            q_out[i], dq_out[i] = qpos[qs], qvel[ds]
+        return times + h, q_out, dq_out
+
+
+def _view(index: np.ndarray):
+    """A slice where the indices run contiguously (a view, cheaper than fancy indexing), else the indices."""
+    index = np.asarray(index)
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
+
+
+def record(
+    model,
+    joints: Joints,
+    command_times: np.ndarray,
+    commands: np.ndarray,
+    delay: int,
+    *,
+    timestep: float = 0.0005,
+    integrator: str = "implicitfast",
+    rate: float | None = None,
+    noise_q: float = 1e-4,
+    noise_dq: float = 5e-3,
+    seed: int = 0,
+):
+    """A recording of ``commands`` played on the arms: states sampled at ``rate`` (the command rate),
+    with Gaussian noise (rad, rad/s). Returns (state times, q, dq)."""
+    period = float(np.median(np.diff(command_times)))
+    rate = rate or 1.0 / period
+    replay = Replay(model, timestep=timestep, integrator=integrator)
+    q0 = commands[0]
+    n_steps = int(round((command_times[-1] - command_times[0]) / replay.timestep))
+    state = replay.state(q0, np.zeros_like(q0), float(command_times[0]))
+    t, q, dq = replay.run(joints, state, n_steps, command_times, commands, delay, period)
+    every = max(1, int(round(1.0 / (rate * replay.timestep))))
+    t, q, dq = t[every - 1 :: every], q[every - 1 :: every], dq[every - 1 :: every]
+    rng = np.random.default_rng(seed)
+    return t, q + noise_q * rng.standard_normal(q.shape), dq + noise_dq * rng.standard_normal(dq.shape)

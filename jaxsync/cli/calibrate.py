@@ -1,0 +1,99 @@
+"""``jaxsync calibrate``: each joint's servo and the command delay, fitted to a rosbag2 recording."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from jaxsync.cli._common import add_model_argument, model_options, model_source, positive
+
+
+def _names(text):
+    return [s for s in text.split(",") if s] if text else None
+
+
+def run(args: argparse.Namespace) -> int:
+    # the library is imported here, not at the top: `jaxsync --help` stays fast
+    from jaxsync._errors import ConfigError
+    from jaxsync.calibrate.jobs import calibrate_job
+    from jaxsync.physics.model import load_model
+
+    lo, _, hi = args.delays.partition(":")
+    try:
+        delays = range(int(lo), int(hi or lo) + 1)
+    except ValueError:
+        msg = f"delays must be N or LO:HI control periods, got {args.delays!r}"
+        raise ConfigError(msg, inputs=("delays",)) from None
+    if not delays or delays.start < 0 or delays.stop > 9:
+        raise ConfigError(f"delays must lie within 0..8 control periods, got {args.delays!r}", inputs=("delays",))
+    fields = ("stiffness", "damping") + tuple(_names(args.fit) or ())
+    model = load_model(model_source(args), **model_options(args))
+    out = calibrate_job(
+        args.out, model, args.bag, state_topic=args.state_topic, command_topic=args.command_topic,
+        joints=_names(args.joints), command_joints=_names(args.command_joints), min_samples=args.min_samples,
+        report=not args.no_report, delays=delays, fields=fields, window=args.window, timestep=args.timestep,
+        progress=lambda text: print(f"  {text}", file=sys.stderr, flush=True),
+    )  # fmt: skip
+    cal = out["calibration"]
+    print(f"{args.bag}: {out['duration_s']:.1f} s, {out['state_samples']} joint states, {cal.windows} windows, "
+          f"fitted in {cal.seconds:.0f} s")  # fmt: skip
+    print(f"delay: {cal.delay} control periods of {cal.period * 1000:.3g} ms "
+          f"(cost by delay: {', '.join(f'{k}: {v:.4g}' for k, v in cal.delay_costs.items())})")  # fmt: skip
+    print(f"{'joint':<22}{'stiffness N m/rad':>28}{'damping N m s/rad':>26}{'RMS error mrad':>22}")
+    for k, name in enumerate(cal.joints):
+        ks, bs = cal.intervals.get("stiffness"), cal.intervals.get("damping")
+        print(f"{name:<22}{cal.nominal.stiffness[k]:>9.4g} -> {cal.fitted.stiffness[k]:<8.5g} +-{ks[k]:<7.2g}"
+              f"{cal.nominal.damping[k]:>8.4g} -> {cal.fitted.damping[k]:<7.4g} +-{bs[k]:<6.2g}"
+              f"{cal.rms_before[k] * 1e3:>9.3f} -> {cal.rms_after[k] * 1e3:.3f}")  # fmt: skip
+    print(
+        f"wrote {args.out}/calibration.yaml (the robot-file lines), calibration.json, calibration.png"
+        + ("" if args.no_report else ", report/report.html")
+    )
+    if cal.poor:
+        print(
+            f"WARNING: the fitted model does not explain the motion of {', '.join(cal.poor)} (RMS error over "
+            f"10 % of the joint's motion): see calibration.png before using these numbers",
+            file=sys.stderr,
+        )
+    return 0
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="fit each joint's servo and the command delay to a rosbag2 recording (docs/calibrate.md)",
+        description="Replays the recorded position commands through the position stack's servo and delay and "
+        "fits each joint's servo stiffness and damping and the delay (whole control periods) with MuJoCo's "
+        "identification toolbox (mujoco.sysid); writes the robot-file lines --robot reads.",
+    )
+    add_model_argument(p)
+    p.add_argument("--bag", required=True, help="the recording: a rosbag2 folder (MCAP or SQLite) or its file")
+    p.add_argument("--out", required=True, help="a new folder for the results")
+    p.add_argument("--state-topic", default="/joint_states", help="sensor_msgs/JointState topic (/joint_states)")
+    p.add_argument("--command-topic", default="/forward_position_controller/commands",
+                   help="the commands: std_msgs/Float64MultiArray or trajectory_msgs/JointTrajectory")  # fmt: skip
+    p.add_argument(
+        "--joints",
+        default=None,
+        metavar="A,B,...",
+        help="the arm joints' names in the recording, right arm then left (default: the robot file's)",
+    )
+    p.add_argument(
+        "--command-joints",
+        default=None,
+        metavar="A,B,...",
+        help="the order of a Float64MultiArray's entries (the controller's joints; default --joints)",
+    )
+    p.add_argument("--delays", default="0:4", metavar="N|LO:HI", help="candidate delays, control periods (0:4)")
+    p.add_argument("--fit", default=None, metavar="FIELDS",
+                   help="also fit joint_damping, frictionloss and/or armature (comma-separated)")  # fmt: skip
+    p.add_argument("--window", type=positive(float), default=0.5, help="seconds per window (0.5)")
+    p.add_argument(
+        "--timestep",
+        type=positive(float),
+        default=None,
+        help="the replay's physics step, s (default: the model's; finer where the servo is fast for it)",
+    )
+    p.add_argument("--min-samples", type=int, default=500, help="fewest messages per topic (500)")
+    p.add_argument("--no-report", action="store_true", help="skip the toolbox's HTML report")
+    p.set_defaults(func=run)

@@ -1,0 +1,320 @@
+"""Recordings of a position-controlled robot as ROS 2 bags (rosbag2, MCAP or SQLite), without ROS.
+
+What every ros2_control robot can record: the joint states it reached
+(``sensor_msgs/msg/JointState`` from ``joint_state_broadcaster``) and the
+position commands it was sent, either ``std_msgs/msg/Float64MultiArray`` (what
+``forward_command_controller``'s ``JointGroupPositionController`` takes on
+``~/commands``, in its ``joints`` parameter's order) or
+``trajectory_msgs/msg/JointTrajectory``. Read and written with the
+``rosbags`` library (pure Python).
+
+Time: a JointState's header stamp (the bag's receive time where stamps are
+zero); a Float64MultiArray has no header, so its receive time; a
+JointTrajectory's points at its stamp plus ``time_from_start``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from jaxsync._errors import JaxsyncError
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+MULTI_ARRAY = "std_msgs/msg/Float64MultiArray"
+TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
+WRENCH = "geometry_msgs/msg/WrenchStamped"
+COMMAND_TYPES = (MULTI_ARRAY, TRAJECTORY)
+STATE_TOPIC = "/joint_states"
+COMMAND_TOPIC = "/forward_position_controller/commands"
+GAP_PERIODS = 5.0  # a step between samples longer than this many median periods: dropped messages
+STORAGES = ("mcap", "sqlite3")
+
+
+class RecordingError(JaxsyncError):
+    """A recording that cannot be read or does not hold what calibration needs."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """Joint states and position commands of one run, in ``joints``' order.
+
+    Times are seconds from the recording's first message."""
+
+    joints: tuple[str, ...]
+    state_times: np.ndarray  # (S,)
+    q: np.ndarray  # (S, J) rad
+    dq: np.ndarray | None  # (S, J) rad/s, None where the states carry no velocity
+    command_times: np.ndarray  # (C,)
+    commands: np.ndarray  # (C, J) rad
+    source: str = ""
+
+    @property
+    def duration(self) -> float:
+        return float(self.state_times[-1] - self.state_times[0])
+
+    @property
+    def command_period(self) -> float:
+        return float(np.median(np.diff(self.command_times)))
+
+
+def _typestore():
+    # rosbags is imported here, not at the top: only the commands that read or write bags load it
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _stamp(t: float, store):
+    sec = int(np.floor(t))
+    return store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=int(round((t - sec) * 1e9)) % 1_000_000_000)
+
+
+def _header(t: float, store):
+    return store.types["std_msgs/msg/Header"](stamp=_stamp(t, store), frame_id="")
+
+
+def joint_state(t: float, names, q, dq=None, store=None):
+    store = store or _typestore()
+    empty = np.zeros(0)
+    return store.types[JOINT_STATE](
+        header=_header(t, store),
+        name=list(names),
+        position=np.asarray(q, float),
+        velocity=np.asarray(dq, float) if dq is not None else empty,
+        effort=empty,
+    )
+
+
+def multi_array(values, store=None):
+    store = store or _typestore()
+    layout = store.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+    return store.types[MULTI_ARRAY](layout=layout, data=np.asarray(values, float))
+
+
+def trajectory(t: float, names, q, store=None):
+    """A one-point JointTrajectory at ``t`` (what a streaming command sends)."""
+    store = store or _typestore()
+    point = store.types["trajectory_msgs/msg/JointTrajectoryPoint"](
+        positions=np.asarray(q, float),
+        velocities=np.zeros(0),
+        accelerations=np.zeros(0),
+        effort=np.zeros(0),
+        time_from_start=store.types["builtin_interfaces/msg/Duration"](sec=0, nanosec=0),
+    )
+    return store.types[TRAJECTORY](header=_header(t, store), joint_names=list(names), points=[point])
+
+
+def write_bag(path, messages, storage: str = "mcap") -> Path:
+    """Write ``messages``, (topic, msgtype, time s, message) in time order, as a new rosbag2 folder.
+
+    Written beside ``path`` first and moved there complete: an interrupted
+    write leaves nothing behind."""
+    # rosbags is imported here, not at the top: only the commands that read or write bags load it
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    if storage not in STORAGES:
+        raise RecordingError(f"storage must be one of {list(STORAGES)}, got {storage!r}", inputs=("storage",))
+    path = Path(path)
+    if path.exists():
+        raise RecordingError(f"{path} exists already: a bag is written to a new folder", inputs=("path",))
+    store = _typestore()
+    parent = path.parent if str(path.parent) else Path(".")
+    parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", dir=parent))
+    work = tmp / path.name
+    try:
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        with Writer(work, version=9, storage_plugin=plugin) as writer:
+            conns = {}
+            for topic, msgtype, t, msg in messages:
+                if (topic, msgtype) not in conns:
+                    conns[topic, msgtype] = writer.add_connection(topic, msgtype, typestore=store)
+                writer.write(conns[topic, msgtype], int(round(t * 1e9)), store.serialize_cdr(msg, msgtype))
+        os.replace(work, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+def write_recording(
+    path,
+    rec: Recording,
+    state_topic: str = STATE_TOPIC,
+    command_topic: str = COMMAND_TOPIC,
+    command_type: str = MULTI_ARRAY,
+    state_order=None,
+    storage: str = "mcap",
+    start: float = 1.0e9,
+) -> Path:
+    """``rec`` as a bag: joint states (names in ``state_order``, default ``rec.joints``) and commands
+    (Float64MultiArray in ``rec.joints``' order, or one-point JointTrajectories). ``start``: the
+    first message's time (s since the epoch)."""
+    store = _typestore()
+    order = list(state_order or rec.joints)
+    cols = [rec.joints.index(j) for j in order]
+    msgs = []
+    for i, t in enumerate(rec.state_times):
+        dq = rec.dq[i, cols] if rec.dq is not None else None
+        msgs.append((state_topic, JOINT_STATE, start + t, joint_state(start + t, order, rec.q[i, cols], dq, store)))
+    for i, t in enumerate(rec.command_times):
+        if command_type == MULTI_ARRAY:
+            msg = multi_array(rec.commands[i], store)
+        else:
+            msg = trajectory(start + t, rec.joints, rec.commands[i], store)
+        msgs.append((command_topic, command_type, start + t, msg))
+    msgs.sort(key=lambda m: m[2])
+    return write_bag(path, msgs, storage)
+
+
+def _times_ok(times: np.ndarray, topic: str, min_samples: int) -> None:
+    if len(times) < min_samples:
+        raise RecordingError(f"{topic}: {len(times)} messages, calibration needs at least {min_samples}")
+    step = np.diff(times)
+    back = np.flatnonzero(step <= 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise RecordingError(
+            f"{topic}: time stamps out of order at message {i} ({times[i] - times[0]:.4f} s after the first, "
+            f"not after the one before it)"
+        )
+    period = float(np.median(step))
+    gaps = np.flatnonzero(step > GAP_PERIODS * period)
+    if gaps.size:
+        i = int(gaps[0])
+        raise RecordingError(
+            f"{topic}: a gap of {step[i]:.4f} s at {times[i] - times[0]:.3f} s (the period is {period:.4f} s): "
+            f"{gaps.size} gap(s) longer than {GAP_PERIODS:g} periods, messages were dropped"
+        )
+
+
+def read_recording(
+    path,
+    joints,
+    state_topic: str = STATE_TOPIC,
+    command_topic: str = COMMAND_TOPIC,
+    command_joints=None,
+    min_samples: int = 500,
+) -> Recording:
+    """The joint states and commands of ``joints`` in the bag at ``path``.
+
+    ``command_joints``: the joints a Float64MultiArray's entries are, in
+    order (the command controller's ``joints`` parameter; default
+    ``joints``). Every problem is a one-line :class:`RecordingError`."""
+    # rosbags is imported here, not at the top: only the commands that read or write bags load it
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    path = Path(path)
+    joints = tuple(joints)
+    if not path.exists():
+        raise RecordingError(f"{path}: no such bag (a rosbag2 folder, or its .mcap or .db3 file)", inputs=("bag",))
+    try:
+        reader = AnyReader([path], default_typestore=_typestore())
+        reader.open()
+    except (AnyReaderError, Exception) as err:  # rosbags raises several kinds for a file it cannot parse
+        msg = f"{path}: not a readable rosbag2 recording (MCAP or SQLite): {err}"
+        raise RecordingError(msg, inputs=("bag",)) from None
+    try:
+        kinds = {c.topic: c.msgtype for c in reader.connections}
+        listed = ", ".join(f"{t} ({k})" for t, k in sorted(kinds.items())) or "none"
+        for topic, allowed, flag in ((state_topic, (JOINT_STATE,), "state_topic"),
+                                     (command_topic, COMMAND_TYPES, "command_topic")):  # fmt: skip
+            if topic not in kinds:
+                raise RecordingError(f"{path}: no topic {topic}; its topics: {listed}", inputs=(flag,))
+            if kinds[topic] not in allowed:
+                raise RecordingError(
+                    f"{path}: topic {topic} is {kinds[topic]}, expected {' or '.join(allowed)}", inputs=(flag,)
+                )
+        states, commands = [], []
+        for conn, t_bag, raw in reader.messages(connections=[c for c in reader.connections
+                                                             if c.topic in (state_topic, command_topic)]):  # fmt: skip
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == state_topic:
+                states.append((t_bag, msg))
+            else:
+                commands.append((t_bag, conn.msgtype, msg))
+    finally:
+        reader.close()
+    if not states:
+        raise RecordingError(f"{path}: topic {state_topic} holds no messages", inputs=("state_topic",))
+    t_s, q, dq = _states(states, joints, state_topic)
+    t_c, cmd = _commands(commands, joints, tuple(command_joints or joints), command_topic)
+    t0 = min(t_s[0], t_c[0])  # integer nanoseconds until here: seconds since the epoch lose them in a double
+    t_s, t_c = (t_s - t0) * 1e-9, (t_c - t0) * 1e-9
+    _times_ok(t_s, state_topic, min_samples)
+    _times_ok(t_c, command_topic, min_samples)
+    return Recording(joints, t_s, q, dq, t_c, cmd, str(path))
+
+
+def _stamp_ns(header, t_bag: int) -> int:
+    t = int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+    return t if t > 0 else int(t_bag)
+
+
+def _states(states, joints, topic):
+    names = list(states[0][1].name)
+    missing = [j for j in joints if j not in names]
+    if missing:
+        raise RecordingError(
+            f"{topic}: joint(s) {', '.join(missing)} not in its messages (they name {', '.join(names)})",
+            inputs=("joints",),
+        )
+    times = np.zeros(len(states), dtype=np.int64)
+    q, dq = np.zeros((len(states), len(joints))), np.zeros((len(states), len(joints)))
+    has_vel = True
+    for i, (t_bag, msg) in enumerate(states):
+        order = list(msg.name)
+        try:
+            cols = [order.index(j) for j in joints]
+        except ValueError:
+            absent = [j for j in joints if j not in order]
+            msg_text = f"{topic}: message {i} lacks joint(s) {', '.join(absent)}"
+            raise RecordingError(msg_text, inputs=("joints",)) from None
+        if len(msg.position) != len(order):
+            raise RecordingError(f"{topic}: message {i} has {len(order)} names but {len(msg.position)} positions")
+        times[i] = _stamp_ns(msg.header, t_bag)
+        q[i] = np.asarray(msg.position)[cols]
+        if len(msg.velocity) == len(order):
+            dq[i] = np.asarray(msg.velocity)[cols]
+        else:
+            has_vel = False
+    return times, q, (dq if has_vel else None)
+
+
+def _commands(commands, joints, command_joints, topic):
+    if not commands:
+        raise RecordingError(f"topic {topic} holds no messages", inputs=("command_topic",))
+    missing = [j for j in joints if j not in command_joints]
+    times, rows = [], []
+    for i, (t_bag, kind, msg) in enumerate(commands):
+        if kind == MULTI_ARRAY:
+            if missing:
+                raise RecordingError(
+                    f"{topic}: the command joints ({', '.join(command_joints)}) lack {', '.join(missing)}",
+                    inputs=("command_joints",),
+                )
+            if len(msg.data) != len(command_joints):
+                raise RecordingError(
+                    f"{topic}: message {i} holds {len(msg.data)} commands, the command joints are "
+                    f"{len(command_joints)} ({', '.join(command_joints)})",
+                    inputs=("command_joints",),
+                )
+            cols = [command_joints.index(j) for j in joints]
+            times.append(t_bag)
+            rows.append(np.asarray(msg.data)[cols])
+        else:
+            names = list(msg.joint_names)
+            absent = [j for j in joints if j not in names]
+            if absent:
+                raise RecordingError(f"{topic}: message {i} lacks joint(s) {', '.join(absent)}", inputs=("joints",))
+            cols = [names.index(j) for j in joints]
+            t0 = _stamp_ns(msg.header, t_bag)
+            for p in msg.points:
+                times.append(t0 + int(p.time_from_start.sec) * 1_000_000_000 + int(p.time_from_start.nanosec))
+                rows.append(np.asarray(p.positions)[cols])
+    return np.asarray(times, dtype=np.int64), np.asarray(rows)
