@@ -25,6 +25,7 @@ import jax
 import numpy as np
 
 from jaxsync.calibrate import excite, replay
+from jaxsync.calibrate.fit import replay_step
 from jaxsync.calibrate.jobs import calibrate_job
 from jaxsync.io import bags
 from jaxsync.physics.model import load_model
@@ -62,16 +63,21 @@ def main() -> None:
     a, _, b = args.delays.partition(":")
     start = time.perf_counter()
     out = calibrate_job(root / "calibration", model, bag, delays=range(int(a), int(b or a) + 1),
-                        timestep=args.fit_step, report=False)  # fmt: skip
+                        timestep=args.fit_step, report=False, progress=print)  # fmt: skip
     wall = time.perf_counter() - start
     cal = out["calibration"]
     k_err = 100 * (cal.fitted.stiffness / truth.stiffness - 1)
     b_err = 100 * (cal.fitted.damping / truth.damping - 1)
     result = {
         "robot": args.robot,
-        "recording": {"seconds": float(t[-1]), "rate_Hz": ex.rate, "step_s": args.record_step,
-                      "integrator": args.record_integrator, "noise": [args.noise_q, args.noise_dq]},  # fmt: skip
-        "fit_step_s": args.fit_step or float(model.mj_model.opt.timestep),
+        "recording": {
+            "seconds": float(t[-1]),
+            "rate_Hz": ex.rate,
+            "step_s": args.record_step,
+            "integrator": args.record_integrator,
+            "noise": [args.noise_q, args.noise_dq],
+        },  # fmt: skip
+        "fit_step_s": args.fit_step or replay_step(model),
         "delay_true": args.delay,
         "delay_found": cal.delay,
         "stiffness_error_pct": np.round(k_err, 2).tolist(),

@@ -1,11 +1,14 @@
 """The identification trajectory a user plays on the robot: per-joint steps and a chirp around a pose.
 
 Each joint in turn, both arms at once (the same joint index), the other
-joints held: a ramp to +A, hold, a ramp to -A, hold, back to the pose, hold
-(the steps, ramped at the speed cap: they show the delay and the stiffness),
-then a linear chirp from ``f0`` to ``f1`` Hz whose amplitude is cut to keep
-under the speed cap (it shows the damping). Every command stays within the
-joint's range and under the speed cap (checked on the sampled commands), and
+joints held: a move to +A, hold, a move to -A, hold, back to the pose, hold
+(the steps, raised-cosine moves under the speed and acceleration caps: they
+show the delay and the stiffness), then a linear chirp from ``f0`` to ``f1``
+Hz whose amplitude is cut to keep under both caps (it shows the damping).
+Each joint's acceleration cap is ``TORQUE_SHARE`` of its torque limit over
+its own inertia, so that the servo never saturates (a saturated servo says
+nothing about its gains). Every command stays within the joint's range and
+under the speed cap (checked on the sampled commands), and
 the two arms keep a stated clearance (their collision geoms' distance along
 the whole trajectory, without the object, which is not there when it is
 played).
@@ -21,8 +24,9 @@ import numpy as np
 from jaxsync._errors import ConfigError
 
 GRASP_KEY = "grasp"
-STEP_SHARE = 0.4  # of each joint's segment: the steps; the rest the chirp and a rest at the end
+STEP_SHARE = 0.5  # of each joint's segment: the steps; the rest the chirp and a rest at the end
 CLEARANCE_M = 0.02
+TORQUE_SHARE = 0.2  # of a joint's torque limit its own inertia may take at the acceleration cap
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,6 +40,7 @@ class Excitation:
     segments: tuple[tuple[int, float, float], ...]  # (joint index in each arm, start s, end s)
     amplitude: float  # rad
     speed: float  # rad/s
+    accel: tuple[float, ...]  # rad/s^2, each joint's cap
     rate: float  # Hz
     chirp: tuple[float, float]  # Hz
     clearance: float  # m, the two arms' closest approach
@@ -48,6 +53,7 @@ class Excitation:
             "samples": int(len(self.times)),
             "amplitude_rad": self.amplitude,
             "speed_cap_rad_per_s": self.speed,
+            "acceleration_cap_rad_per_s2": [float(f"{a:.4g}") for a in self.accel],
             "largest_speed_rad_per_s": float(np.abs(np.diff(self.commands, axis=0)).max() * self.rate),
             "chirp_Hz": list(self.chirp),
             "arm_clearance_m": self.clearance,
@@ -84,39 +90,59 @@ def pose_of(model, key: str = GRASP_KEY) -> np.ndarray:
     return np.concatenate([q[list(a.qpos_adr)] for a in model.index.arms])
 
 
-def _segment(T: float, A: float, v: float, rate: float, f0: float, f1: float) -> np.ndarray:
-    """One joint's offsets from the pose at the control rate."""
+def _move(t, t0: float, T: float, x0: float, x1: float):
+    """A raised-cosine move from x0 to x1 over [t0, t0 + T] (zero speed at both ends)."""
+    u = np.clip((t - t0) / T, 0.0, 1.0)
+    return x0 + (x1 - x0) * 0.5 * (1.0 - np.cos(np.pi * u))
+
+
+def _segment(T: float, A: float, v: float, a: float, rate: float, f0: float, f1: float) -> np.ndarray:
+    """One joint's offsets from the pose at the control rate: speed at most v, acceleration at most a."""
     t = np.arange(int(round(T * rate))) / rate
-    ramp = A / v
+    move = lambda D: max(np.pi * D / (2.0 * v), np.pi * np.sqrt(D / (2.0 * a)))  # noqa: E731
+    r1, r2 = move(A), move(2.0 * A)
     steps_T = STEP_SHARE * T
-    hold = (steps_T - 4.0 * ramp) / 3.0
+    hold = (steps_T - 2.0 * r1 - r2) / 3.0
     if hold < 0.05:
         raise ConfigError(
-            f"duration: {T:.2f} s per joint is too short for steps of {A:g} rad at {v:g} rad/s "
-            f"(at least {(4 * ramp + 0.15) / STEP_SHARE:.2f} s per joint)",
+            f"duration: {T:.2f} s per joint is too short for steps of {A:g} rad at {v:g} rad/s and {a:.3g} rad/s^2 "
+            f"(at least {(2 * r1 + r2 + 0.15) / STEP_SHARE:.2f} s per joint)",
             inputs=("duration",),
         )
-    # the steps: 0 -> +A -> -A -> 0, ramped at v, each level held
-    knots_t = np.cumsum([0.0, ramp, hold, 2 * ramp, hold, ramp, hold])
-    knots_x = np.array([0.0, A, A, -A, -A, 0.0, 0.0])
-    x = np.interp(t, knots_t, knots_x)
-    # the chirp: a linear sweep f0 -> f1, amplitude under the speed cap, tapered in and out
+    # the steps: 0 -> +A -> -A -> 0, each level held
+    x = _move(t, 0.0, r1, 0.0, A)
+    x = np.where(t >= r1 + hold, _move(t, r1 + hold, r2, A, -A), x)
+    x = np.where(t >= r1 + r2 + 2 * hold, _move(t, r1 + r2 + 2 * hold, r1, -A, 0.0), x)
+    # the chirp: a linear sweep f0 -> f1, its amplitude under the speed and acceleration caps, tapered
     c0, c1 = steps_T, 0.95 * T
     tc = np.clip(t - c0, 0.0, c1 - c0)
     Tc = c1 - c0
     f = f0 + (f1 - f0) * tc / Tc
     phase = 2.0 * np.pi * (f0 * tc + 0.5 * (f1 - f0) * tc**2 / Tc)
-    amp = np.minimum(A, 0.8 * v / (2.0 * np.pi * f))
+    w = 2.0 * np.pi * f
+    amp = np.minimum(A, np.minimum(0.6 * v / w, 0.6 * a / w**2))
     taper = np.sin(np.pi * np.clip(tc / Tc, 0.0, 1.0)) ** 2
     chirp = amp * taper * np.sin(phase)
     return np.where((t >= c0) & (t < c1), chirp, x)
+
+
+def accel_caps(model, share: float = TORQUE_SHARE) -> np.ndarray:
+    """(n,) each joint's acceleration cap, rad/s^2: ``share`` of its torque limit over its own inertia
+    at the grasp (the larger of the two arms')."""
+    # the servo and closed-loop constants are imported here: only the excitation needs them
+    from jaxsync.physics.servo import joint_inertia
+    from jaxsync.sim.closed_loop import consts
+
+    inertia = joint_inertia(model)  # (2, n)
+    limit = np.asarray(consts(model).torque_limit, float).reshape(2, -1)
+    return (share * limit / inertia).min(axis=0)
 
 
 def excitation(
     model,
     *,
     duration: float = 20.0,
-    amplitude: float = 0.1,
+    amplitude: float = 0.05,
     speed: float = 0.5,
     rate: float = 500.0,
     chirp: tuple[float, float] = (0.5, 12.0),
@@ -148,11 +174,12 @@ def excitation(
                 inputs=("amplitude",),
             )
     seg_T = duration / n
-    offsets = _segment(seg_T, amplitude, speed, rate, *chirp)
-    C = len(offsets)
+    caps = accel_caps(model)
+    C = int(round(seg_T * rate))
     commands = np.tile(pose, (n * C + 1, 1))
     segments = []
     for j in range(n):
+        offsets = _segment(seg_T, amplitude, speed, float(caps[j]), rate, *chirp)
         rows = slice(j * C, (j + 1) * C)
         commands[rows, j] += offsets
         commands[rows, n + j] += offsets
@@ -168,8 +195,10 @@ def excitation(
             f"{amplitude:g} rad around the pose {key!r}: lower the amplitude",
             inputs=("amplitude",),
         )
-    return Excitation(names, times, commands, pose, tuple(segments), float(amplitude), float(speed), float(rate),
-                      (float(chirp[0]), float(chirp[1])), clearance)  # fmt: skip
+    caps_t = tuple(float(c) for c in caps)
+    band = (float(chirp[0]), float(chirp[1]))
+    return Excitation(names, times, commands, pose, tuple(segments), float(amplitude), float(speed), caps_t,
+                      float(rate), band, clearance)  # fmt: skip
 
 
 def _arm_geoms(m, root: int) -> list[int]:

@@ -27,13 +27,14 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate.excite import bag_joint_names
-from jaxsync.calibrate.replay import FIELDS, Joints, Replay
+from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
 SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
 FACTOR_BOUNDS = (0.1, 10.0)  # stiffness and damping, as factors on the position stack's
 ABSOLUTE_BOUNDS = {"joint_damping": (0.0, 100.0), "frictionloss": (0.0, 20.0), "armature": (0.0, 5.0)}
 FACTORS = ("stiffness", "damping")
+SCAN_ITERS = 2  # per joint and delay on the model's step: enough to tell the delays apart
 POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the model does not explain it
 
 
@@ -85,7 +86,10 @@ class Problem:
         from mujoco import sysid
 
         self.sysid = sysid
-        self.replay = Replay(model, timestep=timestep)
+        spec = _spec(model)
+        self.native = NativeReplay(model, spec, timestep=timestep)
+        self.replay = self.native.exact
+        self.exact = False  # True: roll out through the position stack's own servo code (slower)
         self.names = bag_joint_names(model)
         if tuple(rec.joints) != self.names:
             raise ConfigError(f"the recording's joints {rec.joints} are not the model's {self.names}")
@@ -98,7 +102,6 @@ class Problem:
                 f"window must be 5 physics steps to half the recording, got {window} s", inputs=("window",)
             )
         self.delay = 0
-        spec = _spec(model)
         nu = self.replay.m.nu
         acts = self.replay.pc.actuator_ids
         starts = np.arange(0, len(rec.state_times), max(1, int(round(window / np.median(np.diff(rec.state_times))))))
@@ -143,11 +146,15 @@ class Problem:
     def _rollout(self, models, datas, control_signal, initial_states, param_dicts, **_):
         n_chunks = len(models) // len(param_dicts)
         acts = self.replay.pc.actuator_ids
+        joints = [self.joints_of(p) for p in param_dicts]
+        jobs = [(joints[i // n_chunks], state, ctrl.times, ctrl.data[:, acts])
+                for i, (ctrl, state) in enumerate(zip(control_signal, initial_states, strict=True))]  # fmt: skip
+        if self.exact:
+            runs = [self.replay.run(j, st, self.n_steps, ct, c, self.delay, self.period) for j, st, ct, c in jobs]
+        else:
+            runs = self.native.run_many(jobs, self.n_steps, self.delay, self.period)
         out = []
-        for i, (ctrl, state) in enumerate(zip(control_signal, initial_states, strict=True)):
-            joints = self.joints_of(param_dicts[i // n_chunks])
-            t, q, dq = self.replay.run(joints, state, self.n_steps, ctrl.times, ctrl.data[:, acts], self.delay,
-                                       self.period)  # fmt: skip
+        for i, ((t, q, dq), ctrl, state) in enumerate(zip(runs, control_signal, initial_states, strict=True)):
             sens = self.sysid.TimeSeries(t, np.column_stack([q, dq]))
             out.append(self.sysid.SystemTrajectory(models[i], ctrl, sens, state,
                                                    self.sysid.TimeSeries(t, np.column_stack([t, q]))))  # fmt: skip
@@ -203,9 +210,14 @@ class Problem:
         r = np.concatenate(res)
         return float(r @ r)
 
-    def tracking(self, pd):
-        """(per joint RMS position error, rad; the recorded q, the simulated q, their times) over every window."""
-        _, preds, records = self.residual_fn(pd.as_vector(), pd, return_pred_all=True)
+    def tracking(self, pd, exact: bool = True):
+        """(per joint RMS position error, rad; the recorded q, the simulated q, their times) over every
+        window; ``exact``: through the position stack's own servo code."""
+        self.exact = exact
+        try:
+            _, preds, records = self.residual_fn(pd.as_vector(), pd, return_pred_all=True)
+        finally:
+            self.exact = False
         n = len(self.names)
         records, preds = [r[0] for r in records], [p[0] for p in preds]
         t = np.concatenate([r.times for r in records])
@@ -236,7 +248,7 @@ def calibrate(
     window: float = 0.5,
     timestep: float | None = None,
     scan_iters: int = 4,
-    final_iters: int = 4,
+    final_iters: int = 2,
     progress=None,
 ) -> tuple[Calibration, Problem, object, object, object]:
     """Fit each joint's servo (and optionally joint damping, friction loss, armature) and the delay.
@@ -249,30 +261,27 @@ def calibrate(
                           inputs=("fit",))  # fmt: skip
     say = progress or (lambda text: None)
     start = time.perf_counter()
-    prob = Problem(model, rec, window, timestep)
-    nominal = prob.replay.nominal()
-    pd0 = prob.parameters(nominal, fields)
-    n = len(prob.names) // 2
-    blocks = []
-    for j in range(n):
-        keys = [f"{prob.names[a * n + j]} {f}" for a in (0, 1) for f in fields]
-        blocks.append((j, keys, [i for i, d in enumerate(prob.dominant) if d == j]))
-    subsets = {j: _subset(prob, rows) for j, _, rows in blocks if rows}
+    step = float(model.mj_model.opt.timestep)
+    fine = Problem(model, rec, window, timestep or replay_step(model))
+    # the delay is chosen on the model's own step (it shows at any step), the gains fitted on the fine one
+    coarse = Problem(model, rec, window, step) if fine.replay.timestep < step else fine
+    nominal = fine.replay.nominal()
+    pd0 = fine.parameters(nominal, fields)
+    coarse.parameters(nominal, fields)
     costs, fitted = {}, {}
     for delay in delays:
         if len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values()) and max(costs) > min(costs, key=costs.get):
             break  # past the best delay and well above it: the cost rises from here on
-        prob.delay = int(delay)
-        pd = pd0.copy()
-        for j, keys, rows in blocks:
-            if rows:
-                pd, _ = subsets[j].fit(pd, free=keys, max_iters=scan_iters)
-        costs[int(delay)] = prob.cost(pd)
-        fitted[int(delay)] = pd
+        costs[int(delay)], fitted[int(delay)] = _joint_by_joint(coarse, pd0, fields, int(delay), SCAN_ITERS)
         say(f"delay {delay}: joint-by-joint fit, cost {costs[int(delay)]:.4g} ({time.perf_counter() - start:.1f} s)")
     best = min(costs, key=costs.get)
-    prob.delay = best
-    pd, result = prob.fit(fitted[best], max_iters=final_iters)
+    prob = fine
+    pd = fitted[best]
+    if fine is not coarse:
+        _, pd = _joint_by_joint(fine, pd, fields, best, scan_iters)
+        say(f"delay {best}: joint-by-joint fit at a {fine.replay.timestep * 1000:g} ms step "
+            f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
+    pd, result = prob.fit(pd, max_iters=final_iters)
     say(f"delay {best}: all {pd.size} parameters together ({time.perf_counter() - start:.1f} s)")
     half = np.full(pd.size, np.nan)
     if result is not None and result.jac is not None:
@@ -290,15 +299,47 @@ def calibrate(
     return cal, prob, pd0, pd, result
 
 
+def replay_step(model, wh: float = 0.1) -> float:
+    """The replay's physics step: the model's, divided until the stiffest servo joint's w h <= ``wh``
+    (a 25 Hz servo is fast for a 2 ms explicit step: fitted there, its gains come out tens of percent
+    off; docs/calibrate.md)."""
+    # the servo's numbers are imported here: only the default step needs them
+    from jaxsync.physics.servo import joint_inertia, servo_of
+
+    w = float(np.sqrt(servo_of(model).stiffness / joint_inertia(model)).max())
+    step = float(model.mj_model.opt.timestep)
+    return step / max(1, int(np.ceil(w * step / wh)))
+
+
+def _joint_by_joint(prob: Problem, pd, fields, delay: int, iters: int):
+    """Each joint's parameters of both arms fitted on that joint's windows, in turn; the cost over all."""
+    prob.delay = delay
+    n = len(prob.names) // 2
+    if not hasattr(prob, "blocks"):
+        prob.blocks = []
+        for j in range(n):
+            rows = [i for i, d in enumerate(prob.dominant) if d == j]
+            if rows:
+                prob.blocks.append(
+                    ([f"{prob.names[a * n + j]} {f}" for a in (0, 1) for f in fields], _subset(prob, rows))
+                )
+    pd = pd.copy()
+    for keys, sub in prob.blocks:
+        pd, _ = sub.fit(pd, free=keys, max_iters=iters)
+    return prob.cost(pd), pd
+
+
 def _subset(prob: Problem, rows) -> Problem:
     """The same problem over the windows ``rows`` only."""
     ms = prob.sequences
     sub = object.__new__(Problem)
     sub.__dict__.update(prob.__dict__)
-    sub.sequences = prob.sysid.ModelSequences(
-        ms.name, ms.spec, [ms.sequence_name[i] for i in rows], [ms.initial_state[i] for i in rows],
-        [ms.control[i] for i in rows], [ms.sensordata[i] for i in rows],
-    )  # fmt: skip
+    # the same model sequences, fewer of them (ModelSequences' own constructor compiles the spec again)
+    part = object.__new__(type(ms))
+    part.__dict__.update(ms.__dict__)
+    for key in ("sequence_name", "initial_state", "control", "sensordata", "measured_rollout"):
+        setattr(part, key, [getattr(ms, key)[i] for i in rows])
+    sub.sequences = part
     sub.residual_fn = prob.sysid.build_residual_fn(
         models_sequences=[sub.sequences],
         build_model=lambda params, spec: prob.replay.m,

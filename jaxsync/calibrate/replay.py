@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 
 import mujoco
 import numpy as np
@@ -91,9 +92,9 @@ class Replay:
         return out
 
     def acting(self, times: np.ndarray, command_times: np.ndarray, commands: np.ndarray, delay: int, period: float):
-        """The command the servo holds at each of ``times`` after ``delay`` periods, and its velocity.
-        A command counts as received by ``t`` when stamped up to a quarter period after it (stamps jitter)."""
-        k = np.searchsorted(command_times, times + 0.25 * period, side="right") - 1 - int(delay)
+        """The command the servo holds at each of ``times`` after ``delay`` periods, and its velocity
+        (a command stamped at ``t``, to the microsecond, acts from ``t`` on)."""
+        k = np.searchsorted(command_times, times + 1e-6, side="right") - 1 - int(delay)
         k = np.clip(k, 0, len(commands) - 1)
         prev = np.clip(k - 1, 0, len(commands) - 1)
         return commands[k], (commands[k] - commands[prev]) / period
@@ -167,3 +168,83 @@ def record(
     t, q, dq = t[every - 1 :: every], q[every - 1 :: every], dq[every - 1 :: every]
     rng = np.random.default_rng(seed)
     return t, q + noise_q * rng.standard_normal(q.shape), dq + noise_dq * rng.standard_normal(dq.shape)
+
+
+class NativeReplay:
+    """The same replay in MuJoCo's own terms, for ``mujoco.rollout`` (C, threaded): per joint a
+    position actuator (k), a velocity feed-forward actuator (b, its control the command's velocity)
+    and the joint's damping b; the arms' weight compensated through their actuators (MuJoCo's
+    ``gravcomp`` with ``actuatorgravcomp``). It leaves out what :class:`Replay` adds beyond that: the
+    compensation of Coriolis and centrifugal forces (at the excitation's speeds a few micro-radians
+    of tracking on this machine's test robots, docs/calibrate.md) and the clip of the servo's
+    torque to the joint's limit (a motion within the limits reaches neither)."""
+
+    def __init__(self, model, spec, timestep: float | None = None, threads: int | None = None):
+
+        self.exact = Replay(model, timestep=timestep)
+        pc = self.exact.pc
+        m0 = model.mj_model
+        joint_names = [mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_JOINT, int(m0.dof_jntid[i])) for i in pc.dof_adr]
+        spec = spec.copy()
+        for name in joint_names:
+            p = spec.add_actuator(name=f"jaxsync_servo_p {name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            p.set_to_position(kp=1.0)
+            p.ctrllimited = 0
+            f = spec.add_actuator(name=f"jaxsync_servo_ff {name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            f.set_to_motor()
+            f.ctrllimited = 0
+            spec.joint(name).actgravcomp = 1
+        roots = {int(a.root_body) for a in model.index.arms}
+        for b in range(1, m0.nbody):
+            c = b
+            while c > 0 and c not in roots:
+                c = int(m0.body_parentid[c])
+            if c in roots:
+                spec.body(mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_BODY, b)).gravcomp = 1.0
+        m = spec.compile()
+        m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        m.opt.timestep = self.exact.m.opt.timestep
+        m.opt.integrator = self.exact.m.opt.integrator
+        self.m = m
+        self.p_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"jaxsync_servo_p {n}")
+                               for n in joint_names])  # fmt: skip
+        self.ff_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"jaxsync_servo_ff {n}")
+                                for n in joint_names])  # fmt: skip
+        self.dofs, self.qadr = pc.dof_adr, pc.qpos_adr
+        self.datas = [mujoco.MjData(m) for _ in range(threads or min(2, os.cpu_count() or 1))]
+
+    @property
+    def timestep(self) -> float:
+        return float(self.m.opt.timestep)
+
+    def with_joints(self, joints: Joints):
+        m = copy.copy(self.m)
+        m.actuator_gainprm[self.p_ids, 0] = joints.stiffness
+        m.actuator_biasprm[self.p_ids, 1] = -joints.stiffness
+        m.actuator_gainprm[self.ff_ids, 0] = joints.damping
+        m.dof_damping[self.dofs] = joints.joint_damping + joints.damping
+        m.dof_frictionloss[self.dofs] = joints.frictionloss
+        m.dof_armature[self.dofs] = joints.armature
+        return m
+
+    def run_many(self, jobs, n_steps: int, delay: int, period: float):
+        """``jobs``: (Joints, state, command times, commands) each; returns (times, q, dq) per job."""
+        from mujoco import rollout  # only here: the threaded rollout of MuJoCo's Python bindings
+
+        models, states, controls, times = [], [], [], []
+        cache: dict[int, object] = {}
+        for joints, state, ct, cmds in jobs:
+            key = id(joints)
+            if key not in cache:
+                cache[key] = self.with_joints(joints)
+            models.append(cache[key])
+            states.append(state)
+            t = float(state[0]) + self.timestep * np.arange(n_steps)
+            cmd, vel = self.exact.acting(t, ct, cmds, delay, period)
+            u = np.zeros((n_steps, self.m.nu))
+            u[:, self.p_ids], u[:, self.ff_ids] = cmd, vel
+            controls.append(u)
+            times.append(t + self.timestep)
+        out, _ = rollout.rollout(models, self.datas, np.asarray(states), np.asarray(controls))
+        nq = self.m.nq
+        return [(t, s[:, 1 + self.qadr], s[:, 1 + nq + self.dofs]) for t, s in zip(times, out, strict=True)]
