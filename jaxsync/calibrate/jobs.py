@@ -34,6 +34,9 @@ def _new_folder(out):
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=parent))
     try:
         yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o777 & ~umask)  # a folder like any other, not mkdtemp's private one
         if out.exists():
             out.rmdir()
         os.replace(tmp, out)
@@ -95,13 +98,15 @@ def _plot(path, prob, pd0, pd, title: str) -> None:
     for a in range(2):
         for j in range(n):
             ax, c = axes[j, a], a * n + j
-            ax.plot(t, q_rec[:, c], ".", ms=1, color="k", label="recorded")
-            ax.plot(t, q0[:, c], ".", ms=1, color="tab:red", label="simulated, before")
-            ax.plot(t, q1[:, c], ".", ms=1, color="tab:blue", label="simulated, fitted")
-            ax.set_ylabel(f"{prob.names[c]}\nrad", fontsize=7)
+            ax.plot(t, 1e3 * (q0[:, c] - q_rec[:, c]), ".", ms=1, color="tab:red", label="before the fit")
+            ax.plot(t, 1e3 * (q1[:, c] - q_rec[:, c]), ".", ms=1, color="tab:blue", label="fitted")
+            ax.set_ylabel(f"{prob.names[c]}\nmrad", fontsize=7)
             ax.tick_params(labelsize=7)
-    axes[0, 0].legend(fontsize=7, markerscale=8, loc="upper right")
-    axes[-1, 0].set_xlabel("s")
+            motion = ax.twinx()  # the recorded motion, for where the errors happen
+            motion.plot(t, q_rec[:, c], ",", color="0.6")
+            motion.tick_params(labelsize=6, colors="0.5")
+    axes[0, 0].legend(fontsize=7, markerscale=8, loc="upper right", title="simulated - recorded", title_fontsize=7)
+    axes[-1, 0].set_xlabel("s (grey: the recorded joint position, rad, right axis)")
     axes[-1, 1].set_xlabel("s")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
