@@ -242,3 +242,16 @@ def test_the_fits_threaded_replay_is_the_position_stacks_servo(ur5e, recording):
     ((t, q, dq),) = native.run_many([(joints, state, recording.command_times, recording.commands)], 8000, 1, 0.002)
     assert np.allclose(t, exact[0])
     assert np.abs(q - exact[1]).max() < 3e-5 and np.abs(q - recording.commands[0]).max() > 1e-2
+
+
+def test_a_fit_that_explains_nothing_says_so(recording, bag, tmp_path, capsys):
+    """Commands read in the wrong joint order (a wrong --command-joints): no servo explains the
+    motion, and the command says so, naming the joints and the figure."""
+    wrong = ",".join(reversed(recording.joints))
+    out = tmp_path / "poor"
+    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--delays", "2",
+               "--no-report", "--command-joints", wrong])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 0 and "WARNING: the fitted model does not explain the motion of" in err and "calibration.png" in err
+    poor = json.loads((out / "calibration.json").read_text())["poor_fit"]
+    assert len(poor) >= len(recording.joints) // 2, poor
