@@ -255,3 +255,10 @@ def test_a_fit_that_explains_nothing_says_so(recording, bag, tmp_path, capsys):
     assert rc == 0 and "WARNING: the fitted model does not explain the motion of" in err and "calibration.png" in err
     poor = json.loads((out / "calibration.json").read_text())["poor_fit"]
     assert len(poor) >= len(recording.joints) // 2, poor
+
+
+def test_arms_on_one_torso_keep_their_clearance():
+    """The paper model's arms hang from one torso: each arm's clearance counts its moving bodies only."""
+    ex = excite.excitation(load_model(None, visual=False), duration=10.0, amplitude=0.02)
+    assert 0.05 < ex.clearance < 1.0
+    assert len(ex.joints) == 14 and ex.joints[0] == "r_joint1" and ex.joints[7] == "l_joint1"

@@ -217,7 +217,8 @@ def _clearance(model, commands: np.ndarray) -> float:
     """The two arms' collision geoms' smallest distance over the sampled commands (m)."""
     m = model.mj_model
     d = mujoco.MjData(m)
-    right, left = (_arm_geoms(m, a.root_body) for a in model.index.arms)
+    # each arm's moving bodies: from its first joint's body down (arms may share a base or torso)
+    right, left = (_arm_geoms(m, int(m.jnt_bodyid[m.dof_jntid[a.dof_adr[0]]])) for a in model.index.arms)
     qadr = [i for a in model.index.arms for i in a.qpos_adr]
     base = np.asarray(model.keyframe_qpos(GRASP_KEY))
     best = np.inf
