@@ -133,8 +133,12 @@ class Problem:
             raise ConfigError(f"the recording ({rec.duration:.2f} s) holds fewer than two windows of {window} s")
         self.sequences = sysid.ModelSequences("arms", spec, seq, states, controls, sensors)
         self.velocity = rec.dq is not None
-        self.residual_fn = sysid.build_residual_fn(
-            models_sequences=[self.sequences],
+        self.residual_fn = self.residual_over(self.sequences)
+
+    def residual_over(self, sequences):
+        """The toolbox's residual over ``sequences``, rolled out by this problem's replay."""
+        return self.sysid.build_residual_fn(
+            models_sequences=[sequences],
             build_model=lambda params, spec: self.replay.m,
             custom_rollout=self._rollout,
             modify_residual=self._residual,
@@ -340,12 +344,5 @@ def _subset(prob: Problem, rows) -> Problem:
     for key in ("sequence_name", "initial_state", "control", "sensordata", "measured_rollout"):
         setattr(part, key, [getattr(ms, key)[i] for i in rows])
     sub.sequences = part
-    sub.residual_fn = prob.sysid.build_residual_fn(
-        models_sequences=[sub.sequences],
-        build_model=lambda params, spec: prob.replay.m,
-        custom_rollout=prob._rollout,
-        modify_residual=prob._residual,
-        resample_true=False,
-        n_threads=1,
-    )
+    sub.residual_fn = prob.residual_over(part)
     return sub
