@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
         msg = f"delays must be N or LO:HI control periods, got {args.delays!r}"
         raise ConfigError(msg, inputs=("delays",)) from None
     if not delays or delays.start < 0 or delays.stop > 9:
-        raise ConfigError(f"delays must lie within 0..8 control periods, got {args.delays!r}", inputs=("delays",))
+        raise ConfigError(f"delays must be N or LO:HI with 0 <= LO <= HI <= 8, got {args.delays!r}", inputs=("delays",))
     fields = ("stiffness", "damping") + tuple(_names(args.fit) or ())
     model = load_model(model_source(args), **model_options(args))
     out = calibrate_job(
