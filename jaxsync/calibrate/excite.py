@@ -85,6 +85,13 @@ def bag_joint_names(model) -> tuple[str, ...]:
     )
 
 
+def check_symmetric(model) -> None:
+    """Calibration moves and fits the two arms joint by joint: they need as many joints each."""
+    right, left = (len(a.dof_adr) for a in model.index.arms)
+    if right != left:
+        raise ConfigError(f"calibration needs two arms of as many joints, got {right} (right) and {left} (left)")
+
+
 def pose_of(model, key: str = GRASP_KEY) -> np.ndarray:
     q = np.asarray(model.keyframe_qpos(key))
     return np.concatenate([q[list(a.qpos_adr)] for a in model.index.arms])
@@ -161,6 +168,7 @@ def excitation(
     if not 0 < chirp[0] < chirp[1] <= rate / 10:
         raise ConfigError(f"chirp must be 0 < f0 < f1 <= rate/10 Hz, got {chirp}", inputs=("chirp",))
     m = model.mj_model
+    check_symmetric(model)
     names = bag_joint_names(model)
     pose = pose_of(model, key)
     n = len(pose) // 2

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
-from jaxsync.calibrate.excite import bag_joint_names
+from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
@@ -86,6 +86,7 @@ class Problem:
         from mujoco import sysid
 
         self.sysid = sysid
+        check_symmetric(model)
         spec = _spec(model)
         self.native = NativeReplay(model, spec, timestep=timestep)
         self.replay = self.native.exact
