@@ -250,7 +250,7 @@ def test_a_fit_that_explains_nothing_says_so(recording, bag, tmp_path, capsys):
     wrong = ",".join(reversed(recording.joints))
     out = tmp_path / "poor"
     rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--delays", "2",
-               "--no-report", "--command-joints", wrong])  # fmt: skip
+               "--timestep", "0.002", "--no-report", "--command-joints", wrong])  # fmt: skip
     err = capsys.readouterr().err
     assert rc == 0 and "WARNING: the fitted model does not explain the motion of" in err and "calibration.png" in err
     poor = json.loads((out / "calibration.json").read_text())["poor_fit"]
