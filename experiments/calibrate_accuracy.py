@@ -30,6 +30,7 @@ from jaxsync.calibrate.jobs import calibrate_job
 from jaxsync.io import bags
 from jaxsync.physics.model import load_model
 from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
 
 
 def main() -> None:
@@ -46,6 +47,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--out", default=None, help="keep the bag and the results here")
     args = p.parse_args()
+    set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
     model = load_model(args.robot, visual=False)

@@ -30,6 +30,7 @@ from jaxsync.cli import main as cli
 from jaxsync.io import bags
 from jaxsync.physics.model import load_model
 from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
 
 ROBOTS = Path(__file__).resolve().parents[1] / "mjcf" / "robots"
 
@@ -72,7 +73,11 @@ def main() -> None:
     p.add_argument("--controller", default="synchronous")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--score-only", action="store_true", help="score the tuned gains already in --out")
+    p.add_argument(
+        "--tune-seed", type=int, default=0, help="the tuner's training seed (a robot pair in --out is reused)"
+    )
     args = p.parse_args()
+    set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
     out = Path(args.out)
@@ -94,12 +99,17 @@ def main() -> None:
     true_doc["delay"] = {"periods": 2, "control_rate": 500}
     true_file = out / "true" / "robot.yaml"
     cal_file = out / "calibrated" / "robot.yaml"
-    gains = {"tuned on the true stack": str(out / "tune_true" / "gains.json"),
-             "tuned on the calibrated stack": str(out / "tune_calibrated" / "gains.json"),
-             "true stack, last iterate": str(out / "tune_true" / "gains_last.json"),
-             "calibrated stack, last iterate": str(out / "tune_calibrated" / "gains_last.json")}  # fmt: skip
+    tag = "" if args.tune_seed == 0 else f"_seed{args.tune_seed}"
+    gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
+             "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
+             "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
+             "calibrated stack, last iterate": str(out / f"tune_calibrated{tag}" / "gains_last.json")}  # fmt: skip
     if args.score_only:
-        _report(out, true_file, cal_file, gains, args.controller)
+        _report(out, true_file, cal_file, gains, args.controller, tag)
+        return
+    if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
+        _tune(true_file, cal_file, args, tag)
+        _report(out, true_file, cal_file, gains, args.controller, tag)
         return
     _robot_file(true_file, true_doc, arm_file)
     ex = excite.excitation(model)
@@ -112,16 +122,22 @@ def main() -> None:
           f"{100 * np.abs(cal.fitted.stiffness / truth.stiffness - 1).max():.2f} %", flush=True)  # fmt: skip
     cal_doc = dict(doc) | yaml.safe_load((out / "calibration" / "calibration.yaml").read_text())
     _robot_file(cal_file, cal_doc, arm_file)
+    _tune(true_file, cal_file, args, tag)
+    _report(out, true_file, cal_file, gains, args.controller, tag)
+
+
+def _tune(true_file: Path, cal_file: Path, args, tag: str) -> None:
+    """The same tuning run on each robot file."""
     for label, robot in (("tuned on the true stack", true_file), ("tuned on the calibrated stack", cal_file)):
-        dest = out / ("tune_" + robot.parent.name)
+        dest = robot.parent.parent / f"tune_{robot.parent.name}{tag}"
         start = time.perf_counter()
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
-                  args.controller, "--iterations", args.iterations, "--out", str(dest)])  # fmt: skip
+                  args.controller, "--iterations", args.iterations, "--seed", str(args.tune_seed),
+                  "--out", str(dest)])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
-    _report(out, true_file, cal_file, gains, args.controller)
 
 
-def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller: str) -> None:
+def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller: str, tag: str = "") -> None:
     """Both tuned gains on the true stack (the target) and on the calibrated one (does the model
     predict what the gains do on the robot?)."""
     scores = {"on the true stack": _score(true_file, gains, controller, 2),
@@ -131,7 +147,7 @@ def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller:
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
           f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
           f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip
-    (out / "scores.json").write_text(json.dumps(scores, indent=1, default=float))
+    (out / f"scores{tag}.json").write_text(json.dumps(scores, indent=1, default=float))
 
 
 if __name__ == "__main__":
