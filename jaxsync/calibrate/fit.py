@@ -12,8 +12,12 @@ fit its bounded least squares with MuJoCo's finite-difference Jacobians
 
 The delay is whole control periods: at each candidate the continuous
 parameters are fitted joint by joint (each joint's windows, both arms'
-parameters of that joint: four at a time), the candidates compared on every
-window, and at the best one all parameters are fitted together.
+parameters of that joint: four at a time) on the model's own physics step,
+and the candidates compared on every window. At the best one the gains are
+fitted again on a replay step fine enough for the servo (:func:`replay_step`),
+joint by joint and then all together. The fit's rollouts are MuJoCo's own
+actuators in ``mujoco.rollout`` (:class:`jaxsync.calibrate.replay.NativeReplay`);
+the tracking errors reported run the position stack's servo code itself.
 """
 
 from __future__ import annotations
