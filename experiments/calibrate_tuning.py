@@ -99,7 +99,7 @@ def main() -> None:
     true_doc["delay"] = {"periods": 2, "control_rate": 500}
     true_file = out / "true" / "robot.yaml"
     cal_file = out / "calibrated" / "robot.yaml"
-    tag = "" if args.tune_seed == 0 else f"_seed{args.tune_seed}"
+    tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
@@ -131,9 +131,10 @@ def _tune(true_file: Path, cal_file: Path, args, tag: str) -> None:
     for label, robot in (("tuned on the true stack", true_file), ("tuned on the calibrated stack", cal_file)):
         dest = robot.parent.parent / f"tune_{robot.parent.name}{tag}"
         start = time.perf_counter()
+        robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
                   args.controller, "--iterations", args.iterations, "--seed", str(args.tune_seed),
-                  "--out", str(dest)])  # fmt: skip
+                  "--out", str(dest), *robust])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
 
 
