@@ -76,6 +76,9 @@ def main() -> None:
     p.add_argument(
         "--tune-seed", type=int, default=0, help="the tuner's training seed (a robot pair in --out is reused)"
     )
+    p.add_argument(
+        "--robust", action="store_true", help="tune over drawn servos and delays (--servo-spread 0.3 --delay 1:3)"
+    )
     args = p.parse_args()
     set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
