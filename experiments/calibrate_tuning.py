@@ -7,7 +7,10 @@ MuJoCo C (0.5 ms, implicitfast, sensor noise), written as a bag and fitted
 by ``jaxsync calibrate``; the fitted lines make the calibrated robot file.
 Then ``jaxsync tune --actuation position`` runs on each file, the same run
 otherwise, and both tuned gains (and the defaults) are scored on the true
-stack's held-out scenarios (the tuner's own held-out seed).
+stack's held-out scenarios (the tuner's own held-out seed). With
+``--perturbed``, a third run tunes on the true stack with each servo gain
+moved at random by up to the calibration's largest error: how far the
+tuner's result moves under a model change of that size, whatever its source.
 
     python experiments/calibrate_tuning.py --out results/calibrate_tuning --iterations 30
 """
@@ -79,6 +82,9 @@ def main() -> None:
     p.add_argument(
         "--robust", action="store_true", help="tune over drawn servos and delays (--servo-spread 0.3 --delay 1:3)"
     )
+    p.add_argument(
+        "--perturbed", action="store_true", help="also tune on the true stack moved by the calibration's largest error"
+    )
     args = p.parse_args()
     set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
@@ -102,16 +108,20 @@ def main() -> None:
     true_doc["delay"] = {"periods": 2, "control_rate": 500}
     true_file = out / "true" / "robot.yaml"
     cal_file = out / "calibrated" / "robot.yaml"
+    pert_file = out / "perturbed" / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
              "calibrated stack, last iterate": str(out / f"tune_calibrated{tag}" / "gains_last.json")}  # fmt: skip
+    if args.perturbed:
+        gains["tuned on the perturbed stack"] = str(out / f"tune_perturbed{tag}" / "gains.json")
+        gains["perturbed stack, last iterate"] = str(out / f"tune_perturbed{tag}" / "gains_last.json")
     if args.score_only:
         _report(out, true_file, cal_file, gains, args.controller, tag)
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
-        _tune(true_file, cal_file, args, tag)
+        _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
         _report(out, true_file, cal_file, gains, args.controller, tag)
         return
     _robot_file(true_file, true_doc, arm_file)
@@ -125,13 +135,27 @@ def main() -> None:
           f"{100 * np.abs(cal.fitted.stiffness / truth.stiffness - 1).max():.2f} %", flush=True)  # fmt: skip
     cal_doc = dict(doc) | yaml.safe_load((out / "calibration" / "calibration.yaml").read_text())
     _robot_file(cal_file, cal_doc, arm_file)
-    _tune(true_file, cal_file, args, tag)
+    # the same size of model change as the calibration's, in random directions
+    worst = max(
+        np.abs(cal.fitted.stiffness / truth.stiffness - 1).max(), np.abs(cal.fitted.damping / truth.damping - 1).max()
+    )
+    moved = truth.replace(stiffness=truth.stiffness * (1 + rng.uniform(-worst, worst, n)),
+                          damping=truth.damping * (1 + rng.uniform(-worst, worst, n)))  # fmt: skip
+    pert_doc = dict(true_doc)
+    pert_doc["servo"] = {
+        arm: {"stiffness": moved.stiffness[sl].tolist(), "damping": moved.damping[sl].tolist()}
+        for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
+    }
+    _robot_file(pert_file, pert_doc, arm_file)
+    print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
+    _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
     _report(out, true_file, cal_file, gains, args.controller, tag)
 
 
-def _tune(true_file: Path, cal_file: Path, args, tag: str) -> None:
+def _tune(robots: list[Path], args, tag: str) -> None:
     """The same tuning run on each robot file."""
-    for label, robot in (("tuned on the true stack", true_file), ("tuned on the calibrated stack", cal_file)):
+    for robot in robots:
+        label = f"tuned on the {robot.parent.name} stack"
         dest = robot.parent.parent / f"tune_{robot.parent.name}{tag}"
         start = time.perf_counter()
         robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
@@ -148,6 +172,10 @@ def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller:
               "on the calibrated stack": _score(cal_file, gains, controller, 2)}  # fmt: skip
     peak = [scores["on the true stack"][k]["settled_peak_resultant_N"] for k in gains]
     scores["calibrated_over_true"] = {"selected": peak[1] / peak[0], "last iterate": peak[3] / peak[2]}
+    if len(peak) > 4:
+        scores["perturbed_over_true"] = {"selected": peak[4] / peak[0], "last iterate": peak[5] / peak[2]}
+        print(f"perturbed-tuned / true-tuned: selected {peak[4]:.5f} / {peak[0]:.5f} N = {peak[4] / peak[0]:.3f}; "
+              f"last iterates {peak[5]:.5f} / {peak[2]:.5f} N = {peak[5] / peak[2]:.3f}", flush=True)  # fmt: skip
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
           f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
           f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip

@@ -230,6 +230,42 @@ def test_robot_file_delay_and_per_arm_servo(tmp_path):
     assert robot_delay(UR5E) == "0"
 
 
+def test_fitted_joint_dynamics_reach_the_model(ur5e, tmp_path):
+    """What ``--fit`` adds is written as ``joint_dynamics:``, which --robot applies to the MJCF's joints
+    (both simulators read them from the compiled model); bad values are one line naming the key."""
+    from types import SimpleNamespace
+
+    from jaxsync.calibrate.jobs import fragment
+
+    nom = replay.Replay(ur5e).nominal()
+    n = len(nom.stiffness)
+    fitted = nom.replace(joint_damping=np.linspace(0.5, 1.6, n), frictionloss=np.linspace(0.1, 1.2, n),
+                         armature=np.linspace(0.01, 0.12, n))  # fmt: skip
+    cal = SimpleNamespace(joints=tuple(f"j{k}" for k in range(n)), fitted=fitted, delay=1, period=0.002,
+                          fields=("stiffness", "damping", "joint_damping", "frictionloss", "armature"))  # fmt: skip
+    doc = yaml.safe_load(Path(UR5E).read_text())
+    doc.update(yaml.safe_load(fragment(cal, "test", "ur5e")))
+    shutil.copy(ROBOTS / doc["arms"]["right"]["model"], tmp_path)
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+    model = load_model(str(tmp_path / "r.yaml"), visual=False)
+    dofs = replay.Replay(model).pc.dof_adr
+    m = model.mj_model
+    assert np.allclose(m.dof_damping[dofs], fitted.joint_damping)
+    assert np.allclose(m.dof_frictionloss[dofs], fitted.frictionloss)
+    assert np.allclose(m.dof_armature[dofs], fitted.armature)
+    assert np.allclose(np.asarray(model.mjx_model.dof_armature)[dofs], fitted.armature)
+    assert model.fingerprint != ur5e.fingerprint
+    assert not np.allclose(ur5e.mj_model.dof_armature[dofs], fitted.armature)  # the MJCF's were other values
+    doc["joint_dynamics"]["left"]["armature"] = [-1.0] * (n // 2)
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="joint_dynamics.left.armature must be >= 0"):
+        load_robot(tmp_path / "r.yaml")
+    doc["joint_dynamics"]["left"] = {"stiction": [0.0] * (n // 2)}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match="stiction"):
+        load_robot(tmp_path / "r.yaml")
+
+
 def test_the_fits_threaded_replay_is_the_position_stacks_servo(ur5e, recording):
     """The fit rolls out MuJoCo's own actuators (threaded C); the position stack's servo code agrees
     with it along the excitation to micro-radians (it adds Coriolis compensation and a torque clip)."""

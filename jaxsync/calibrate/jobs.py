@@ -60,28 +60,31 @@ def excite_job(out, model, *, command_topic: str = bags.COMMAND_TOPIC, storage: 
 
 
 def fragment(cal, source: str, model_name: str) -> str:
-    """The robot-file lines ``--robot`` reads: ``servo:`` per arm and ``delay:``."""
+    """The robot-file lines ``--robot`` reads: ``servo:`` per arm, ``delay:`` and, for what ``--fit``
+    added, ``joint_dynamics:`` per arm (the MJCF joints' damping, friction loss, armature)."""
     n = len(cal.joints) // 2
     rnd = lambda a: [float(f"{v:.6g}") for v in a]  # noqa: E731
+    arms = (("right", slice(0, n)), ("left", slice(n, 2 * n)))
     doc = {
-        "servo": {
-            arm: {"stiffness": rnd(cal.fitted.stiffness[sl]), "damping": rnd(cal.fitted.damping[sl])}
-            for arm, sl in (("right", slice(0, n)), ("left", slice(n, 2 * n)))
-        },
+        "servo": {arm: {"stiffness": rnd(cal.fitted.stiffness[sl]), "damping": rnd(cal.fitted.damping[sl])}
+                  for arm, sl in arms},
         "delay": {"periods": int(cal.delay), "control_rate": float(f"{1.0 / cal.period:.6g}")},
-    }
+    }  # fmt: skip
+    extra = [f for f in cal.fields if f not in ("stiffness", "damping")]
+    if extra:  # the replay's names -> the robot file's (the MJCF joint attributes)
+        key = {"joint_damping": "damping", "frictionloss": "frictionloss", "armature": "armature"}
+        doc["joint_dynamics"] = {arm: {key[f]: rnd(getattr(cal.fitted, f)[sl]) for f in extra} for arm, sl in arms}
     head = (
         f"# jaxsync calibrate, {datetime.date.today().isoformat()}: {source} on {model_name}\n"
-        "# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay;\n"
-        "# put these keys in the robot file (they replace its servo:)\n"
+        "# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay"
+        + (
+            "; joint_dynamics: the MJCF joints' damping (N m s/rad), frictionloss (N m), armature (kg m^2)"
+            if extra
+            else ""
+        )
+        + ";\n# put these keys in the robot file (they replace its servo:)\n"
     )
-    text = head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
-    extra = [f for f in cal.fields if f not in ("stiffness", "damping")]
-    if extra:
-        text += "# fitted as well, not read from a robot file: set them on the MJCF's joints\n"
-        for f in extra:
-            text += f"#   {f} ({UNITS[f]}): {rnd(getattr(cal.fitted, f))}\n"
-    return text
+    return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
 
 
 def _plot(path, prob, pd0, pd, title: str) -> None:

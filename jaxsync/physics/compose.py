@@ -425,6 +425,11 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
         for k, name in enumerate(arm.joints, start=1):
             joint = scene.joint(prefix + name)
             joint.name = f"{p}_joint{k}"
+            for field, values in (robot.joint_dynamics or {}).get(a, {}).items():  # the robot file's, over the MJCF's
+                if field == "damping":  # MuJoCo's damping: linear, then polynomial terms (kept)
+                    joint.damping = [values[k - 1], *list(joint.damping)[1:]]
+                else:
+                    setattr(joint, field, values[k - 1])
             act = scene.add_actuator(name=f"{p}_motor{k}", target=f"{p}_joint{k}",
                                      trntype=mujoco.mjtTrn.mjTRN_JOINT)  # fmt: skip
             act.set_to_motor()

@@ -28,7 +28,10 @@ damping_ratio: 1.0}``, or per arm ``{right: {stiffness: [...], damping:
 servo is the MJCF's own position actuators, ``jaxsync.physics.servo``) and
 ``delay`` (``{periods: N, control_rate: HZ}``: the control periods a
 position command waits before the servo acts on it, at that rate; the
-default ``--delay`` of position-controlled jobs on this robot).
+default ``--delay`` of position-controlled jobs on this robot) and
+``joint_dynamics`` (per arm, ``{damping: [...], frictionloss: [...],
+armature: [...]}``, each optional, one value per joint: N m s/rad, N m and
+kg m^2 that replace the MJCF's, as ``jaxsync calibrate --fit`` writes them).
 
 :func:`load_robot` validates everything it can without compiling the MJCF
 (the composer, ``jaxsync.physics.compose``, checks the rest against the
@@ -48,7 +51,9 @@ from jaxsync._errors import ConfigError
 
 SCHEMA_VERSION = 1
 ARM_NAMES = ("right", "left")
-_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo", "delay"}
+_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo", "delay", "joint_dynamics"}
+# joint_dynamics: each field's unit and the MJCF joint attribute it replaces
+JOINT_DYNAMICS = {"damping": "N m s/rad", "frictionloss": "N m", "armature": "kg m^2"}
 _SERVO_FORMS = ({"stiffness", "damping"}, {"bandwidth", "damping_ratio"})
 _ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
 _ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
@@ -86,6 +91,7 @@ class Robot:
     servo: dict | None = None  # {"stiffness": (n,), "damping": (n,)}, {"bandwidth": Hz, "damping_ratio": z}
     # or {"right": {"stiffness": (n,), "damping": (n,)}, "left": {...}}
     delay: tuple[int, float] | None = None  # (control periods, at control_rate Hz)
+    joint_dynamics: dict | None = None  # {"right": {"damping": (n,), ...}, "left": {...}}, fields optional
 
     @property
     def arms(self) -> tuple[ArmSpec, ArmSpec]:
@@ -271,10 +277,34 @@ def load_robot(path: str | os.PathLike) -> Robot:
         if len(left.joints) != len(right.joints):
             raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
     delay = _delay(doc["delay"], path) if "delay" in doc else None
+    dynamics = _joint_dynamics(doc["joint_dynamics"], (right, left), path) if "joint_dynamics" in doc else None
     return Robot(
         name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand,
-        servo, delay,
+        servo, delay, dynamics,
     )  # fmt: skip
+
+
+def _joint_dynamics(doc, arms, path: str) -> dict:
+    """``joint_dynamics``: per arm, {damping, frictionloss, armature}, each optional, one value >= 0 per joint."""
+    where = _where(path, "joint_dynamics")
+    if not isinstance(doc, dict) or not doc or not set(doc) <= set(ARM_NAMES):
+        form = "{right: {damping|frictionloss|armature: [...]}, left: ...}"
+        raise ConfigError(f"{where} must be {form}, got {doc!r}")
+    out = {}
+    for arm_name, arm in zip(ARM_NAMES, arms, strict=True):
+        fields = doc.get(arm_name) or {}
+        if not isinstance(fields, dict):
+            raise ConfigError(f"{where}.{arm_name} must map damping, frictionloss or armature to lists, got {fields!r}")
+        _unknown(fields, set(JOINT_DYNAMICS), path, f"joint_dynamics.{arm_name}")
+        out[arm_name] = {}
+        for field, unit in JOINT_DYNAMICS.items():
+            if field in fields:
+                key = f"joint_dynamics.{arm_name}.{field}"
+                values = _numbers(fields[field], len(arm.joints), path, key, f"{unit}, one per joint")
+                if min(values) < 0:
+                    raise ConfigError(f"{_where(path, key)} must be >= 0, got {list(values)}")
+                out[arm_name][field] = values
+    return out
 
 
 def _delay(doc, path: str) -> tuple[int, float]:
