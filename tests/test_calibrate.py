@@ -11,16 +11,19 @@ import pytest
 import yaml
 
 from jaxsync._errors import ConfigError
-from jaxsync.calibrate import excite, replay
+from jaxsync.calibrate import excite, replay, sensor
 from jaxsync.cli import main
 from jaxsync.io import bags
 from jaxsync.physics.model import load_model
 from jaxsync.physics.robot import load_robot
 from jaxsync.physics.servo import servo_of
+from jaxsync.sim.scenario import default_scenario
 
 ROBOTS = Path(__file__).resolve().parents[1] / "mjcf" / "robots"
 UR5E = str(ROBOTS / "ur5e_twice.yaml")
 TRUE_DELAY = 2
+WRENCH_TOPICS = ("/right_ft_sensor/wrench", "/left_ft_sensor/wrench")
+FORCE_NOISE, TORQUE_NOISE = 0.08, 0.004  # N, N m: the recording's wrist sensors' white noise
 
 
 @pytest.fixture(scope="module")
@@ -45,12 +48,28 @@ def recording(ur5e, truth):
     ex = excite.excitation(ur5e, duration=6.0, amplitude=0.02)
     t, q, dq = replay.record(ur5e, truth, ex.times, ex.commands, TRUE_DELAY, timestep=0.00025,
                              integrator="implicitfast", noise_q=1e-5, noise_dq=5e-4)  # fmt: skip
-    return bags.Recording(ex.joints, t, q, dq, ex.times, ex.commands)
+    return bags.Recording(ex.joints, t, q, dq, ex.times, ex.commands, wrenches=_wrenches(t, q, dq))
+
+
+def _wrenches(t, q, dq, seed=3):
+    """Each wrist sensor's reading while the arm moves free: a bias, a load that follows the arm's pose
+    (its weight turning) and its speed (what settling leaves), and white noise of known size."""
+    rng = np.random.default_rng(seed)
+    n = q.shape[1] // 2
+    out = []
+    for arm in range(2):
+        sl = slice(arm * n, (arm + 1) * n)
+        load = 40.0 * (q[:, sl] - q[0, sl]).sum(axis=1) + 5.0 * dq[:, sl].sum(axis=1)
+        w = np.outer(load, [1.0, -0.5, 0.8, 0.05, 0.02, -0.03]) + [2.0, -1.0, 9.5, 0.1, 0.3, 0.0]
+        w[:, :3] += rng.normal(0.0, FORCE_NOISE, (len(t), 3))
+        w[:, 3:] += rng.normal(0.0, TORQUE_NOISE, (len(t), 3))
+        out.append((t.copy(), w))
+    return tuple(out)
 
 
 @pytest.fixture(scope="module")
 def bag(recording, tmp_path_factory):
-    return bags.write_recording(tmp_path_factory.mktemp("bags") / "run", recording)
+    return bags.write_recording(tmp_path_factory.mktemp("bags") / "run", recording, wrench_topics=WRENCH_TOPICS)
 
 
 def test_the_excitation_keeps_to_its_limits(ur5e):
@@ -149,6 +168,32 @@ def test_a_bad_recording_is_one_line_and_leaves_nothing(ur5e, recording, tmp_pat
     assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
 
 
+@pytest.mark.parametrize(
+    "topics, says",
+    [
+        ("/joint_states,/left_ft_sensor/wrench", "topic /joint_states is sensor_msgs/msg/JointState, expected"),
+        ("/right_ft_sensor/wrench,/left/wrench", "no topic /left/wrench; its topics:"),
+        ("/right_ft_sensor/wrench", "wrench_topics: one per arm"),
+    ],
+)
+def test_bad_wrench_topics_are_one_line(bag, tmp_path, capsys, topics, says):
+    out = tmp_path / "out"
+    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out),
+               "--wrench-topics", topics])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and says in err and len(err.splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_sensor_noise_needs_the_arms_still(recording):
+    """No still stretch long enough (every command moving): the estimate refuses, naming how little it had."""
+    moving = recording.commands + 1e-6 * np.arange(len(recording.commands))[:, None]
+    rec = bags.Recording(recording.joints, recording.state_times, recording.q, recording.dq,
+                         recording.command_times, moving, wrenches=recording.wrenches)  # fmt: skip
+    with pytest.raises(ConfigError, match=r"wrench: 0 samples of sensor 1 while the arms are still \(0.00 s"):
+        sensor.estimate(rec, rec.wrenches)
+
+
 def test_too_few_samples_and_a_missing_bag(recording, tmp_path):
     short = bags.Recording(recording.joints, recording.state_times[:100], recording.q[:100], recording.dq[:100],
                            recording.command_times[:100], recording.commands[:100])  # fmt: skip
@@ -164,10 +209,15 @@ def test_calibrate_finds_the_delay_and_the_servo(ur5e, truth, bag, tmp_path, cap
     tracking error down to the noise, and the fragment read back by --robot."""
     out = tmp_path / "cal"
     rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out),
-               "--delays", "1:3", "--no-report"])  # fmt: skip
+               "--delays", "1:3", "--no-report", "--wrench-topics", ",".join(WRENCH_TOPICS)])  # fmt: skip
     assert rc == 0, capsys.readouterr().err
     res = json.loads((out / "calibration.json").read_text())
     assert res["delay_periods"] == TRUE_DELAY
+    # the wrist sensors' noise from the still parts, through a load that moves with the arm
+    sensed = res["sensor"]
+    assert sensed["force_noise_N"] == pytest.approx(FORCE_NOISE, rel=0.1), sensed
+    assert sensed["torque_noise_Nm"] == pytest.approx(TORQUE_NOISE, rel=0.1), sensed
+    assert sensed["bias"]["left"]["fz"] == pytest.approx(9.5, abs=0.5)
     nom = replay.Replay(ur5e).nominal()
     fitted = np.array([v["stiffness_N m/rad"] for v in res["joints"].values()])
     err_fit = np.abs(fitted / truth.stiffness - 1)
@@ -185,8 +235,12 @@ def test_calibrate_finds_the_delay_and_the_servo(ur5e, truth, bag, tmp_path, cap
     (tmp_path / "cal.yaml").write_text(yaml.safe_dump(robot))
     loaded = load_robot(tmp_path / "cal.yaml")
     assert loaded.delay == (TRUE_DELAY, 500.0)
-    servo = servo_of(load_model(str(tmp_path / "cal.yaml"), visual=False))
+    calibrated = load_model(str(tmp_path / "cal.yaml"), visual=False)
+    servo = servo_of(calibrated)
     assert np.allclose(servo.stiffness.reshape(-1), fitted, rtol=1e-5)
+    task = default_scenario(calibrated)  # the task (and every scenario drawn around it) takes the sensors' noise
+    assert float(task.force_noise) == pytest.approx(sensed["force_noise_N"], rel=1e-5)
+    assert float(task.torque_noise) == pytest.approx(sensed["torque_noise_Nm"], rel=1e-5)
 
 
 def test_excite_writes_a_bag_that_calibrate_reads(tmp_path, capsys):
@@ -264,6 +318,30 @@ def test_fitted_joint_dynamics_reach_the_model(ur5e, tmp_path):
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
     with pytest.raises(ConfigError, match="stiction"):
         load_robot(tmp_path / "r.yaml")
+
+
+def test_robot_file_sensor_noise_sets_the_task_and_its_draws(tmp_path):
+    import jax
+
+    from jaxsync.optimize.tuning import scenarios as S
+
+    doc = yaml.safe_load(Path(UR5E).read_text())
+    shutil.copy(ROBOTS / doc["arms"]["right"]["model"], tmp_path)
+    doc["sensor"] = {"force_noise": 0.3}
+    (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+    model = load_model(str(tmp_path / "r.yaml"), visual=False)
+    base, plain = default_scenario(model), default_scenario()
+    assert float(base.force_noise) == 0.3 and float(base.torque_noise) == float(plain.torque_noise)
+    assert dict(S.model_overrides(model))["force_noise"] == 0.3  # what tune, study and compare start from
+    drawn = S.sample_scenarios(jax.random.key(1), 8, base).force_noise
+    nominal = S.sample_scenarios(jax.random.key(1), 8, plain).force_noise
+    assert np.allclose(drawn, 3.0 * nominal) and 0.05 <= nominal.min() and nominal.max() <= 0.15
+    for bad, says in (({"force_noise": -1}, "sensor.force_noise must be a standard deviation in"),
+                      ({"noise": 1.0}, "noise")):  # fmt: skip
+        doc["sensor"] = bad
+        (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
+        with pytest.raises(ConfigError, match=says):
+            load_robot(tmp_path / "r.yaml")
 
 
 def test_the_fits_threaded_replay_is_the_position_stacks_servo(ur5e, recording):

@@ -7,6 +7,7 @@ an interrupted or failed run leaves nothing half-written.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime
 import json
 import os
@@ -19,6 +20,7 @@ import yaml
 
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate import excite as _excite
+from jaxsync.calibrate import sensor as _sensor
 from jaxsync.calibrate.replay import UNITS
 from jaxsync.io import bags
 
@@ -59,9 +61,10 @@ def excite_job(out, model, *, command_topic: str = bags.COMMAND_TOPIC, storage: 
     return about
 
 
-def fragment(cal, source: str, model_name: str) -> str:
-    """The robot-file lines ``--robot`` reads: ``servo:`` per arm, ``delay:`` and, for what ``--fit``
-    added, ``joint_dynamics:`` per arm (the MJCF joints' damping, friction loss, armature)."""
+def fragment(cal, source: str, model_name: str, noise=None) -> str:
+    """The robot-file lines ``--robot`` reads: ``servo:`` per arm, ``delay:``, for what ``--fit``
+    added ``joint_dynamics:`` per arm (the MJCF joints' damping, friction loss, armature), and with
+    ``noise`` (a :class:`jaxsync.calibrate.sensor.SensorNoise`) ``sensor:``."""
     n = len(cal.joints) // 2
     rnd = lambda a: [float(f"{v:.6g}") for v in a]  # noqa: E731
     arms = (("right", slice(0, n)), ("left", slice(n, 2 * n)))
@@ -74,6 +77,8 @@ def fragment(cal, source: str, model_name: str) -> str:
     if extra:  # the replay's names -> the robot file's (the MJCF joint attributes)
         key = {"joint_damping": "damping", "frictionloss": "frictionloss", "armature": "armature"}
         doc["joint_dynamics"] = {arm: {key[f]: rnd(getattr(cal.fitted, f)[sl]) for f in extra} for arm, sl in arms}
+    if noise is not None:
+        doc["sensor"] = {"force_noise": rnd([noise.force_noise])[0], "torque_noise": rnd([noise.torque_noise])[0]}
     head = (
         f"# jaxsync calibrate, {datetime.date.today().isoformat()}: {source} on {model_name}\n"
         "# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay"
@@ -82,6 +87,7 @@ def fragment(cal, source: str, model_name: str) -> str:
             if extra
             else ""
         )
+        + ("; sensor: the wrist sensors' white noise (N, N m)" if noise is not None else "")
         + ";\n# put these keys in the robot file (they replace its servo:)\n"
     )
     return head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
@@ -129,10 +135,12 @@ def calibrate_job(
     min_samples: int = 500,
     report: bool = True,
     progress=None,
+    wrench_topics=(),
     **fit_kw,
 ) -> dict:
     """Read ``bag``, fit, and write ``out``: calibration.yaml (the robot-file lines), calibration.json
-    (every figure), calibration.png (recorded against simulated) and report/report.html (the toolbox's)."""
+    (every figure), calibration.png (recorded against simulated) and report/report.html (the toolbox's).
+    ``wrench_topics`` (right arm's sensor, then left's): their noise while still, for ``sensor:``."""
     # the fit is imported here, not at the top: it loads the identification toolbox
     from jaxsync.calibrate.fit import calibrate
 
@@ -140,13 +148,16 @@ def calibrate_job(
     if len(names) != len(_excite.bag_joint_names(model)):
         raise ConfigError(f"joints: {len(names)} names given, the robot has {len(_excite.bag_joint_names(model))}",
                           inputs=("joints",))  # fmt: skip
-    rec = bags.read_recording(bag, names, state_topic, command_topic, command_joints, min_samples)
-    rec = bags.Recording(_excite.bag_joint_names(model), rec.state_times, rec.q, rec.dq, rec.command_times,
-                         rec.commands, rec.source)  # fmt: skip
+    if wrench_topics and len(wrench_topics) != 2:
+        raise ConfigError(f"wrench_topics: one per arm, right then left, got {list(wrench_topics)}",
+                          inputs=("wrench_topics",))  # fmt: skip
+    rec = bags.read_recording(bag, names, state_topic, command_topic, command_joints, min_samples, wrench_topics)
+    rec = dataclasses.replace(rec, joints=_excite.bag_joint_names(model))
+    noise = _sensor.estimate(rec, rec.wrenches) if wrench_topics else None  # before the fit: fail fast
     with _new_folder(out) as tmp:
         cal, prob, pd0, pd, result = calibrate(model, rec, progress=progress, **fit_kw)
         model_name = model.robot.name if getattr(model, "robot", None) else os.path.basename(model.path)
-        (tmp / "calibration.yaml").write_text(fragment(cal, str(bag), model_name))
+        (tmp / "calibration.yaml").write_text(fragment(cal, str(bag), model_name, noise))
         summary = {
             "bag": str(bag),
             "duration_s": rec.duration,
@@ -172,6 +183,8 @@ def calibrate_job(
             },
             "poor_fit": cal.poor,
         }
+        if noise is not None:
+            summary["sensor"] = {"topics": list(wrench_topics), **noise.to_dict()}
         (tmp / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))
         _plot(tmp / "calibration.png", prob, pd0, pd, f"{bag}: delay {cal.delay} periods")
         if report and result is not None:
@@ -180,4 +193,4 @@ def calibrate_job(
                 [prob.sequences], pd0, pd, prob.residual_fn, result, title=f"jaxsync calibrate: {bag}",
                 save_path=tmp / "report", build_model=lambda p, spec: prob.replay.m, generate_videos=False,
             )  # fmt: skip
-    return summary | {"calibration": cal}
+    return summary | {"calibration": cal, "noise": noise}

@@ -32,6 +32,7 @@ def run(args: argparse.Namespace) -> int:
         args.out, model, args.bag, state_topic=args.state_topic, command_topic=args.command_topic,
         joints=_names(args.joints), command_joints=_names(args.command_joints), min_samples=args.min_samples,
         report=not args.no_report, delays=delays, fields=fields, window=args.window, timestep=args.timestep,
+        wrench_topics=tuple(_names(args.wrench_topics) or ()),
         progress=lambda text: print(f"  {text}", file=sys.stderr, flush=True),
     )  # fmt: skip
     cal = out["calibration"]
@@ -45,6 +46,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name:<22}{cal.nominal.stiffness[k]:>9.4g} -> {cal.fitted.stiffness[k]:<8.5g} +-{ks[k]:<7.2g}"
               f"{cal.nominal.damping[k]:>8.4g} -> {cal.fitted.damping[k]:<7.4g} +-{bs[k]:<6.2g}"
               f"{cal.rms_before[k] * 1e3:>9.3f} -> {cal.rms_after[k] * 1e3:.3f}")  # fmt: skip
+    if out["noise"] is not None:
+        print(f"wrist sensors' noise while still: {out['noise'].force_noise:.4g} N, {out['noise'].torque_noise:.4g} "
+              f"N m ({out['noise'].still_s:.1f} s still)")  # fmt: skip
     print(
         f"wrote {args.out}/calibration.yaml (the robot-file lines), calibration.json, calibration.png"
         + ("" if args.no_report else ", report/report.html")
@@ -84,6 +88,8 @@ def add_parser(sub) -> None:
         metavar="A,B,...",
         help="the order of a Float64MultiArray's entries (the controller's joints; default --joints)",
     )
+    p.add_argument("--wrench-topics", default=None, metavar="R,L",
+                   help="each wrist sensor's WrenchStamped topic, right arm's first: their noise")  # fmt: skip
     p.add_argument("--delays", default="0:4", metavar="N|LO:HI", help="candidate delays, control periods (0:4)")
     p.add_argument("--fit", default=None, metavar="FIELDS",
                    help="also fit joint_damping, frictionloss and/or armature (comma-separated)")  # fmt: skip

@@ -5,8 +5,9 @@ What every ros2_control robot can record: the joint states it reached
 position commands it was sent, either ``std_msgs/msg/Float64MultiArray`` (what
 ``forward_command_controller``'s ``JointGroupPositionController`` takes on
 ``~/commands``, in its ``joints`` parameter's order) or
-``trajectory_msgs/msg/JointTrajectory``. Read and written with the
-``rosbags`` library (pure Python).
+``trajectory_msgs/msg/JointTrajectory``; optionally each wrist sensor's
+``geometry_msgs/msg/WrenchStamped``. Read and written with the ``rosbags``
+library (pure Python).
 
 Time: a JointState's header stamp (the bag's receive time where stamps are
 zero); a Float64MultiArray has no header, so its receive time; a
@@ -53,6 +54,7 @@ class Recording:
     command_times: np.ndarray  # (C,)
     commands: np.ndarray  # (C, J) rad
     source: str = ""
+    wrenches: tuple = ()  # per wrist sensor asked for: (times (W,), values (W, 6) [force N, torque N m])
 
     @property
     def duration(self) -> float:
@@ -110,6 +112,15 @@ def trajectory(t: float, names, q, store=None):
     return store.types[TRAJECTORY](header=_header(t, store), joint_names=list(names), points=[point])
 
 
+def wrench(t: float, values, store=None):
+    """A WrenchStamped at ``t``: ``values`` [fx, fy, fz, tx, ty, tz] (N, N m)."""
+    store = store or _typestore()
+    vec = store.types["geometry_msgs/msg/Vector3"]
+    f, tq = np.asarray(values, float)[:3], np.asarray(values, float)[3:]
+    body = store.types["geometry_msgs/msg/Wrench"](force=vec(*f), torque=vec(*tq))
+    return store.types[WRENCH](header=_header(t, store), wrench=body)
+
+
 def write_bag(path, messages, storage: str = "mcap") -> Path:
     """Write ``messages``, (topic, msgtype, time s, message) in time order, as a new rosbag2 folder.
 
@@ -151,10 +162,11 @@ def write_recording(
     state_order=None,
     storage: str = "mcap",
     start: float = 1.0e9,
+    wrench_topics=(),
 ) -> Path:
     """``rec`` as a bag: joint states (names in ``state_order``, default ``rec.joints``) and commands
-    (Float64MultiArray in ``rec.joints``' order, or one-point JointTrajectories). ``start``: the
-    first message's time (s since the epoch)."""
+    (Float64MultiArray in ``rec.joints``' order, or one-point JointTrajectories), and ``rec.wrenches``
+    on ``wrench_topics`` (one each). ``start``: the first message's time (s since the epoch)."""
     store = _typestore()
     order = list(state_order or rec.joints)
     cols = [rec.joints.index(j) for j in order]
@@ -168,6 +180,8 @@ def write_recording(
         else:
             msg = trajectory(start + t, rec.joints, rec.commands[i], store)
         msgs.append((command_topic, command_type, start + t, msg))
+    for topic, (times, values) in zip(wrench_topics, rec.wrenches if wrench_topics else (), strict=True):
+        msgs.extend((topic, WRENCH, start + t, wrench(start + t, w, store)) for t, w in zip(times, values, strict=True))
     msgs.sort(key=lambda m: m[2])
     return write_bag(path, msgs, storage)
 
@@ -200,8 +214,10 @@ def read_recording(
     command_topic: str = COMMAND_TOPIC,
     command_joints=None,
     min_samples: int = 500,
+    wrench_topics=(),
 ) -> Recording:
-    """The joint states and commands of ``joints`` in the bag at ``path``.
+    """The joint states and commands of ``joints`` in the bag at ``path``, and the wrenches on
+    ``wrench_topics`` (WrenchStamped, one topic per sensor).
 
     ``command_joints``: the joints a Float64MultiArray's entries are, in
     order (the command controller's ``joints`` parameter; default
@@ -222,22 +238,26 @@ def read_recording(
     try:
         kinds = {c.topic: c.msgtype for c in reader.connections}
         listed = ", ".join(f"{t} ({k})" for t, k in sorted(kinds.items())) or "none"
-        for topic, allowed, flag in ((state_topic, (JOINT_STATE,), "state_topic"),
-                                     (command_topic, COMMAND_TYPES, "command_topic")):  # fmt: skip
+        wanted = [(state_topic, (JOINT_STATE,), "state_topic"), (command_topic, COMMAND_TYPES, "command_topic")]
+        wanted += [(topic, (WRENCH,), "wrench_topics") for topic in wrench_topics]
+        for topic, allowed, flag in wanted:
             if topic not in kinds:
                 raise RecordingError(f"{path}: no topic {topic}; its topics: {listed}", inputs=(flag,))
             if kinds[topic] not in allowed:
                 raise RecordingError(
                     f"{path}: topic {topic} is {kinds[topic]}, expected {' or '.join(allowed)}", inputs=(flag,)
                 )
-        states, commands = [], []
-        for conn, t_bag, raw in reader.messages(connections=[c for c in reader.connections
-                                                             if c.topic in (state_topic, command_topic)]):  # fmt: skip
+        states, commands, wrenches = [], [], {topic: [] for topic in wrench_topics}
+        topics = (state_topic, command_topic, *wrench_topics)
+        for conn, t_bag, raw in reader.messages(connections=[c for c in reader.connections if c.topic in topics]):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == state_topic:
                 states.append((t_bag, msg))
-            else:
+            elif conn.topic == command_topic:
                 commands.append((t_bag, conn.msgtype, msg))
+            else:
+                f, tq = msg.wrench.force, msg.wrench.torque
+                wrenches[conn.topic].append((_stamp_ns(msg.header, t_bag), (f.x, f.y, f.z, tq.x, tq.y, tq.z)))
     finally:
         reader.close()
     if not states:
@@ -248,7 +268,14 @@ def read_recording(
     t_s, t_c = (t_s - t0) * 1e-9, (t_c - t0) * 1e-9
     _times_ok(t_s, state_topic, min_samples)
     _times_ok(t_c, command_topic, min_samples)
-    return Recording(joints, t_s, q, dq, t_c, cmd, str(path))
+    sensed = []
+    for topic in wrench_topics:
+        if not wrenches[topic]:
+            raise RecordingError(f"{path}: topic {topic} holds no messages", inputs=("wrench_topics",))
+        t_w = (np.array([t for t, _ in wrenches[topic]], dtype=np.int64) - t0) * 1e-9
+        _times_ok(t_w, topic, min_samples)
+        sensed.append((t_w, np.array([w for _, w in wrenches[topic]], float)))
+    return Recording(joints, t_s, q, dq, t_c, cmd, str(path), tuple(sensed))
 
 
 def _stamp_ns(header, t_bag: int) -> int:

@@ -252,6 +252,7 @@ class RobotScene:
     fingerprint: str = ""
     servo: dict | None = None  # the robot file's ``servo:`` (jaxsync.physics.robot)
     position_servos: dict | None = None  # per arm, the MJCF's own position servos (jaxsync.physics.compose)
+    sensor: dict | None = None  # the robot file's ``sensor:``, the wrist sensors' noise (a task default)
 
     def summary(self) -> dict:
         """What composing the robot file decided, as plain data (no MjSpec)."""
@@ -373,6 +374,7 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, Robot
         ).hexdigest(),
         servo=robot.servo,
         position_servos=composed.position_servos,
+        sensor=robot.sensor,
     )
     return m, scene
 

@@ -31,7 +31,10 @@ position command waits before the servo acts on it, at that rate; the
 default ``--delay`` of position-controlled jobs on this robot) and
 ``joint_dynamics`` (per arm, ``{damping: [...], frictionloss: [...],
 armature: [...]}``, each optional, one value per joint: N m s/rad, N m and
-kg m^2 that replace the MJCF's, as ``jaxsync calibrate --fit`` writes them).
+kg m^2 that replace the MJCF's, as ``jaxsync calibrate --fit`` writes them)
+and ``sensor`` (``{force_noise: N, torque_noise: N m}``, each optional: the
+wrist sensors' white noise, the task's in place of 0.1 N and 0.005 N m, as
+``jaxsync calibrate --wrench-topics`` writes it).
 
 :func:`load_robot` validates everything it can without compiling the MJCF
 (the composer, ``jaxsync.physics.compose``, checks the rest against the
@@ -51,7 +54,19 @@ from jaxsync._errors import ConfigError
 
 SCHEMA_VERSION = 1
 ARM_NAMES = ("right", "left")
-_TOP_KEYS = {"version", "name", "model", "arms", "object", "clamp_axis", "stand", "servo", "delay", "joint_dynamics"}
+_TOP_KEYS = {
+    "version",
+    "name",
+    "model",
+    "arms",
+    "object",
+    "clamp_axis",
+    "stand",
+    "servo",
+    "delay",
+    "joint_dynamics",
+    "sensor",
+}
 # joint_dynamics: each field's unit and the MJCF joint attribute it replaces
 JOINT_DYNAMICS = {"damping": "N m s/rad", "frictionloss": "N m", "armature": "kg m^2"}
 _SERVO_FORMS = ({"stiffness", "damping"}, {"bandwidth", "damping_ratio"})
@@ -92,6 +107,7 @@ class Robot:
     # or {"right": {"stiffness": (n,), "damping": (n,)}, "left": {...}}
     delay: tuple[int, float] | None = None  # (control periods, at control_rate Hz)
     joint_dynamics: dict | None = None  # {"right": {"damping": (n,), ...}, "left": {...}}, fields optional
+    sensor: dict | None = None  # {"force_noise": N, "torque_noise": N m}, each optional
 
     @property
     def arms(self) -> tuple[ArmSpec, ArmSpec]:
@@ -278,10 +294,22 @@ def load_robot(path: str | os.PathLike) -> Robot:
             raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
     delay = _delay(doc["delay"], path) if "delay" in doc else None
     dynamics = _joint_dynamics(doc["joint_dynamics"], (right, left), path) if "joint_dynamics" in doc else None
+    sensor = _sensor(doc["sensor"], path) if "sensor" in doc else None
     return Robot(
         name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand,
-        servo, delay, dynamics,
+        servo, delay, dynamics, sensor,
     )  # fmt: skip
+
+
+def _sensor(doc, path: str) -> dict:
+    """``sensor``: {force_noise: N, torque_noise: N m}, each optional, in [0, 10]."""
+    if not isinstance(doc, dict) or not doc:
+        raise ConfigError(f"{_where(path, 'sensor')} must be {{force_noise: N, torque_noise: N m}}, got {doc!r}")
+    _unknown(doc, {"force_noise", "torque_noise"}, path, "sensor")
+    for key, v in doc.items():
+        if isinstance(v, bool) or not isinstance(v, int | float) or not 0 <= v <= 10:
+            raise ConfigError(f"{_where(path, 'sensor.' + key)} must be a standard deviation in [0, 10], got {v!r}")
+    return {key: float(v) for key, v in doc.items()}
 
 
 def _joint_dynamics(doc, arms, path: str) -> dict:

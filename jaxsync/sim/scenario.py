@@ -79,7 +79,8 @@ def model_object(model) -> dict:
     robot = getattr(model, "robot", None)
     if robot is None:
         return {}
-    return {"object_mass": float(robot.object_mass), "object_radius": float(robot.object_radius)}
+    sensor = getattr(robot, "sensor", None) or {}
+    return {"object_mass": float(robot.object_mass), "object_radius": float(robot.object_radius), **sensor}
 
 
 def default_scenario(model=None, /, **overrides) -> Scenario:

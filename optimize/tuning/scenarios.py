@@ -22,6 +22,9 @@ def training_base(training) -> tuple[_scenario.Scenario, float]:
     return _scenario.short_task(**over), training.train_duration
 
 
+NOMINAL_FORCE_NOISE = 0.1  # N: the default task's; the drawn force noise scales with the base's
+
+
 def sample_scenarios(
     key: jax.Array,
     n: int,
@@ -36,13 +39,14 @@ def sample_scenarios(
     """A batch of randomised scenarios around ``base``: object mass +-30 % (the
     controller keeps the nominal estimate), offset along the clamping axis
     +-5 mm, contact time constant 15-30 ms, friction 0.8-1.2, wrist force
-    noise 0.05-0.15 N, fresh noise keys; with ``grip_spread`` g > 0 also the
-    desired grip force, +-g relative; with ``delay`` (lo, hi), hi > lo, the
-    command delay, whole control periods from lo to hi; with ``servo_spread``
-    s > 0 the servo gains' scale, 1 +- s (position-controlled arms); with
-    ``ft_filter`` (lo, hi) other than (1, 1) the admittance rule's F/T filter
-    coefficient, log-uniform in [lo, hi]. Each of the last four from its own
-    key: the other draws stay as they are without them.
+    noise 0.5-1.5 times the base's (0.05-0.15 N at the default 0.1 N), fresh
+    noise keys; with ``grip_spread`` g > 0 also the desired grip force, +-g
+    relative; with ``delay`` (lo, hi), hi > lo, the command delay, whole
+    control periods from lo to hi; with ``servo_spread`` s > 0 the servo
+    gains' scale, 1 +- s (position-controlled arms); with ``ft_filter``
+    (lo, hi) other than (1, 1) the admittance rule's F/T filter coefficient,
+    log-uniform in [lo, hi]. Each of the last four from its own key: the
+    other draws stay as they are without them.
 
     Each quantity is drawn independently and uniformly over its range. With
     ``stratified`` the batch is a Latin hypercube on the ranges' ends instead:
@@ -101,7 +105,7 @@ def sample_scenarios(
         object_offset=offset,
         contact_timeconst=u(2, 0.015, 0.03),
         friction=u(3, 0.8, 1.2),
-        force_noise=u(4, 0.05, 0.15),
+        force_noise=u(4, 0.05, 0.15) * (base.force_noise / NOMINAL_FORCE_NOISE),
         noise_key=noise_keys,
     )
 
@@ -147,4 +151,5 @@ def model_overrides(model) -> tuple:
     if not obj:
         return ()
     m, r = obj["object_mass"], obj["object_radius"]
-    return (("object_mass", m), ("mass_estimate", m), ("object_radius", r))
+    noise = tuple((k, obj[k]) for k in ("force_noise", "torque_noise") if k in obj)  # a robot file's sensor:
+    return (("object_mass", m), ("mass_estimate", m), ("object_radius", r), *noise)
