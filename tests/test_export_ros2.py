@@ -11,6 +11,7 @@ the wrong type or length, or leaves a bound.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 
 import jax
@@ -229,3 +230,20 @@ def test_the_files_carry_the_ft_filter_the_gains_were_tuned_with(tmp_path, capsy
     assert doc["ros__parameters"]["ft_sensor"]["filter_coefficient"] == 0.2
     assert main([*argv, "--ft-filter", "0.1:1", "--out", str(tmp_path / "r")]) == 2
     assert "one coefficient here" in capsys.readouterr().err and not (tmp_path / "r").exists()
+
+
+def test_gains_not_tuned_through_the_rule_are_exported_with_a_warning(tmp_path, capsys):
+    """A ros2-admittance export of gains tuned for jaxsync's own law says the rule may run them
+    otherwise and how to check; gains tuned through the rule are exported without it."""
+    argv = ["export", "--format", "json", "--actuation", "position", "--out", str(tmp_path / "j")]
+    assert main(argv) == 0
+    path = next((tmp_path / "j").glob("*.json"))
+    capsys.readouterr()
+    for controller, warned in (("classical", True), ("ros2_admittance", False)):
+        doc = json.loads(path.read_text()) | {"controller": controller}
+        tuned = tmp_path / f"{controller}.json"
+        tuned.write_text(json.dumps(doc))
+        assert main(["export", str(tuned), "--format", "ros2-admittance", "--out", str(tmp_path / controller)]) == 0
+        said = capsys.readouterr().out
+        assert ("tuned for jaxsync's classical law, not through the admittance rule" in said) is warned, said
+        assert ("--controllers ros2_admittance --gains " + str(tuned) in said) is warned
