@@ -72,7 +72,7 @@ def windows(rp: replay.Replay, rec, delay: int, window: float):
     return n_steps, idx, *(np.stack(a) for a in (q0, dq0, cmd, vel, meas))
 
 
-def mjx_residual(model, rp: replay.Replay, idx, n_steps: int):
+def mjx_residual(model, rp: replay.Replay, idx):
     """residual(theta, q0, dq0, cmd, vel, meas) over every window; theta the 2 x (2 n) log-factors."""
     pc = rp.pc
     mx = model.mjx_model  # jaxsync's solver settings; then the replay's changes: its step, contacts off
@@ -177,8 +177,8 @@ def main() -> None:
     print("toolbox", json.dumps(rows["toolbox"]), flush=True)
 
     rp = replay.Replay(model, timestep=0.0005)
-    n_steps, idx, *data = windows(rp, rec, args.delay, 0.5)
-    res = mjx_residual(model, rp, idx, n_steps)
+    _, idx, *data = windows(rp, rec, args.delay, 0.5)
+    res = mjx_residual(model, rp, idx)
     compiled, log = fit_mjx(res, data, n, args.max_iters, print)
     # each iterate's errors; the tracking error of the last, measured as the toolbox's (the position
     # stack's servo code on MuJoCo C)

@@ -30,19 +30,11 @@ def run(args) -> int:
               "--control-rate: golden only; --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
         return 2
     r = export_gains(
-        args.gains,
-        args.format,
-        args.out,
-        model=model_source(args),
-        **model_options(args),
-        distro=args.ros_distro,
+        args.gains, args.format, args.out, model=model_source(args), **model_options(args), distro=args.ros_distro,
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
-        any_model=args.any_model,
-        actuation=args.actuation or "torque",
-        force=args.force,
-        compliance_at=args.compliance_at,
-        ft_filter=args.ft_filter,
-    )
+        any_model=args.any_model, actuation=args.actuation or "torque", force=args.force,
+        compliance_at=args.compliance_at, ft_filter=args.ft_filter,
+    )  # fmt: skip
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
     for line in r.notes:

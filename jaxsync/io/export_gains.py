@@ -122,11 +122,9 @@ def export_gains(
         if tuned_for in ("classical", "synchronous"):  # stable as a recurrence, but in the loop?
             warnings.append(
                 f"WARNING: {gains} was tuned for jaxsync's {tuned_for} law, not through the admittance rule these "
-                "files configure; the rule in the loop can run the same gains differently (position-tuned "
-                "classical gains that hold the ball under jaxsync's law chatter and drop it in 2 of 16 held-out "
-                "scenarios through the rule on the iiwa-like test pair, docs/deploy.md): check them through it "
-                f"(jaxsync compare --actuation position --controllers ros2_admittance --gains {gains}) or tune "
-                "with --controller ros2_admittance"
+                "files configure; the rule in the loop can run the same gains differently (docs/deploy.md): check "
+                f"them through it (jaxsync compare --actuation position --controllers ros2_admittance --gains {gains}) "
+                "or tune with --controller ros2_admittance"
             )
     paths = _export.export(g, fmt, out, target, warnings=tuple(warnings))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
