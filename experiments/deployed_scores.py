@@ -1,4 +1,4 @@
-"""Gain files scored through the controller that will run them, on a robot's position stack (docs/deploy.md).
+"""Gain files scored through the controller that will run them, on a robot's position stack (docs/deploy-tuning.md).
 
 Each gains file given as LABEL=PATH is rolled out on the robot's 16
 held-out scenarios of the position stack (the tuner's held-out seed, delays

@@ -122,9 +122,9 @@ def export_gains(
         if tuned_for in ("classical", "synchronous"):  # stable as a recurrence, but in the loop?
             warnings.append(
                 f"WARNING: {gains} was tuned for jaxsync's {tuned_for} law, not through the admittance rule these "
-                "files configure; the rule in the loop can run the same gains differently (docs/deploy.md): check "
-                f"them through it (jaxsync compare --actuation position --controllers ros2_admittance --gains {gains}) "
-                "or tune with --controller ros2_admittance"
+                "files configure; the rule in the loop can run the same gains differently "
+                "(docs/deploy-tuning.md): check them through it (jaxsync compare --actuation position --controllers "
+                f"ros2_admittance --gains {gains}) or tune with --controller ros2_admittance"
             )
     paths = _export.export(g, fmt, out, target, warnings=tuple(warnings))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
