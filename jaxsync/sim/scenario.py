@@ -72,6 +72,9 @@ class Scenario(NamedTuple):
     ft_filter: jax.Array
 
 
+FORCE_NOISE_N = 0.1  # the default task's wrist force noise (std per axis); a robot file's sensor: replaces it
+
+
 def model_object(model) -> dict:
     """The scenario fields a model brings: a robot file's object (its mass, which
     the controller also assumes unless a ``mass_estimate`` is given, and its
@@ -107,7 +110,7 @@ def default_scenario(model=None, /, **overrides) -> Scenario:
         settle_time=0.3,
         contact_timeconst=0.02,
         friction=1.0,
-        force_noise=0.1,
+        force_noise=FORCE_NOISE_N,
         torque_noise=0.005,
         noise_key=np.asarray(jax.random.key_data(jax.random.key(0))),
         delay=0.0,

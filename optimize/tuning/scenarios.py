@@ -22,9 +22,6 @@ def training_base(training) -> tuple[_scenario.Scenario, float]:
     return _scenario.short_task(**over), training.train_duration
 
 
-NOMINAL_FORCE_NOISE = 0.1  # N: the default task's; the drawn force noise scales with the base's
-
-
 def sample_scenarios(
     key: jax.Array,
     n: int,
@@ -105,7 +102,7 @@ def sample_scenarios(
         object_offset=offset,
         contact_timeconst=u(2, 0.015, 0.03),
         friction=u(3, 0.8, 1.2),
-        force_noise=u(4, 0.05, 0.15) * (base.force_noise / NOMINAL_FORCE_NOISE),
+        force_noise=u(4, 0.05, 0.15) * (base.force_noise / _scenario.FORCE_NOISE_N),  # scaled with the base's
         noise_key=noise_keys,
     )
 
