@@ -375,9 +375,10 @@ def test_a_period_is_differentiable_in_the_gains(model):
     assert float(jnp.abs(grad.imp_mass).max()) > 0.0
 
 
-def test_the_rules_ft_filter_comes_from_the_scenario(model, loop_runs):
-    """Scenario.ft_filter is the rule's ft_sensor.filter_coefficient: a filtered
-    sensor changes the rule's run (the same program), not jaxsync's own laws."""
+def test_the_ft_filter_comes_from_the_scenario(model, loop_runs):
+    """Scenario.ft_filter is the rule's ft_sensor.filter_coefficient and the
+    filter jaxsync's own laws read the wrench through: a filtered sensor
+    changes both runs (the same programs), and both still hold the ball."""
     s, g = loop_runs["scenario"], loop_runs["gains"]
     assert float(_ros2_loop.params(g, 0, ft_filter=0.2).filter_coefficient) == 0.2
     filtered = s._replace(ft_filter=jnp.asarray(0.2))
@@ -388,7 +389,50 @@ def test_the_rules_ft_filter_comes_from_the_scenario(model, loop_runs):
     assert float(jnp.abs(a.pad_forces - loop_runs["default"][0].pad_forces).max()) > 1e-3
     assert _holds(_metrics.summarize(a, filtered))
     b, c = run("synchronous", filtered), run("synchronous", s)
-    np.testing.assert_array_equal(np.asarray(b.pad_forces), np.asarray(c.pad_forces))
+    assert float(jnp.abs(b.pad_forces - c.pad_forces).max()) > 1e-3
+    assert _holds(_metrics.summarize(b, filtered))
+
+
+def test_every_law_reads_the_rules_filtered_force_error(model):
+    """On position-controlled arms jaxsync's laws read f_i - f_id through the
+    rule's F/T filter: after each period their filter state is the rule's
+    wrench_world (measurement plus set-point, filtered, world frame) on the
+    same inputs; with a = 1 the raw error, bit for bit, whatever the filter held."""
+    rng = np.random.default_rng(11)
+    g = jaxsync.default_gains(model, "position")
+    ref = _controller.Reference(
+        pad_pos=jnp.asarray(rng.normal(size=(2, 3)) * 0.3),
+        pad_rot=jnp.stack([_so3.exp(jnp.asarray(rng.normal(size=3))) for _ in range(2)]),
+        pad_vel=jnp.zeros((2, 6)),
+        pad_acc=jnp.zeros((2, 6)),
+        wrench=jnp.asarray(rng.normal(size=(2, 6))),
+        q_rest=jnp.zeros((2, 7)),
+    )
+    q0 = jnp.asarray(rng.normal(size=14) * 0.3)
+    kinds = ("synchronous", "task_space", "ros2_admittance")
+    steps = {
+        k: jax.jit(
+            lambda st, arms, a, k=k: _controller.step_position(
+                _controller.ControllerOptions(kind=k), g, st, arms, ref, 0.002, q0, a
+            )
+        )
+        for k in kinds
+    }
+    states = dict.fromkeys(kinds, _controller.init(q0))
+    for _ in range(3):
+        arms = (_arm(rng), _arm(rng))
+        for k in kinds:
+            _, states[k], _ = steps[k](states[k], arms, 0.3)
+        for k in kinds[:2]:
+            np.testing.assert_allclose(
+                states[k].wrench_filter, states["ros2_admittance"].ros2.rule.wrench_world, rtol=1e-10, atol=1e-12
+            )
+    raw = jnp.stack([a.wrench for a in arms]) - ref.wrench
+    assert float(jnp.abs(states["synchronous"].wrench_filter - raw).max()) > 1e-2  # filtered: not the raw error
+    one = [steps["synchronous"](states["synchronous"]._replace(wrench_filter=w), arms, 1.0) for w in (raw * 1e3, raw)]
+    for x, y in zip(jax.tree_util.tree_leaves(one[0]), jax.tree_util.tree_leaves(one[1]), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    np.testing.assert_array_equal(np.asarray(one[0][1].wrench_filter), np.asarray(raw))
 
 
 def test_the_compliance_probe_reads_the_rules_stand_in(model):

@@ -158,8 +158,8 @@ def add_stack_arguments(p: argparse.ArgumentParser, drawn: bool = False) -> None
             "--ft-filter",
             default="1",
             metavar="A|LO:HI",
-            help="the admittance rule's F/T filter coefficient (ros2_admittance, ros2_synchronous), or a range "
-            "drawn log-uniform per scenario (1: unfiltered; e.g. 0.05:1)",
+            help="position arms: the F/T filter coefficient every controller reads the wrench through (the "
+            "admittance rule's), or a range drawn log-uniform per scenario (1: unfiltered; e.g. 0.05:1)",
         )
 
 

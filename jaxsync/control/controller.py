@@ -114,6 +114,9 @@ class ControllerState(NamedTuple):
     object: _baselines.ObjectState  # object_impedance's compliant object frame
     force_integral: jax.Array  # (2, 6) task_space's integral of the internal wrench
     ros2: _ros2_loop.Ros2State  # ros2_admittance's reference joints q_ref and the two arms' rule states
+    wrench_filter: (
+        jax.Array
+    )  # (2, 6) position-controlled arms: the F/T filter's output, f_i - f_id filtered, world frame
 
 
 class ControlInfo(NamedTuple):
@@ -140,6 +143,7 @@ def init(q0: jax.Array | None = None) -> ControllerState:
         object=_baselines.init_object(),
         force_integral=jnp.zeros((2, 6)),
         ros2=_ros2_loop.init(jnp.zeros(14) if q0 is None else q0),
+        wrench_filter=jnp.zeros((2, 6)),
     )
 
 
@@ -160,15 +164,18 @@ class Pads(NamedTuple):
         )
 
 
-def offsets(options, gains: Gains, state: ControllerState, pads: Pads, ref: Reference, dt: float):
+def offsets(options, gains: Gains, state: ControllerState, pads: Pads, ref: Reference, dt: float, force_error=None):
     """Each pad's compliant offset from its plan (the part of a controller
     before the joint-space law).
 
-    Returns ((off, off_vel, off_acc), the new state, delta, force_error):
-    offsets x_ic - x_id, their rates and accelerations (2, 6) world frame,
-    the absolute errors delta_i = x_id - x_i (eq. 12) and f_i - f_id (2, 6).
+    ``force_error`` (2, 6): what the laws read as f_i - f_id (None: from
+    ``pads.wrench``, unfiltered). Returns ((off, off_vel, off_acc), the new
+    state, delta, force_error): offsets x_ic - x_id, their rates and
+    accelerations (2, 6) world frame, the absolute errors delta_i = x_id -
+    x_i (eq. 12) and the force error read.
     """
-    force_error = pads.wrench - ref.wrench
+    if force_error is None:
+        force_error = pads.wrench - ref.wrench
     delta = jnp.stack(
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
     )
@@ -251,18 +258,29 @@ def step_position(
     :func:`step`, then each arm's joint position command integrated toward its
     compliant target (``jaxsync.control.joint_space.command_rate``).
 
+    The offsets read the force error through the F/T filter the admittance
+    rule applies (ros2_controllers ``admittance_rule_impl.hpp`` J 346-350,
+    ``jaxsync.control.ros2_admittance.process_wrench_measurements``), to the
+    measurement plus the wrench set-point, world frame, zero at activation:
+    h_i' = a (f_i - f_id) + (1 - a) h_i, the rule's ``wrench_world``, so
+    that every controller on these arms reads what the rule reads (a = 1:
+    the raw error, exactly).
+
     ``ros2_admittance`` (static options only) runs ros2_controllers' rule
     per arm instead (``jaxsync.control.ros2_loop``); its info's offset is the
     rules' J dq.
 
     Args: as :func:`step`, and ``command`` (2 n,) the last joint position
-    commands (right arm's n, then left's); ``ft_filter`` the rule's F/T
-    filter coefficient (``Scenario.ft_filter``; the rule's controllers only). Returns the next commands (2 n,),
-    the new state and info.
+    commands (right arm's n, then left's); ``ft_filter`` the F/T filter
+    coefficient a (``Scenario.ft_filter``). Returns the next commands (2 n,),
+    the new state and info (its force_error from the filtered wrench).
     """
     if not isinstance(options, ControllerSwitch) and options.kind in POSITION_ONLY:
         return _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter)
-    (off, off_vel, _), state, delta, force_error = offsets(options, gains, state, Pads.of(arms), ref, dt)
+    pads = Pads.of(arms)
+    filtered = ft_filter * (pads.wrench - ref.wrench) + (1.0 - ft_filter) * state.wrench_filter
+    state = state._replace(wrench_filter=filtered)
+    (off, off_vel, _), state, delta, force_error = offsets(options, gains, state, pads, ref, dt, filtered)
     n = command.shape[0] // 2
     out = []
     for i in range(2):

@@ -42,16 +42,16 @@ from jaxsync.physics.sensing import ArmState
 from jaxsync.sim import actuation as _actuation
 from jaxsync.sim.rollout_mujoco import rollout_mujoco
 
-GOLDEN_FORMAT = 1
+GOLDEN_FORMAT = 2  # 2: jaxsync's own laws carry the F/T filter's state (wrench_filter)
 FILES = ("inputs.csv", "outputs.csv", "golden.json")
 MAX_STEPS = 100_000
 ARMS = ("right", "left")
 # the parts of the controller state each controller reads and writes
 STATE_PARTS = {
-    "classical": ("impedance",),
-    "synchronous": ("impedance",),
-    "object_impedance": ("impedance", "object"),
-    "task_space": ("force_integral",),
+    "classical": ("impedance", "wrench_filter"),
+    "synchronous": ("impedance", "wrench_filter"),
+    "object_impedance": ("impedance", "object", "wrench_filter"),
+    "task_space": ("force_integral", "wrench_filter"),
     "ros2_admittance": ("ros2",),
     "ros2_synchronous": ("ros2",),
 }
@@ -161,7 +161,7 @@ def export_golden(
         "dt_s": dt,
         "steps": len(inputs),
         "stack": stack.to_dict(model),
-        "ft_filter": float(scenario.ft_filter),  # the rule's F/T filter coefficient (its controllers only)
+        "ft_filter": float(scenario.ft_filter),  # the F/T filter coefficient every controller's wrench goes through
         "joints": names,
         "arm_fields": dict(ARM_FIELDS),
         "reference_fields": dict(REF_FIELDS),
@@ -207,7 +207,10 @@ def read(folder: str) -> tuple[dict, dict, dict]:
     except (OSError, ValueError) as err:
         raise ConfigError(f"{folder}: not a golden export (golden.json: {err})") from None
     if meta.get("format") != GOLDEN_FORMAT:
-        raise ConfigError(f"{folder}: golden format {meta.get('format')!r}, this jaxsync reads {GOLDEN_FORMAT}")
+        raise ConfigError(
+            f"{folder}: golden format {meta.get('format')!r}, this jaxsync reads {GOLDEN_FORMAT} "
+            "(write it again with `jaxsync export --format golden`)"
+        )
     tables = []
     for name in ("inputs.csv", "outputs.csv"):
         path = os.path.join(folder, name)

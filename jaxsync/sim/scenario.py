@@ -46,9 +46,9 @@ class Scenario(NamedTuple):
       (position-controlled arms only; 1: as the robot states them).
     ft_filter: the F/T filter of ros2_controllers' admittance rule,
       ``ft_sensor.filter_coefficient`` (the weight of each new sample; 1:
-      unfiltered), read by the controllers that run the rule
-      (ros2_admittance, ros2_synchronous); jaxsync's own laws read the
-      wrench unfiltered.
+      unfiltered), on position-controlled arms: the rule's controllers
+      (ros2_admittance, ros2_synchronous) and jaxsync's own laws read the
+      force error through it.
     """
 
     object_mass: jax.Array
