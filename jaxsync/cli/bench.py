@@ -9,7 +9,8 @@ from __future__ import annotations
 import argparse
 
 from jaxsync._errors import ConfigError
-from jaxsync.cli._common import add_model_argument, add_stack_arguments, model_options, model_source, stack_of
+from jaxsync.cli._common import add_model_argument, model_options, model_source
+from jaxsync.cli._stack import add_stack_arguments, stack_of
 
 
 def _batch_list(text: str) -> list[int]:

@@ -12,13 +12,12 @@ from jaxsync.cli._common import (
     EXIT_UNSTABLE,
     add_gains_argument,
     add_model_argument,
-    add_stack_arguments,
     controller_list,
     model_options,
     model_source,
     positive,
-    stack_of,
 )
+from jaxsync.cli._stack import add_stack_arguments, stack_of
 
 
 def run(args: argparse.Namespace) -> int:

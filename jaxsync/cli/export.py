@@ -8,11 +8,11 @@ from jaxsync.cli._common import (
     ALL_CONTROLLERS,
     add_gains_argument,
     add_model_argument,
-    delay_text,
     model_options,
     model_source,
     positive,
 )
+from jaxsync.cli._stack import delay_text
 from jaxsync.io.export import COMMAND_INTERFACES, COMPLIANCE_FRAMES, DISTROS, FORMATS
 from jaxsync.io.export_gains import export_gains
 from jaxsync.io.golden import golden_job
@@ -84,7 +84,7 @@ def add_parser(subparsers):
         required=True,
         choices=[*FORMATS, "golden"],
         help="output format; golden: a rollout's control periods, what the controller read and wrote, for a "
-        "port's unit test (docs/export.md)",
+        "port's unit test (docs/golden.md)",
     )
     p.add_argument(
         "--actuation",

@@ -6,12 +6,11 @@ from jaxsync.cli._common import (
     add_controller_argument,
     add_gains_argument,
     add_model_argument,
-    add_stack_arguments,
     model_options,
     model_source,
     positive,
-    stack_of,
 )
+from jaxsync.cli._stack import add_stack_arguments, stack_of
 
 
 def run(args) -> int:
@@ -44,7 +43,7 @@ def add_parser(subparsers):
         description="At the given gains, the derivative of the settled peak resultant, the grip-force error "
         "and the synchronisation error (their smooth forms from the tuning cost) with respect to every gain, "
         "averaged over a batch of randomised scenarios, as elasticities; a table, a CSV, a JSON and a bar "
-        "chart. See docs/tuning.md.",
+        "chart. See docs/sensitivity.md.",
     )
     add_model_argument(p)
     add_controller_argument(p)

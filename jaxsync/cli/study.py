@@ -8,13 +8,12 @@ from jaxsync.cli._common import (
     ALL_CONTROLLERS,
     CONTROLLER_NAMES,
     add_model_argument,
-    add_stack_arguments,
     controller_list,
-    delay_text,
     model_options,
     model_source,
     positive,
 )
+from jaxsync.cli._stack import add_stack_arguments, delay_text
 
 
 def _numbers(kind):

@@ -8,12 +8,11 @@ from jaxsync.cli._common import (
     add_controller_argument,
     add_distributed_arguments,
     add_model_argument,
-    add_stack_arguments,
     model_options,
     model_source,
     positive,
-    stack_of,
 )
+from jaxsync.cli._stack import add_stack_arguments, stack_of
 from jaxsync.optimize.studies.sweep_eval import DEFAULT_BUDGET_GIB
 from jaxsync.optimize.studies.sweep_report import DEFAULT_PLOT_METRICS
 

@@ -7,12 +7,11 @@ from jaxsync.cli._common import (
     add_distributed_arguments,
     add_gains_argument,
     add_model_argument,
-    add_stack_arguments,
-    delay_text,
     model_options,
     model_source,
     positive,
 )
+from jaxsync.cli._stack import add_stack_arguments, delay_text
 from jaxsync.optimize.tuning.methods import BATCH_METHODS
 from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TUNABLE
 

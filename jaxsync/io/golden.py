@@ -1,6 +1,6 @@
 """Golden files for a port of a controller: N control periods of a rollout on
 position-controlled arms, what the controller read and what it wrote, as CSV
-that a port's unit test replays row by row (docs/export.md, "golden").
+that a port's unit test replays row by row (docs/golden.md).
 
 The rollout is MuJoCo C's (``jaxsync.sim.rollout_mujoco``), the controller
 jaxsync's own jitted step. Each row k of ``inputs.csv`` holds what the step
