@@ -247,3 +247,31 @@ def test_gains_not_tuned_through_the_rule_are_exported_with_a_warning(tmp_path, 
         said = capsys.readouterr().out
         assert ("tuned for jaxsync's classical law, not through the admittance rule" in said) is warned, said
         assert ("--controllers ros2_admittance --gains " + str(tuned) in said) is warned
+
+
+def test_a_coupling_not_tuned_through_the_rule_is_exported_with_a_warning(tmp_path, capsys):
+    """synchronisation.yaml couples the two rules: with nonzero factors not
+    tuned through the coupled rule (ros2_synchronous), it and the notes say
+    so and how to check; tuned through it, or with every factor zero, not."""
+    argv = ["export", "--format", "json", "--actuation", "position", "--out", str(tmp_path / "j")]
+    assert main(argv) == 0
+    doc = json.loads(next((tmp_path / "j").glob("*.json")).read_text())
+    capsys.readouterr()
+    uncoupled = json.loads(json.dumps(doc))
+    for k in ("k_rk", "k_lk", "k_rl", "k_ll"):
+        uncoupled["jaxsync_gains"]["gains"][k]["value"] = 0.0
+    for name, base, controller, warned in (
+        ("synchronous", doc, "synchronous", True),
+        ("ros2_admittance", doc, "ros2_admittance", True),
+        ("ros2_synchronous", doc, "ros2_synchronous", False),
+        ("uncoupled", uncoupled, "ros2_admittance", False),
+    ):
+        tuned = tmp_path / f"{name}.json"
+        tuned.write_text(json.dumps(base | {"controller": controller}))
+        assert main(["export", str(tuned), "--format", "ros2-admittance", "--out", str(tmp_path / name)]) == 0
+        said = capsys.readouterr().out
+        head = (tmp_path / name / "synchronisation.yaml").read_text().splitlines()[0]
+        assert ("coupling (k_rk, k_lk, k_rl, k_ll) was not tuned" in said) is warned, said
+        assert head.startswith("# WARNING: synchronisation.yaml's coupling") is warned, head
+        assert ("--controllers ros2_synchronous --gains " + str(tuned) in said) is warned
+        assert yaml.safe_load((tmp_path / name / "synchronisation.yaml").read_text())  # still YAML

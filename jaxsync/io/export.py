@@ -274,8 +274,9 @@ SYNC_SCHEMA = 1  # synchronisation.yaml's schema version (docs/export.md, "synch
 SYNC_NODE = "dual_arm_synchronisation"
 
 
-def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target) -> str:
+def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target, warnings=()) -> str:
     lines = [
+        *(f"# {w}" for w in warnings),
         f"# jaxsync synchronisation.yaml, schema {SYNC_SCHEMA} (docs/export.md names every key): what the paper's"
         + (f" synchronous controller adds (task phase '{phase}')" if phase else " synchronous controller adds"),
         "# to the two admittance controllers of admittance_right.yaml and admittance_left.yaml, for a dual-arm",
@@ -336,7 +337,7 @@ def pad_links_urdf(target: Ros2Target) -> str:
     return "\n".join([*lines, "</robot>"]) + "\n"
 
 
-def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()) -> list[str]:
+def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=(), sync_warnings=()) -> list[str]:
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
@@ -349,7 +350,7 @@ def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()
         _results.atomic_write_text(path, text)
         paths.append(path)
     path = os.path.join(out, "synchronisation.yaml")
-    _results.atomic_write_text(path, _sync_yaml(g, phase, target))
+    _results.atomic_write_text(path, _sync_yaml(g, phase, target, sync_warnings))
     return [*paths, path]
 
 
@@ -413,10 +414,10 @@ def _axes(sync: dict, key: str, default, path: str) -> list:
     return axes
 
 
-def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings=()) -> list[str]:
+def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings=(), sync_warnings=()) -> list[str]:
     """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written.
     ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default);
-    ``warnings``: lines each admittance file opens with."""
+    ``warnings``: lines each admittance file opens with; ``sync_warnings``: synchronisation.yaml's."""
     if fmt not in FORMATS:
         raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", inputs=("fmt",))
     if fmt == "ros2-admittance":
@@ -429,9 +430,9 @@ def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings
                 check_admittance(_schedule.phase(gains, i), p)
             paths = []
             for i, p in enumerate(_schedule.PHASES):
-                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target, warnings)
+                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target, warnings, sync_warnings)
             return paths
-        return _ros2(gains, out, None, target, warnings)
+        return _ros2(gains, out, None, target, warnings, sync_warnings)
     _results.ensure_writable_dir(out)
     doc = document(gains)
     path = os.path.join(out, f"gains.{fmt}")

@@ -126,7 +126,16 @@ def export_gains(
                 "(docs/deploy-tuning.md): check them through it (jaxsync compare --actuation position --controllers "
                 f"ros2_admittance --gains {gains}) or tune with --controller ros2_admittance"
             )
-    paths = _export.export(g, fmt, out, target, warnings=tuple(warnings))
+    coupling = []
+    if fmt == "ros2-admittance" and tuned_for != "ros2_synchronous" and _coupled(g):
+        check = f" --gains {gains}" if from_file else ""
+        coupling.append(
+            "WARNING: synchronisation.yaml's coupling (k_rk, k_lk, k_rl, k_ll) was not tuned through the admittance "
+            "rule it couples, and the rule plus a coupling can run unstably where the rule alone is stable "
+            f"(docs/ros2-rule.md): check them together (jaxsync compare --actuation position --controllers "
+            f"ros2_synchronous{check}, with the robot's --robot) or tune with --controller ros2_synchronous"
+        )
+    paths = _export.export(g, fmt, out, target, warnings=tuple(warnings), sync_warnings=tuple(coupling))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
     if from_file:
         origin = str(gains)
@@ -140,8 +149,17 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g, rtol=0.0),
-        notes=warnings + (_distro_notes(distro) if fmt == "ros2-admittance" else []),
+        notes=warnings + coupling + (_distro_notes(distro) if fmt == "ros2-admittance" else []),
     )
+
+
+def _coupled(g) -> bool:
+    """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
+    phases = [_schedule.phase(g, i) for i in range(len(_schedule.PHASES))] if isinstance(g, _schedule.Schedule) else [g]
+    return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for p in phases for k in _COUPLING)
+
+
+_COUPLING = ("k_rk", "k_lk", "k_rl", "k_ll")
 
 
 def _distro_notes(distro: str) -> list[str]:
