@@ -114,9 +114,7 @@ class ControllerState(NamedTuple):
     object: _baselines.ObjectState  # object_impedance's compliant object frame
     force_integral: jax.Array  # (2, 6) task_space's integral of the internal wrench
     ros2: _ros2_loop.Ros2State  # ros2_admittance's reference joints q_ref and the two arms' rule states
-    wrench_filter: (
-        jax.Array
-    )  # (2, 6) position-controlled arms: the F/T filter's output, f_i - f_id filtered, world frame
+    wrench_filter: jax.Array  # (2, 6) position-controlled arms: f_i - f_id through the F/T filter, world
 
 
 class ControlInfo(NamedTuple):

@@ -58,16 +58,17 @@ class Gains(NamedTuple):
 
 # the gains each controller reads besides the shared joint-space law's (kp_pos, kd_pos, kp_null, kd_null)
 IMPEDANCE_FIELDS = ("imp_mass", "imp_damping", "imp_stiffness")
+COUPLING_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll")  # the paper's relative-error and cross-term factors
 USED = {
     "classical": IMPEDANCE_FIELDS,
-    "synchronous": IMPEDANCE_FIELDS + ("k_rk", "k_lk", "k_rl", "k_ll"),
+    "synchronous": IMPEDANCE_FIELDS + COUPLING_FIELDS,
     "object_impedance": IMPEDANCE_FIELDS + ("obj_mass", "obj_damping", "obj_stiffness"),
     "task_space": ("force_p", "force_i"),
     # ros2_controllers' rule: mass, D (as its damping ratio) and K per arm; its reference joints follow
     # the plan with the joint-space law's gains
     "ros2_admittance": IMPEDANCE_FIELDS,
     # the rule plus the coupling: its relative-error and cross-term factors
-    "ros2_synchronous": IMPEDANCE_FIELDS + ("k_rk", "k_lk", "k_rl", "k_ll"),
+    "ros2_synchronous": IMPEDANCE_FIELDS + COUPLING_FIELDS,
 }
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.gains import Gains
+from jaxsync.control.gains import COUPLING_FIELDS, Gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
 from jaxsync.physics.model import DualArmModel, as_model
@@ -153,13 +153,16 @@ def export_gains(
     )
 
 
+def _phases(gains) -> list[tuple[str | None, Gains]]:
+    """(phase name, its gains) of a schedule; [(None, gains)] for constant gains."""
+    if isinstance(gains, _schedule.Schedule):
+        return [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
+    return [(None, gains)]
+
+
 def _coupled(g) -> bool:
     """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
-    phases = [_schedule.phase(g, i) for i in range(len(_schedule.PHASES))] if isinstance(g, _schedule.Schedule) else [g]
-    return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for p in phases for k in _COUPLING)
-
-
-_COUPLING = ("k_rk", "k_lk", "k_rl", "k_ll")
+    return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in COUPLING_FIELDS)
 
 
 def _distro_notes(distro: str) -> list[str]:
@@ -185,11 +188,7 @@ def deployed_stability(gains, dt: float) -> list[str]:
     ``DEPLOY_MARGIN``; joint_damping 0, as exported), as one phrase each,
     worst first; [] when every axis is within it. Gains the controller cannot
     hold at all (``jaxsync.io.export.check_admittance``) raise first."""
-    phases = (
-        [(p, _schedule.phase(gains, i)) for i, p in enumerate(_schedule.PHASES)]
-        if isinstance(gains, _schedule.Schedule)
-        else [(None, gains)]
-    )
+    phases = _phases(gains)
     found = []
     for phase, g in phases:
         _export.check_admittance(g, phase)  # what the controller cannot hold at all, said first
