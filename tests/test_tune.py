@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import jax
@@ -22,6 +23,7 @@ from jaxsync.control import gains as _gains
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning import checkpoint, methods, pipeline, scenarios, tune_state
 from jaxsync.optimize.tuning import loss as loss_mod
+from jaxsync.optimize.tuning import params as _params
 from jaxsync.optimize.tuning import tune as tune_mod
 from jaxsync.optimize.tuning.config import Problem
 from jaxsync.optimize.tuning.cost import CostWeights
@@ -489,6 +491,40 @@ def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tunin
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] == pytest.approx(float(classical))
     assert json.loads((tmp_path / "run" / "gains.json").read_text())["controller"] == "ros2_admittance"
     assert summary["stack"]["ros_distro"] == "humble" and summary["config"]["training"]["distro"] == "humble"
+
+
+def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_path, fake_tuning, monkeypatch):
+    """A controller's default set gains kp_pos on position-controlled arms
+    whose servo lowered the joint-command loop (the iiwa-like pair's stands
+    in here for the paper model's, which does not), for jaxsync's own laws
+    only; named parameters, a frozen kp_pos, the torque stack and the rule
+    keep their sets; the job says why and records the set it tuned."""
+    robots = os.path.join(os.path.dirname(jaxsync.default_model_path()), "robots")
+    iiwa = jaxsync.load_model(os.path.join(robots, "iiwa14_pair.yaml"), visual=False)
+    assert _gains.servo_limits_loop(iiwa) and not _gains.servo_limits_loop(model)
+    sync = _params.spec_for("synchronous")
+    assert sync.for_model("synchronous", iiwa, "position").tuned == _params.DEFAULT_TUNED + ("kp_pos",)
+    assert sync.for_model("synchronous", model, "position") is sync
+    assert sync.for_model("synchronous", iiwa, "torque") is sync
+    classical = _params.spec_for("classical")
+    assert classical.for_model("classical", iiwa, "position").tuned[-1] == "kp_pos"
+    for spec in (
+        _params.spec_for("synchronous", ["k_rk", "imp_mass"]),
+        _params.spec_for("synchronous", frozen=["kp_pos"]),
+    ):
+        assert spec.for_model("synchronous", iiwa, "position") is spec
+    rule = _params.spec_for("ros2_admittance")
+    assert rule.for_model("ros2_admittance", iiwa, "position") is rule
+    monkeypatch.setattr(_params, "servo_limits_loop", lambda m: True)
+    said = []
+    cfg = TuneConfig(iterations=1, actuation="position", delay=(0, 3))
+    _run_tune(model, tmp_path / "run", cfg, log=said.append)
+    assert fake_tuning["cfg"].problem.tuned.tuned[-1] == "kp_pos"
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["tune"]["tuned"][-1] == "kp_pos"
+    assert any(line.startswith("kp_pos is tuned too") and "lambda = 40 1/s" in line for line in said)
+    cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position")
+    _run_tune(model, tmp_path / "rule", cfg)
+    assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")
 
 
 def calls_of(calls):

@@ -94,7 +94,8 @@ def add_parser(sub) -> None:
     p.add_argument("--clip", type=float, default=1.0, help="first-order: global-norm gradient clipping (1.0)")
     p.add_argument("--popsize", type=int, default=16, help="CMA-ES population (16)")
     tunable = f"synchronous {','.join(DEFAULT_TUNED_FOR['synchronous'])}; any of {','.join(TUNABLE)}"
-    p.add_argument("--tune", help=f"comma-separated parameters to tune (default: the controller's own; {tunable})")
+    p.add_argument("--tune", help="comma-separated parameters to tune (default: the controller's own, and kp_pos on "
+                   f"position-controlled arms whose servo limits the joint-command loop; {tunable})")  # fmt: skip
     p.add_argument("--freeze", help="comma-separated parameters to keep fixed")
     p.add_argument("--per-arm", action="store_true", help="separate impedance parameters per arm")
     p.add_argument("--per-phase", action="store_true", help="a gain schedule: every tuned parameter per task phase")

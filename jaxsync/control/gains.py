@@ -150,6 +150,16 @@ def position_loop_gains(g: Gains, model) -> Gains:
     return g._replace(kp_pos=jnp.asarray(slowest / SERVO_SEPARATION * float(g.kd_pos) / 2.0))
 
 
+def servo_limits_loop(model) -> bool:
+    """Whether the robot's slowest joint servo lowers the position stack's
+    inner loop below the default gains' (:func:`position_loop_gains`): the
+    iiwa-like pair yes, the paper model and the UR5e-like pair no. Where it
+    does, the loop's bandwidth is a trade the delay and the servo decide, and
+    the tuner moves kp_pos too (``optimize.tuning.params.TuneSpec.for_model``)."""
+    g = default_gains()
+    return float(position_loop_gains(g, model).kp_pos) < float(g.kp_pos)
+
+
 def deployable_gains(g: Gains, dt: float) -> Gains:
     """``g`` with each impedance mass raised where ros2_controllers' admittance
     rule, explicit in D and K, would run the axis at control period ``dt``

@@ -50,7 +50,11 @@ class Problem:
     @property
     def tuned(self) -> TuneSpec:
         """The tuned parameters: ``spec``, or the controller's own."""
-        return self.spec if self.spec is not None else TuneSpec(tuned=DEFAULT_TUNED_FOR[self.controller])
+        return (
+            self.spec
+            if self.spec is not None
+            else TuneSpec(tuned=DEFAULT_TUNED_FOR[self.controller], model_default=True)
+        )
 
     def validate(self) -> None:
         if self.controller not in ALL_CONTROLLERS:

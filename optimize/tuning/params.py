@@ -33,7 +33,8 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.gains import USED, Gains
+from jaxsync.control.gains import USED, Gains, servo_limits_loop
+from jaxsync.control.names import CONTROLLERS
 
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
 SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
@@ -95,6 +96,9 @@ class TuneSpec:
     per_arm: bool = False
     isotropic: bool = False
     schedule: bool = False  # one value per task phase (jaxsync.control.schedule.PHASES)
+    # ``tuned`` is the controller's default set, not named by the user: :meth:`for_model` adds the
+    # joint-command loop's gain where the robot's servo limits that loop
+    model_default: bool = False
 
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
@@ -102,6 +106,27 @@ class TuneSpec:
             raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}", inputs=("spec",))
         if not self.tuned:
             raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE), inputs=("spec", "frozen"))
+
+    def for_model(self, controller: str, model, actuation: str) -> TuneSpec:
+        """This spec on ``model``'s ``actuation`` stack: a controller's
+        default set (``model_default``) gains kp_pos where jaxsync's own law
+        runs on position-controlled arms whose slowest servo lowered its
+        joint-command loop (``jaxsync.control.gains.servo_limits_loop``: the
+        iiwa-like pair). Its default there is a third of that servo's
+        frequency, safe at every delay but slow; the tuner trades it against
+        the delay and the servo spread it trains on (docs/deploy-tuning.md:
+        on the iiwa-like pair 1.34x without it, 3.7x with it). Not for
+        ros2_controllers' rule: its reference loop stands in for the user's
+        trajectory and is not exported. Anything else: this spec."""
+        if (
+            not self.model_default
+            or actuation != "position"
+            or controller not in CONTROLLERS
+            or set(LOOP) <= set(self.tuned)
+            or not servo_limits_loop(model)
+        ):
+            return self
+        return dataclasses.replace(self, tuned=self.tuned + LOOP, model_default=False)
 
     # --- the shape of one impedance parameter in theta
     def _reduce(self, v: np.ndarray) -> np.ndarray:
@@ -283,7 +308,9 @@ def spec_for(
     schedule: bool = False,
 ) -> TuneSpec:
     """The TuneSpec of a tuning job: ``tuned`` (names; default: the
-    controller's own, ``DEFAULT_TUNED_FOR``) less ``frozen``.
+    controller's own, ``DEFAULT_TUNED_FOR``, and kp_pos where the robot's
+    servo limits the joint-command loop: :meth:`TuneSpec.for_model`) less
+    ``frozen``.
 
     Example:
       >>> spec_for("synchronous", frozen=("imp_mass",)).tuned[:2]
@@ -298,5 +325,9 @@ def spec_for(
         raise ConfigError(f"frozen: unknown parameter(s) {unknown}; tunable: {list(TUNABLE)}", inputs=("frozen",))
     names = tuple(tuned) if tuned else DEFAULT_TUNED_FOR[controller]
     return TuneSpec(
-        tuned=tuple(n for n in names if n not in frozen), per_arm=per_arm, isotropic=isotropic, schedule=schedule
+        tuned=tuple(n for n in names if n not in frozen),
+        per_arm=per_arm,
+        isotropic=isotropic,
+        schedule=schedule,
+        model_default=not tuned and not set(LOOP) & set(frozen),
     )

@@ -211,11 +211,19 @@ def tune_and_evaluate(
     if not cfg.training.scenario:  # the model's own object (a robot file's): every scenario's base
         cfg = cfg.replace(scenario=_scenarios.model_overrides(model))
     cfg.validate()
-    spec = cfg.problem.tuned
-    check_tuned(spec.tuned, cfg.problem.controller)
-    spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
+    spec = cfg.problem.tuned.for_model(cfg.problem.controller, model, cfg.training.actuation)
+    if spec is not cfg.problem.tuned:
+        loop = _gains.default_gains(model, "position")
+        say(
+            "kp_pos is tuned too: this robot's slowest servo holds its joint-command loop at lambda = "
+            f"{2 * float(loop.kp_pos) / float(loop.kd_pos):.3g} 1/s by default, a trade of speed against the "
+            "delay (--freeze kp_pos keeps the starting gains')"
+        )
+        cfg = cfg.replace(problem=dataclasses.replace(cfg.problem, spec=spec))
+    check_tuned(spec.tuned, cfg.problem.controller)
+    spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     run_args = (model, base, cfg, out, resume, mujoco_check, options, fingerprint, say, main)
     if not main:
         _distributed.barrier("tune: output folder ready")
