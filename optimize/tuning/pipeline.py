@@ -213,8 +213,9 @@ def tune_and_evaluate(
     cfg.validate()
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
-    spec = cfg.problem.tuned.for_model(cfg.problem.controller, model, cfg.training.actuation)
-    if spec is not cfg.problem.tuned:
+    given = cfg.problem.tuned  # a new TuneSpec on each read where the problem names none: read once
+    spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation)
+    if spec is not given:
         loop = _gains.default_gains(model, "position")
         say(
             "kp_pos is tuned too: this robot's slowest servo holds its joint-command loop at lambda = "
