@@ -1,19 +1,18 @@
 """Where ros2_synchronous (the rule plus the coupling) adds the coupling, and what holds the ball (docs/deploy.md).
 
 ``ros2_synchronous`` runs ros2_controllers' admittance rule per arm and adds
-the paper's coupling o_i = k_ik (delta_r - delta_l) + k_il (e_i - e_j) to
-the reference the rule offsets; the reference joints follow it through the
-position stack's kinematic loop (lambda = 2 kp_pos / kd_pos), so the
-coupling acts a time 1 / lambda late and the command carries e_i + o_i: in
-the squeeze (e_r = -e_l) (1 + 2 k_il) times the rule's own offset. This
-script scores the robot's position-stack defaults on its 16 held-out
-scenarios (delays 0-3 periods, servo gains +-30 %, unfiltered) with the
-coupling placed four ways:
+the paper's coupling o_i = k_ik (delta_r - delta_l) + k_il (e_i - e_j)
+through the reference the rule offsets; the reference joints follow it
+through the position stack's kinematic loop (lambda = 2 kp_pos / kd_pos),
+a time 1 / lambda late. This script scores a robot's ros2_synchronous
+defaults on its 16 held-out scenarios (delays 0-3 periods, servo gains
++-30 %, unfiltered) with the coupling placed four ways:
 
-- ``reference`` (jaxsync's): o_i in the reference's target, as above;
-- ``replaced``: the reference's target carries o_i - e_i, so the command's
-  offset is the paper's synchronous law, o_i alone (2 k_il e_i in the
-  squeeze, the rule's own at the defaults; the common part cancelled);
+- ``replaced`` (jaxsync's): the reference's target carries o_i - e_i, so
+  the command's offset is the paper's synchronous law, o_i alone (2 k_il e_i
+  in the squeeze, the rule's own at k_il = 1/2);
+- ``reference``: the target carries o_i, and the command e_i + o_i: in the
+  squeeze (1 + 2 k_il) times the rule's own offset;
 - ``direct``: o_i mapped through the command's damped least squares J# onto
   the rule's reference joints in the same period (q_ref + J# o_i, its rate
   J# o_i dot), the reference loop following the plan alone;
@@ -21,9 +20,10 @@ coupling placed four ways:
 
 and prints, per placement, the drops, chatter, the mean settled peak
 resultant over the scenarios kept, the grip error and the first impact.
-``--set`` changes scalar gains (e.g. ``k_rk=0.25,k_lk=-0.25``). The
-placements replace ``jaxsync.control.ros2_loop``'s functions in this process
-only. Deterministic: no timing.
+``--set`` changes scalar gains (e.g. ``k_rk=0.5,k_lk=-0.5``, the
+synchronous law's factors). The placements replace
+``jaxsync.control.ros2_loop``'s functions in this process only.
+Deterministic: no timing.
 
     python experiments/coupling_placement.py --robot mjcf/robots/iiwa14_pair.yaml
 """
@@ -50,19 +50,19 @@ from jaxsync.runtime.xla import set_xla_flags
 from jaxsync.sim import metrics as M
 from jaxsync.sim.rollout import make_rollout
 
-PLACEMENTS = ("reference", "replaced", "direct", "direct_replaced")
-COUPLED, STEP = RL.coupled_reference, RL.step
+PLACEMENTS = ("replaced", "reference", "direct", "direct_replaced")
+SHIPPED, STEP = RL.coupled_reference, RL.step
 
 
-def _replaced(gains, state, arms, ref, cross_term="squeeze"):
-    """The coupled target less the rules' own offsets e_i (and their rates)."""
-    out = COUPLED(gains, state, arms, ref, cross_term)
+def _reference(gains, state, arms, ref, cross_term="squeeze"):
+    """jaxsync's target plus the rules' own offsets e_i (and their rates): o_i alone."""
+    out = SHIPPED(gains, state, arms, ref, cross_term)
     e = [arms[i].jac @ state.rule.joint_pos[i] for i in range(2)]
     e_dot = [arms[i].jac @ state.rule.joint_vel[i] for i in range(2)]
     return out._replace(
-        pad_pos=out.pad_pos - jnp.stack([x[:3] for x in e]),
-        pad_rot=jnp.stack([so3.exp(-e[i][3:]) @ out.pad_rot[i] for i in range(2)]),
-        pad_vel=out.pad_vel - jnp.stack(e_dot),
+        pad_pos=out.pad_pos + jnp.stack([x[:3] for x in e]),
+        pad_rot=jnp.stack([so3.exp(e[i][3:]) @ out.pad_rot[i] for i in range(2)]),
+        pad_vel=out.pad_vel + jnp.stack(e_dot),
     )
 
 
@@ -97,7 +97,7 @@ def _direct(gains, state, arms, ref, dt, distro="jazzy", coupled=False, cross_te
 
 
 def _place(name: str) -> None:
-    RL.coupled_reference = _replaced if "replaced" in name else COUPLED
+    RL.coupled_reference = SHIPPED if "replaced" in name else _reference
     RL.step = _direct if name.startswith("direct") else STEP
 
 
@@ -113,7 +113,7 @@ def main() -> None:
     model = load_model(args.robot, visual=False)
     cfg = TuneConfig(actuation="position", delay=(0, 3), servo_spread=0.3)
     held = S.heldout_scenarios(cfg.replace(scenario=S.model_overrides(model)))
-    g = default_gains(model, "position")
+    g = default_gains(model, "position", "ros2_synchronous")
     for item in filter(None, args.set.split(",")):
         name, value = item.split("=")
         g = g._replace(**{name: np.asarray(getattr(g, name)) * 0.0 + float(value)})
@@ -133,7 +133,7 @@ def main() -> None:
             "first_impact_peak_N": mean(m.first_impact_peak_N),
         }
         print(f"{name} {args.set}", json.dumps(row), flush=True)
-    _place("reference")
+    _place("replaced")
 
 
 if __name__ == "__main__":

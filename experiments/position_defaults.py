@@ -47,13 +47,13 @@ def main() -> None:
     model = load_model(args.robot, visual=False)
     cfg = TuneConfig(actuation="position", delay=(0, 3), servo_spread=0.3)
     held = S.heldout_scenarios(cfg.replace(scenario=S.model_overrides(model)))
-    g = default_gains(model, "position")
-    for item in filter(None, args.set.split(",")):
-        name, value = item.split("=")
-        g = g._replace(**{name: np.asarray(getattr(g, name)) * 0.0 + float(value)})
     for controller in args.controllers.split(","):
+        g = default_gains(model, "position", controller)  # ros2_synchronous: its own relative-error factor
+        for item in filter(None, args.set.split(",")):
+            name, value = item.split("=")
+            g = g._replace(**{name: np.asarray(getattr(g, name)) * 0.0 + float(value)})
         fn = make_rollout(model, controller=controller, duration=4.0, actuation="position")
-        batch = jax.jit(jax.vmap(lambda s, fn=fn: fn(g, s)))
+        batch = jax.jit(jax.vmap(lambda s, fn=fn, g=g: fn(g, s)))
         for a in (float(x) for x in args.filters.split(",")):
             scenarios = held._replace(ft_filter=np.full_like(np.asarray(held.ft_filter), a))
             m = jax.vmap(M.summarize)(batch(scenarios), scenarios)

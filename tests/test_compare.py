@@ -267,6 +267,15 @@ def test_a_position_stack_comparison_runs_its_delay_gains_and_records_the_stack(
     assert float(seen["scenario"].delay) == 3.0 and seen["stack"] is stack
     assert seen["options"]["stack"] == stack.to_dict(model) and seen["options"]["stack"]["servo"]["source"]
     assert float(seen["gains"].kp_pos) == float(default_gains(model, "position").kp_pos)
+    # the rule plus the coupling runs its own defaults, and says so where the synchronous law shares them
+    for controllers, said in (
+        (("ros2_admittance", "ros2_synchronous"), False),
+        (("synchronous", "ros2_synchronous"), True),
+    ):
+        lines = []
+        _compare.run_comparison(model, stack=stack, controllers=controllers, say=lines.append)
+        assert float(seen["gains"].k_rk) == 0.25 == -float(seen["gains"].k_lk)
+        assert any("synchronous runs ros2_synchronous's default gains" in x for x in lines) is said, lines
 
 
 def test_the_comparison_scenario_takes_the_values_given(model):

@@ -72,7 +72,7 @@ def test_summarise_pools_seeds_and_leaves_dropped_scenarios_out():
 def fake_study(monkeypatch, model):
     """The tuning runs and the held-out rollouts replaced by stand-ins: each
     controller's settled peaks are a fixed multiple of the classical one's."""
-    scale = {"classical": 1.0, "synchronous": 0.25, "object_impedance": 0.9, "task_space": 0.5}
+    scale = {"classical": 1.0, "synchronous": 0.25, "object_impedance": 0.9, "task_space": 0.5, "ros2_synchronous": 0.3}
     calls = []
     n = 4
 
@@ -80,6 +80,7 @@ def fake_study(monkeypatch, model):
         fake_study_interrupt.setdefault("stacks", []).append(stack)
 
         def evaluate(g, scenarios):
+            fake_study_interrupt.setdefault("evaluated_k_rk", {})[controller] = float(g.k_rk)
             peaks = np.linspace(0.05, 0.08, n) * scale[controller]
             fields = {f: np.full(n, 0.01) for f in Metrics._fields}
             fields.update(
@@ -96,6 +97,7 @@ def fake_study(monkeypatch, model):
 
     def fake_tune(model, base, cfg, *, out, resume, restart, before, **kw):
         calls.append((cfg.problem.controller, cfg.problem.max_impact_N, cfg.data.seed, resume))
+        fake_study_interrupt.setdefault("tuned_from_k_rk", {})[cfg.problem.controller] = float(base.k_rk)
         fake_study_interrupt.setdefault("tune_stacks", []).append((cfg.stack(), cfg.data.servo_spread))
         if len(calls) == fake_study_interrupt.get("at"):
             raise KeyboardInterrupt
@@ -183,6 +185,26 @@ def test_a_position_stack_study_scores_and_tunes_on_its_stack(model, tmp_path, f
     cfg.replace(controllers=("synchronous", "ros2_admittance")).validate()
     with pytest.raises(ConfigError, match="ros2_admittance.*position-controlled arms only"):
         study_mod.StudyConfig(controllers=("synchronous", "ros2_admittance")).validate()
+
+
+def test_each_controller_of_a_study_starts_from_its_own_defaults(model, tmp_path, fake_study):
+    """ros2_synchronous's defaults carry its own relative-error factor (0.25,
+    jaxsync.control.gains.RULE_RELATIVE_FACTOR), the synchronous law's 0.5:
+    the study scores and tunes each from its own."""
+    _, seen = fake_study
+    cfg = study_mod.StudyConfig(
+        controllers=("synchronous", "ros2_synchronous"),
+        bounds=(1.0,),
+        seeds=(0,),
+        heldout_batch=4,
+        bootstrap=100,
+        actuation="position",
+        delay=(0, 3),
+    )
+    study_mod.run_study(model, cfg, str(tmp_path / "study"), log=lambda m: None)
+    own = {"synchronous": 0.5, "ros2_synchronous": 0.25}
+    assert seen["tuned_from_k_rk"] == own
+    assert seen["evaluated_k_rk"] == {"classical": 0.5, **own}  # the defaults scored, the reference's too
 
 
 def test_study_cli_rejects_bad_input(tmp_path, capsys):

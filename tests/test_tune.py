@@ -493,6 +493,18 @@ def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tunin
     assert summary["stack"]["ros_distro"] == "humble" and summary["config"]["training"]["distro"] == "humble"
 
 
+def test_the_rule_plus_the_coupling_tunes_from_its_own_defaults(model, tmp_path, fake_tuning):
+    """tune --controller ros2_synchronous without --gains starts from that
+    controller's defaults (k_rk = -k_lk = 0.25), not the synchronous law's."""
+    from jaxsync.io import gains_file  # noqa: PLC0415 -- this test alone reads a gains file back
+
+    cfg = TuneConfig(problem=Problem(controller="ros2_synchronous"), iterations=1, actuation="position")
+    _run_tune(model, tmp_path / "run", cfg)
+    start = gains_file.load(str(tmp_path / "run" / "gains.json"))  # the stand-in loop keeps its start
+    assert float(start.k_rk) == 0.25 == -float(start.k_lk)
+    assert float(_gains.default_gains(model, "position").k_rk) == 0.5
+
+
 def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_path, fake_tuning, monkeypatch):
     """A controller's default set gains kp_pos on position-controlled arms
     whose servo lowered the joint-command loop (the iiwa-like pair's stands

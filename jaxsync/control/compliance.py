@@ -89,7 +89,8 @@ def stiffness_at_pad(model, controller: str, gains) -> dict | None:
     ``model`` at the grasp, N/m by axis (:func:`apparent_stiffness`, jitted).
     For the controllers of position-controlled arms, whose offsets come from
     joint space, the probe reads a Cartesian stand-in: the same mass, damping
-    and spring at the pad (and ros2_synchronous's coupling)."""
+    and spring at the pad (ros2_synchronous: the synchronous law, whose offset
+    its command carries at rest)."""
     pos, rot = probe_geometry(model)
     dt = float(model.mj_model.opt.timestep)
     k = jax.jit(lambda g: apparent_stiffness(controller, g, pos, rot, dt))(gains)

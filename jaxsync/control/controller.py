@@ -16,7 +16,8 @@ On position-controlled arms only (``jaxsync.control.ros2_loop``):
 ``ros2_admittance``: ros2_controllers' admittance rule per arm, as deployed,
 offsetting a reference joint trajectory that follows the plan.
 ``ros2_synchronous``: the same rule, the reference it offsets following the
-plan plus the synchronous offsets of eqs. 12-17.
+plan plus the synchronous offset of eqs. 12-17 less the rule's own, so that
+the command carries the paper's law.
 """
 
 from __future__ import annotations
@@ -364,18 +365,7 @@ _LAWS = {
 }
 
 
-def _rule_coupled(gains, state, ref, force_error, delta, dt, cross):
-    """ros2_synchronous's offsets as Cartesian ones, for the compliance probe
-    (``jaxsync.control.compliance``): the rule's offset e_i, taken as the
-    classical filter's at the pad, plus the coupling delta_ik + k_il x_ild."""
-    imp, dde = _impedance_filters(gains, state, ref, force_error, dt)
-    k_il = jnp.stack([gains.k_rl, gains.k_ll])
-    delta_k = _sync.relative_compensation(delta, gains.k_rk, gains.k_lk)
-    off = imp.offset + _sync.synchronous_offset(delta_k, k_il, cross(imp.offset))
-    out = (off, imp.rate + k_il[:, None] * cross(imp.rate), dde + k_il[:, None] * cross(dde))
-    return out, state._replace(impedance=imp)
-
-
 # the controllers of position-controlled arms integrate in joint space; what the compliance probe reads of
-# them is a Cartesian stand-in (the same mass, damping and spring at the pad, and the coupling)
-_CARTESIAN_STANDINS = {"ros2_admittance": _classical, "ros2_synchronous": _rule_coupled}
+# them is a Cartesian stand-in: the rule's offset as the classical filter's at the pad, and the rule plus the
+# coupling, whose command carries the synchronous offset once the reference has caught up, as that law
+_CARTESIAN_STANDINS = {"ros2_admittance": _classical, "ros2_synchronous": _synchronous}

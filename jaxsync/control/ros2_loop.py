@@ -36,6 +36,9 @@ these choices (docs/ros2-rule.md, "ros2_controllers' rule in the loop"):
   there, as deployed), joint_damping 0, filter_coefficient 1.0, alpha =
   ``COMMAND_ALPHA``.
 - The joint command is the rule's command.positions (q_ref + its joint offset).
+
+``"ros2_synchronous"`` is the same rule with the reference's target carrying
+the paper's coupling less the rule's own offset (:func:`coupled_reference`).
 """
 
 from __future__ import annotations
@@ -150,24 +153,32 @@ def reference_step(gains, arm: ArmState, q_ref: jax.Array, ref, i: int, dt: floa
 
 
 def coupled_reference(gains, state: Ros2State, arms, ref, cross_term: str = "squeeze"):
-    """The plan with the paper's coupling (eqs. 12-17) added, what each arm's
-    rule offsets under ``"ros2_synchronous"``: x_id + delta_ik + k_il x_ild,
-    its rate xdot_id + k_il xdot_ild, where delta_ik = k_ik (delta_r - delta_l)
-    from the sensed pads (eqs. 12, 13) and x_ild the cross term (eq. 16) of
-    the rules' Cartesian offsets e_i = J_i dq_i (their rates J_i dqdot_i)
-    from the last period. All k zero: the plan, and the rule alone."""
+    """The target each arm's reference joints follow under ``"ros2_synchronous"``:
+    the plan plus the paper's synchronous offset o_i less the rule's own offset
+    e_i, x_id + o_i - e_i, its rate xdot_id + odot_i - edot_i, so that the
+    command the rule adds e_i to carries the paper's law x_id + o_i
+    (eqs. 12-17) once the reference has caught up (a time 1 / lambda,
+    lambda = 2 kp_pos / kd_pos). o_i = delta_ik + k_il x_ild, delta_ik =
+    k_ik (delta_r - delta_l) from the sensed pads (eqs. 12, 13) and x_ild the
+    cross term (eq. 16) of the rules' Cartesian offsets e_i = J_i dq_i (their
+    rates J_i dqdot_i) from the last period. In the squeeze (e_r = -e_l)
+    k_rl = k_ll = 1/2 and k_ik = 0 command the rule's own offset; all k zero
+    hold the pads on the plan (position control, no compliance at rest)."""
     delta = jnp.stack(
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
     )
     e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
     e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
     k_il = jnp.stack([gains.k_rl, gains.k_ll])
-    off = _sync.synchronous_offset(
-        _sync.relative_compensation(delta, gains.k_rk, gains.k_lk),
-        k_il,
-        _sync.cross_mapped(e, ref.pad_pos, cross_term),
+    off = (
+        _sync.synchronous_offset(
+            _sync.relative_compensation(delta, gains.k_rk, gains.k_lk),
+            k_il,
+            _sync.cross_mapped(e, ref.pad_pos, cross_term),
+        )
+        - e
     )
-    off_vel = k_il[:, None] * _sync.cross_mapped(e_dot, ref.pad_pos, cross_term)
+    off_vel = k_il[:, None] * _sync.cross_mapped(e_dot, ref.pad_pos, cross_term) - e_dot
     return ref._replace(
         pad_pos=ref.pad_pos + off[:, :3],
         pad_rot=jnp.stack([_so3.exp(off[i, 3:]) @ ref.pad_rot[i] for i in range(2)]),

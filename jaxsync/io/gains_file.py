@@ -96,12 +96,13 @@ def load_for(path: str | os.PathLike, model, any_model: bool = False):
     return load(path)
 
 
-def load_or_default(gains, model, any_model: bool = False, actuation: str = "torque"):
-    """The gains a job runs: ``model``'s defaults for None (on ``actuation``'s
-    stack), a gains file (:func:`load_for`: refused when tuned on another
-    model), or gains or a schedule as given."""
+def load_or_default(gains, model, any_model: bool = False, actuation: str = "torque", controller=None):
+    """The gains a job runs: ``model``'s defaults for None (``actuation``'s
+    stack's, ``controller``'s: ``jaxsync.control.gains.default_gains``), a
+    gains file (:func:`load_for`: refused when tuned on another model), or
+    gains or a schedule as given."""
     if gains is None:
-        return _gains.default_gains(model, actuation)
+        return _gains.default_gains(model, actuation, controller)
     if isinstance(gains, str | os.PathLike):
         return load_for(gains, model, any_model)
     return gains

@@ -334,7 +334,7 @@ def golden_job(
     if controller is None:
         controller = (gains_file.controller_of(gains) if from_file else None) or "synchronous"
     loaded = as_model(model, visual=visual)
-    g = gains_file.load_or_default(gains, loaded, any_model, stack.actuation)
+    g = gains_file.load_or_default(gains, loaded, any_model, stack.actuation, controller)
     from jaxsync.sim.scenario import default_scenario  # noqa: PLC0415 -- the comparison scenario, loaded model
 
     scenario = default_scenario(loaded)._replace(delay=np.float64(lag), ft_filter=np.float64(coefficient))

@@ -194,7 +194,7 @@ def tuning_loss(
     over["scenario"] = model_overrides(model)
     over.update(actuation=stack.actuation, control_rate=stack.control_rate)
     cfg = TuneConfig(task=task, batch=batch, truncate_every=p["truncate_every"], **over)
-    base, spec = default_gains(model, stack.actuation), cfg.problem.tuned
+    base, spec = default_gains(model, stack.actuation, cfg.problem.controller), cfg.problem.tuned
     loss = make_loss(model, base, cfg)
     scen_base, dur = training_base(cfg.training)
     scen = sample_scenarios(jax.random.key(0), batch, scen_base, delay=(stack.scenario_delay(),) * 2)

@@ -322,17 +322,8 @@ def paper_comparison(
     # a schedule has one stiffness per phase: none recorded
     constant = not isinstance(gains, _schedule.Schedule)
     stiffness = {n: _compliance.stiffness_at_pad(model, n, gains) if constant else None for n in controllers}
-    summary = write_results(
-        out,
-        results,
-        scenario,
-        gains,
-        options or {},
-        time.perf_counter() - t0,
-        limits=torque_limits(model),
-        stiffness=stiffness,
-        model=identity(model),
-    )
+    took, extra = time.perf_counter() - t0, {"stiffness": stiffness, "model": identity(model)}
+    summary = write_results(out, results, scenario, gains, options or {}, took, limits=torque_limits(model), **extra)
     files = ["summary.json", "series.csv"] + [f"forces_{n}.png" for n in controllers]
     if video_speed is not None:
         files.append(os.path.basename(compare_video(model, results, scenario, out, speed=video_speed, log=log)))
@@ -344,7 +335,7 @@ def paper_comparison(
         summary["sim_to_sim"] = _crosscheck.sim_to_sim(
             model,
             gains,
-            default_gains(model, stack.actuation),
+            default_gains(model, stack.actuation, controllers[-1]),
             held,
             cfg.training.eval_duration,
             n=mujoco_check,
@@ -440,9 +431,11 @@ def run_comparison(
     model = as_model(model, visual=visual)
     from_file = isinstance(gains, str | os.PathLike)
     delay = stack.scenario_delay()
-    g = gains_file.load_or_default(gains, model, any_model, stack.actuation)
+    own = "ros2_synchronous" if "ros2_synchronous" in controllers else None  # its own relative-error factor
+    g = gains_file.load_or_default(gains, model, any_model, stack.actuation, own)
     tuned_for = gains_file.controller_of(gains) if from_file else None
-    notes = []
+    shared = gains is None and own is not None and "synchronous" in controllers
+    notes = [f"synchronous runs {own}'s default gains here (k_rk = -k_lk = {float(g.k_rk):g})"] * shared
     if tuned_for is not None and tuned_for not in controllers:
         notes.append(
             f"{gains} was tuned for the {tuned_for} controller, which is not among the controllers compared "

@@ -347,7 +347,7 @@ def run_sensitivity(
         gains_file.check_model(gains, model, any_model)
         g = gains_file.load_constant(gains, "the sensitivity study")
     else:
-        g = gains if gains is not None else _gains.default_gains(model, stack.actuation)
+        g = gains if gains is not None else _gains.default_gains(model, stack.actuation, controller)
         if not isinstance(g, _gains.Gains):
             raise ConfigError(
                 "gains must be constant gains: the sensitivity study takes no schedule", inputs=("gains",)

@@ -222,7 +222,7 @@ def bounds_for(reference: dict, factor: float) -> dict:
 def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
     """Every controller (and the reference) at its default gains on the held-out set, kept on disk."""
     held = _scenarios.heldout_scenarios(cfg.tune_config(REFERENCE_CONTROLLER, cfg.seeds[0], None))
-    base = _gains.default_gains(model, cfg.tuning.training.actuation)
+    actuation = cfg.tuning.training.actuation
     stack = cfg.tuning.stack().rollout_options(model)
     out_dir = os.path.join(out, "defaults")
     os.makedirs(out_dir, exist_ok=True)
@@ -239,6 +239,7 @@ def _evaluate_defaults(model, cfg: StudyConfig, out: str, log) -> dict:
         n = cfg.tuning.data.heldout_batch
         log(f"defaults: {name} on {n} held-out scenarios ({duration:g} s; compiles first)...")
         evaluate = _loss.make_evaluator(model, duration, name, **stack)
+        base = _gains.default_gains(model, actuation, name)  # a controller's own defaults (ros2_synchronous)
         ev = _loss.eval_summary(evaluate(base, held))
         ev.update(_pipeline.stiffness_figures(jax.jit(_loss.compliance_fn(model, name, axis=None))(base)))
         _results.write_json(path, ev)
@@ -282,7 +283,7 @@ def run_study(
             f"{reference['first_impact_peak_N']:.3g} N, apparent normal stiffness "
             f"{reference['apparent_stiffness_normal_N_per_m']:.4g} N/m; bounds x {', '.join(map(str, cfg.bounds))}"
         )
-        base = _gains.default_gains(model, cfg.tuning.training.actuation)
+        actuation = cfg.tuning.training.actuation
         jobs = [(c, b, s) for b in cfg.bounds for c in cfg.controllers for s in cfg.seeds]
         runs, took = {}, []
         for k, (controller, factor, seed) in enumerate(jobs):
@@ -302,7 +303,7 @@ def run_study(
             resuming = os.path.exists(os.path.join(where, CHECKPOINT))
             runs[(controller, factor, seed)] = _pipeline.tune_and_evaluate(
                 model,
-                base,
+                _gains.default_gains(model, actuation, controller),
                 tcfg,
                 out=where,
                 resume=resuming,

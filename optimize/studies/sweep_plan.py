@@ -139,7 +139,7 @@ def make_plan(
         )
     loaded = loaded_model(solver, model, visual)
     stack.substeps(loaded)  # a control rate that divides the physics rate
-    base_gains = base_gains if base_gains is not None else _gains.default_gains(loaded, stack.actuation)
+    base_gains = base_gains if base_gains is not None else _gains.default_gains(loaded, stack.actuation, controller)
     if base_scenario is None:
         base_scenario = _scenario.default_scenario(loaded)._replace(delay=np.float64(stack.scenario_delay()))
     check_overlaps(params, base_gains, base_scenario)

@@ -108,8 +108,8 @@ def compliance_fn(model, controller: str, axis: str | None = "normal"):
     a schedule's is the largest over its phases. ros2_admittance's is the
     classical law's: the same mass, damping and spring at the pad, whose
     static offset under a force is the same (an approximation: its offsets
-    are integrated in joint space); ros2_synchronous's that plus its coupling
-    (``jaxsync.control.controller._rule_coupled``)."""
+    are integrated in joint space); ros2_synchronous's the synchronous law's,
+    whose offset its command carries once the reference has caught up."""
     pos, rot = _compliance.probe_geometry(model)
     dt = float(model.mj_model.opt.timestep)
 

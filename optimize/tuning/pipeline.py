@@ -423,7 +423,7 @@ def run_tune(
     """
     cfg = (cfg if cfg is not None else _tune.TuneConfig()).validate()  # checked before the model compiles
     model = as_model(model, visual=visual)
-    base = gains_file.load_or_default(gains, model, any_model, cfg.training.actuation)
+    base = gains_file.load_or_default(gains, model, any_model, cfg.training.actuation, cfg.problem.controller)
     cfg.stack().substeps(model)  # a control rate that does not divide the physics rate: before any folder
     return tune_and_evaluate(
         model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
