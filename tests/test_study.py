@@ -159,21 +159,25 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     assert any("classical / synchronous (bound x0.7): 4" in line for line in lines)
 
 
-def test_a_position_stack_study_scores_and_tunes_on_its_stack(model, tmp_path, fake_study):
-    """StudyConfig(actuation="position", delay, servo_spread): the defaults,
-    the compliance reference and every tuning run are on that stack."""
-    calls, seen = fake_study
-    cfg = study_mod.StudyConfig(
-        controllers=("classical", "synchronous"),
+def _position_study(controllers, **kw):
+    """A one-bound, one-seed study of ``controllers`` on position-controlled arms, delays 0-3."""
+    return study_mod.StudyConfig(
+        controllers=controllers,
         bounds=(1.0,),
         seeds=(0,),
         heldout_batch=4,
         bootstrap=100,
         actuation="position",
         delay=(0, 3),
-        servo_spread=0.3,
-        distro="humble",
+        **kw,
     )
+
+
+def test_a_position_stack_study_scores_and_tunes_on_its_stack(model, tmp_path, fake_study):
+    """StudyConfig(actuation="position", delay, servo_spread): the defaults,
+    the compliance reference and every tuning run are on that stack."""
+    calls, seen = fake_study
+    cfg = _position_study(("classical", "synchronous"), servo_spread=0.3, distro="humble")
     study_mod.run_study(model, cfg, str(tmp_path / "study"), log=lambda m: None)
     assert len(seen["stacks"]) == 3 and all(
         s == {"actuation": "position", "control_substeps": 1, "distro": "humble"} for s in seen["stacks"]
@@ -192,15 +196,7 @@ def test_each_controller_of_a_study_starts_from_its_own_defaults(model, tmp_path
     jaxsync.control.gains.RULE_RELATIVE_FACTOR), the synchronous law's 0.5:
     the study scores and tunes each from its own."""
     _, seen = fake_study
-    cfg = study_mod.StudyConfig(
-        controllers=("synchronous", "ros2_synchronous"),
-        bounds=(1.0,),
-        seeds=(0,),
-        heldout_batch=4,
-        bootstrap=100,
-        actuation="position",
-        delay=(0, 3),
-    )
+    cfg = _position_study(("synchronous", "ros2_synchronous"))
     study_mod.run_study(model, cfg, str(tmp_path / "study"), log=lambda m: None)
     own = {"synchronous": 0.5, "ros2_synchronous": 0.25}
     assert seen["tuned_from_k_rk"] == own
