@@ -55,7 +55,7 @@ SHIPPED, STEP = RL.coupled_reference, RL.step
 
 
 def _reference(gains, state, arms, ref, cross_term="squeeze"):
-    """jaxsync's target plus the rules' own offsets e_i (and their rates): o_i alone."""
+    """jaxsync's target plus the rules' own offsets e_i (and their rates): the plan plus o_i."""
     out = SHIPPED(gains, state, arms, ref, cross_term)
     e = [arms[i].jac @ state.rule.joint_pos[i] for i in range(2)]
     e_dot = [arms[i].jac @ state.rule.joint_vel[i] for i in range(2)]
