@@ -1,4 +1,4 @@
-"""How the joint command's damped least squares leaks the carry into the pad normal (docs/deploy-tuning.md).
+"""How the joint command's damped least squares leaks the carry into the pad normal (docs/deploy.md).
 
 On position-controlled arms jaxsync's laws turn the compliant pad target
 into a joint command rate through J# = (J^T J + alpha I)^-1 J^T
@@ -6,31 +6,33 @@ into a joint command rate through J# = (J^T J + alpha I)^-1 J^T
 direction of J (singular value s) the task-space gain is s^2 / (s^2 +
 alpha), not 1: part of the planned carry velocity is lost there, and the
 part of that direction that lies along the pad normal moves the pads
-apart while the object is carried. This script scores the position
-stack's default gains on a robot's 16 held-out scenarios (delays 0-3,
-servo gains +-30 %) under each command variant:
+apart while the object is carried. jaxsync refines the planned twist's
+share by one step of iterative refinement. This script scores the
+position stack's default gains on a robot's 16 held-out scenarios (delays
+0-3, servo gains +-30 %) under each command variant:
 
-- ``plain``: the command as jaxsync computes it, J# v (alpha = 0.01);
-- ``plan_refined``: the planned twist's share refined by one step of
-  iterative refinement, J# v + J# (I - J J#) x_plan_dot (task-space gain
-  1 - (alpha / (s^2 + alpha))^2 for the plan, still bounded near a
-  singularity); the compliance's rates and the feedback as before, so the
-  command at rest is unchanged;
+- ``shipped``: the command as jaxsync computes it, J# v + J# (I - J J#)
+  x_plan_dot (task-space gain 1 - (alpha / (s^2 + alpha))^2 for the plan,
+  still bounded near a singularity; the compliance's rates and the
+  feedback through J# alone, so the command at rest is that of J# v);
+- ``unrefined``: J# v alone (alpha = 0.01, ``kinematics.alpha``'s default);
 - ``refined``: the whole of v refined, J# v + J# (v - J J# v);
 - ``alpha_1e-4``: J# v with alpha = 1e-4.
 
 and prints, per controller, the drops, chatter, the mean settled peak
 resultant over the scenarios kept and the mean grip error. The variants
-replace ``command_rate`` in this process only (ros2_controllers' rule in the
-loop keeps its own). Deterministic: no timing.
+replace ``command_rate`` for jaxsync's laws in this process only
+(ros2_controllers' rule in the loop keeps its own reference). Deterministic:
+no timing.
 
     python experiments/command_leak.py --robot mjcf/robots/iiwa14_pair.yaml
 
 ``--trace N``: instead, held-out scenario N with the servo as stated under
-the classical law and jaxsync's command, every 0.05 s: each pad's grip
-(normal force on the object), its contact depth (ball radius less the
-distance from the ball's centre to the pad's plane), the pads' lag behind
-the plan along the carry (world x) and the grip the controller senses.
+the classical law and the variant ``--variants`` names first, every 0.05 s:
+each pad's grip (normal force on the object), its contact depth (ball
+radius less the distance from the ball's centre to the pad's plane), the
+pads' lag behind the plan along the carry (world x) and the grip the
+controller senses.
 """
 
 from __future__ import annotations
@@ -42,7 +44,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync.control import controller as C
 from jaxsync.control import joint_space as JS
 from jaxsync.control import so3
 from jaxsync.control.gains import default_gains
@@ -54,48 +55,35 @@ from jaxsync.runtime.xla import set_xla_flags
 from jaxsync.sim import metrics as M
 from jaxsync.sim.rollout import make_rollout
 
-PLAIN = JS.command_rate
-VARIANTS = ("plain", "plan_refined", "refined", "alpha_1e-4")
+SHIPPED = JS.command_rate
+VARIANTS = ("shipped", "unrefined", "refined", "alpha_1e-4")
 
 
 def _variant(name: str):
-    if name == "plain":
-        return PLAIN
+    if name == "shipped":
+        return SHIPPED
+    if name == "unrefined":
+        return lambda *args, plan_vel=None, **kw: SHIPPED(*args, **kw)
     if name == "alpha_1e-4":
-        return lambda *args, alpha=None: PLAIN(*args, alpha=1e-4)
+        return lambda *args, plan_vel=None, alpha=None: SHIPPED(*args, alpha=1e-4)
 
-    def rate(arm, command, pos_ref, rot_ref, vel_ref, q_rest, kp, kd, kp_null, kd_null, alpha=JS.COMMAND_ALPHA):
+    def rate(arm, command, pos_ref, rot_ref, vel_ref, q_rest, kp, kd, kp_null, kd_null, **_):
         err = jnp.concatenate([pos_ref - arm.pad_pos, so3.rotation_error(rot_ref, arm.pad_rot)])
         v = vel_ref + (2.0 * kp / kd) * err
-        jac = arm.jac
-        dls = jnp.linalg.solve(jac.T @ jac + alpha * jnp.eye(jac.shape[1]), jac.T)
-        refined = v if name == "refined" else _PLAN["vel"]
-        dq = dls @ v + dls @ (refined - jac @ (dls @ refined))
-        null = jnp.eye(jac.shape[1]) - dls @ jac
-        return dq + null @ ((kp_null / kd_null) * (q_rest - command))
+        return SHIPPED(arm, command, pos_ref, rot_ref, vel_ref, q_rest, kp, kd, kp_null, kd_null, plan_vel=v)
 
     return rate
 
 
-# the planned twist of the arm being commanded: step_position passes vel_ref = plan + compliance rates, so the
-# plan_refined variant reads the plan from the reference the step holds (set by the wrapper below)
-_PLAN = {"vel": None}
-_STEP = C.step_position
+def _in_laws_only(rate):
+    """``command_rate`` for jaxsync's laws: the variant where the call carries
+    the planned twist (``step_position``), the shipped one for the rule's
+    reference (``ros2_loop``, no ``plan_vel``)."""
 
+    def call(*args, **kw):
+        return rate(*args, **kw) if "plan_vel" in kw else SHIPPED(*args, **kw)
 
-def _step_position(options, gains, state, arms, ref, dt, command, ft_filter=1.0):
-    calls = iter(range(2))
-    inner = JS.command_rate
-
-    def rate(*args, **kw):
-        _PLAN["vel"] = ref.pad_vel[next(calls)]
-        return inner(*args, **kw)
-
-    JS.command_rate = rate
-    try:
-        return _STEP(options, gains, state, arms, ref, dt, command, ft_filter)
-    finally:
-        JS.command_rate = inner
+    return call
 
 
 def _trace(model, g, i: int) -> None:
@@ -135,11 +123,12 @@ def main() -> None:
     held = S.heldout_scenarios(cfg.replace(scenario=S.model_overrides(model)))
     g = default_gains(model, "position")
     if args.trace is not None:
+        JS.command_rate = _in_laws_only(_variant(args.variants.split(",")[0]))
         _trace(model, g, args.trace)
+        JS.command_rate = SHIPPED
         return
     for name in args.variants.split(","):
-        JS.command_rate = _variant(name)  # read at trace time by the position stack's laws
-        C.step_position = _step_position
+        JS.command_rate = _in_laws_only(_variant(name))  # read at trace time by the position stack
         for controller in args.controllers.split(","):
             fn = make_rollout(model, controller=controller, duration=4.0, actuation="position")
             traj = jax.jit(jax.vmap(lambda s, fn=fn: fn(g, s)))(held)
@@ -153,7 +142,7 @@ def main() -> None:
                 "grip_force_error_rel": float(np.asarray(m.grip_force_error_rel)[kept].mean()),
             }
             print(f"{name} {controller}", json.dumps(row), flush=True)
-    JS.command_rate, C.step_position = PLAIN, _STEP
+    JS.command_rate = SHIPPED
 
 
 if __name__ == "__main__":

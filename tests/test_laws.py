@@ -4,6 +4,8 @@ absolute error on SO(3) (eq. 12), the synchronous offset (eqs. 13, 14, 16,
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -76,6 +78,48 @@ def test_null_space_projector_leaves_the_task_acceleration_unchanged(free_arms):
         assert np.linalg.norm(dq_acc) > 1.0
         # ...the pad's does not (up to the damped pseudo-inverse's leak, ~1e-5)
         assert np.linalg.norm(jac @ dq_acc) < 1e-4 * np.linalg.norm(dq_acc)
+
+
+@pytest.mark.parametrize("n", [6, 7])
+def test_the_position_command_refines_the_planned_twist_alone(n):
+    """On position-controlled arms the plan's twist moves the pad at 1 -
+    (alpha / (s^2 + alpha))^2 along each singular direction of J (value s),
+    J# alone at s^2 / (s^2 + alpha); the feedback and the compliance's rates
+    keep J#. A random J with one weak direction (s = 0.2, where J# moves
+    the pad at 0.8 of the twist asked)."""
+    rng = np.random.default_rng(n)
+    u, _ = np.linalg.qr(rng.normal(size=(6, 6)))
+    w, _ = np.linalg.qr(rng.normal(size=(n, n)))
+    s = np.array([2.0, 1.5, 1.0, 0.8, 0.5, 0.2])
+    jac = u @ np.diag(s) @ w[:, :6].T
+    alpha = _joint_space.COMMAND_ALPHA
+    arm = _laws_arm(jnp.asarray(jac), rng)
+    q = jnp.asarray(rng.normal(size=n))
+    err = rng.normal(size=6) * 1e-3
+    pos_ref, rot_ref = arm.pad_pos + err[:3], _so3.exp(jnp.asarray(err[3:])) @ arm.pad_rot
+    plan, compliance = rng.normal(size=6), rng.normal(size=6)
+    gains = (jnp.asarray(100.0), jnp.asarray(5.0), jnp.asarray(10.0), jnp.asarray(2.0))
+
+    def rate(vel, plan_vel):
+        return np.asarray(_joint_space.command_rate(arm, q, pos_ref, rot_ref, vel, q, *gains, plan_vel=plan_vel))
+
+    refined, plain = rate(jnp.asarray(plan + compliance), jnp.asarray(plan)), rate(jnp.asarray(plan + compliance), None)
+    dls = np.linalg.solve(jac.T @ jac + alpha * np.eye(n), jac.T)
+    np.testing.assert_allclose(refined - plain, dls @ (plan - jac @ dls @ plan), atol=1e-12)
+    # the plan's task-space gain per singular direction, with nothing else in the command
+    only_plan = rate(jnp.asarray(plan), jnp.asarray(plan)) - rate(jnp.zeros(6), None)
+    got = u.T @ (jac @ only_plan) / (u.T @ plan)
+    np.testing.assert_allclose(got, 1.0 - (alpha / (s**2 + alpha)) ** 2, rtol=1e-9)
+    assert got[-1] > 0.95 and (u.T @ (jac @ dls @ plan) / (u.T @ plan))[-1] < 0.81
+    # at rest (no plan) the command is that of J# alone
+    np.testing.assert_array_equal(rate(jnp.asarray(compliance), jnp.zeros(6)), rate(jnp.asarray(compliance), None))
+
+
+def _laws_arm(jac, rng):
+    """The parts of an arm's sensed state the position command reads."""
+    return SimpleNamespace(
+        jac=jac, pad_pos=jnp.asarray(rng.normal(size=3)), pad_rot=_so3.exp(jnp.asarray(rng.normal(size=3)))
+    )
 
 
 def test_torques_produce_the_commanded_pad_acceleration(model, forward_sense, free_arms):

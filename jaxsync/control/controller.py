@@ -295,6 +295,7 @@ def step_position(
             gains.kd_pos,
             gains.kp_null,
             gains.kd_null,
+            plan_vel=ref.pad_vel[i],
         )
         out.append(q_cmd + dt * rate)
     info = ControlInfo(offset=off, delta=delta, force_error=force_error)

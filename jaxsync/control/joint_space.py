@@ -81,11 +81,13 @@ def command_rate(
     kp_null: jax.Array,
     kd_null: jax.Array,
     alpha: float = COMMAND_ALPHA,
+    plan_vel: jax.Array | None = None,
 ) -> jax.Array:
     """dq_cmd/dt (n,): the joint position command's rate on a position-controlled arm.
 
         v      = dx_ref + lambda (x_ref - x),         lambda = kp / kd * 2 = 40 1/s at the defaults
-        dq_cmd = J# v + (I - J# J) mu (q_rest - q_cmd),  J# = (J^T J + alpha I)^-1 J^T,  mu = kp_null / kd_null
+        dq_cmd = J# v + J# (I - J J#) dx_plan + (I - J# J) mu (q_rest - q_cmd),
+        J# = (J^T J + alpha I)^-1 J^T,  mu = kp_null / kd_null
 
     The inner position loop of the torque stack (eq. 18: (s + 40)^2 with the
     default kp, kd) becomes a first-order loop of the same bandwidth
@@ -98,8 +100,18 @@ def command_rate(
     (kp_null / kd_null = 5 1/s at the defaults), as the torque stack's
     null-space term does; a 6-joint arm has none.
 
+    The planned twist dx_plan (``plan_vel``; None: no such term) gets one
+    step of iterative refinement: along a singular direction of J with value
+    s, J# moves the pad at s^2 / (s^2 + alpha) of the twist asked, and the
+    carry lost along a weak direction that has a share of the pad normal
+    moves the pads apart, off the object (docs/deploy.md). Refined, the plan
+    moves it at 1 - (alpha / (s^2 + alpha))^2 (still bounded as s -> 0); the
+    compliance's rates and the feedback keep J#, so the command at rest is
+    unchanged.
+
     Args: command (n,) the last joint command; pos_ref (3,), rot_ref (3, 3),
-    vel_ref (6,) the compliant target; q_rest (n,). Returns (n,) rad/s.
+    vel_ref (6,) the compliant target (plan included); q_rest (n,);
+    plan_vel (6,) the planned twist or None. Returns (n,) rad/s.
     """
     err = jnp.concatenate([pos_ref - arm.pad_pos, _so3.rotation_error(rot_ref, arm.pad_rot)])
     v = vel_ref + (2.0 * kp / kd) * err
@@ -107,4 +119,7 @@ def command_rate(
     n = jac.shape[1]
     dls = jnp.linalg.solve(jac.T @ jac + alpha * jnp.eye(n), jac.T)
     null = jnp.eye(n) - dls @ jac
-    return dls @ v + null @ ((kp_null / kd_null) * (q_rest - command))
+    rate = dls @ v + null @ ((kp_null / kd_null) * (q_rest - command))
+    if plan_vel is not None:
+        rate = rate + dls @ (plan_vel - jac @ (dls @ plan_vel))
+    return rate
