@@ -7,10 +7,11 @@ these choices (docs/ros2-rule.md, "ros2_controllers' rule in the loop"):
 
 - The joint reference the rule offsets is the plan without compliance: q_ref,
   integrated with the position stack's CLIK (``jaxsync.control.joint_space.
-  command_rate``: same gain lambda = 2 kp_pos / kd_pos, damped least squares,
-  null space toward q_rest) toward the planned pad pose (ref.pad_pos,
-  ref.pad_rot, ref.pad_vel; no offsets). It lives in the controller state; its
-  velocity is the CLIK rate and its acceleration 0.
+  command_rate``: same gain lambda = 2 kp_pos / kd_pos, damped least squares
+  alone, the plan's twist not refined, null space toward q_rest) toward the
+  planned pad pose (ref.pad_pos, ref.pad_rot, ref.pad_vel; no offsets). It
+  lives in the controller state; its velocity is the CLIK rate and its
+  acceleration 0.
 - The pad is the F/T, control and gravity-compensation frame; the chain's base
   is the world (rot_world_base = I). ``Kinematics``: jacobian = the sensed
   pad Jacobian (world frame, at the pad), trans_base_ft = the sensed pad pose,

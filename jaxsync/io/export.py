@@ -293,7 +293,10 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target, warnings=()) -> 
     for name in SYNC_FIELDS:
         symbol, unit = MEANING[name]
         lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
-    lines.append(f"    alpha: {COMMAND_ALPHA!r}  # the joint command's damped least squares, (J^T J + alpha I)^-1 J^T")
+    lines.append(
+        f"    alpha: {COMMAND_ALPHA!r}  # the joint command's damped least squares, (J^T J + alpha I)^-1 J^T,"
+        " the planned twist refined once"
+    )
     lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
     for arm, name in enumerate(ARMS):
         lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
