@@ -104,7 +104,7 @@ def command_rate(
     step of iterative refinement: along a singular direction of J with value
     s, J# moves the pad at s^2 / (s^2 + alpha) of the twist asked, and the
     carry lost along a weak direction that has a share of the pad normal
-    moves the pads apart, off the object (docs/deploy.md). Refined, the plan
+    moves the pads apart, off the object (docs/deploy-tuning.md). Refined, the plan
     moves it at 1 - (alpha / (s^2 + alpha))^2 (still bounded as s -> 0); the
     compliance's rates and the feedback keep J#, so the command at rest is
     unchanged.
