@@ -15,6 +15,7 @@ from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import default_gains
 from jaxsync.io import gains_file
+from jaxsync.optimize.tuning.cost import CostWeights, cost, cost_terms
 from jaxsync.physics import step as _physics
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim import rollout as _rollout
@@ -264,6 +265,29 @@ def test_metrics_flag_nonfinite_and_drop():
     far = tr._replace(obj_pos=tr.obj_pos.at[4:, 2].set(-0.05))
     m = _metrics.summarize(far, s)
     assert bool(m.dropped) and float(m.drop_time_s) == pytest.approx(0.4)
+
+
+def test_a_lost_object_costs_holding_nothing_and_no_gradient():
+    tr = _hand_made()
+    s = fast_scenario(object_mass=0.5, grip_force=10.0, t_close=0.1, t_squeeze=0.1, t_carry=0.1, settle_time=0.2)
+    w = CostWeights()
+    far = tr._replace(obj_pos=tr.obj_pos.at[4:, 2].set(-0.05))  # lost from t = 0.4 s (as above)
+
+    def scaled(traj, a):  # the pads' forces scaled by a: a stand-in for a gain
+        return cost(traj._replace(pad_forces=a * traj.pad_forces), s, w)
+
+    # held: the cost is the terms' (a 0.3 N peak over a 10 N grip) and moves with the forces
+    held_grad = float(jax.grad(lambda a: scaled(tr, a))(1.0))
+    assert 0 < float(cost_terms(tr, s, w)["resultant_peak"]) < 40 and abs(held_grad) > 1.0
+    # lost: the object's weight borne by nothing and the grip 100 % short, in closed form
+    terms = cost_terms(far, s, w)
+    weight = 0.5 * 9.81  # N
+    assert float(terms["resultant_ms"]) == pytest.approx((weight / 0.01) ** 2, rel=1e-6)
+    assert float(terms["grip"]) == pytest.approx(10.0 / 0.01, rel=1e-6)
+    assert float(terms["sync"]) == 0.0 and float(terms["effort"]) == 0.0
+    # ... whatever the pads did, and without a gradient
+    assert float(scaled(far, 1.0)) == pytest.approx(float(scaled(far, 1.7)), rel=1e-12)
+    assert float(jax.grad(lambda a: scaled(far, a))(1.0)) == 0.0
 
 
 def test_gains_validation_and_json(tmp_path):

@@ -171,6 +171,19 @@ def _first_time(flag, time):
     return jnp.where(flag.any(), time[jnp.argmax(flag)], jnp.nan)
 
 
+def _finite(traj) -> jax.Array:
+    """(T,) the joint positions and pad forces finite."""
+    return jnp.isfinite(traj.qpos).all(-1) & jnp.isfinite(traj.pad_forces).reshape(len(traj.time), -1).all(-1)
+
+
+def lost_mask(traj) -> jax.Array:
+    """(T,) the object lost: once carried (phase 2 on), more than DROP_DISTANCE
+    from its planned position, or the state no longer finite. ``dropped`` is
+    its ``any()``."""
+    obj_err = safe_norm(traj.obj_pos - traj.plan_obj_pos)
+    return (traj.phase >= 2) & ((obj_err > DROP_DISTANCE) | ~_finite(traj))
+
+
 def summarize(traj, s: Scenario) -> Metrics:
     """All metrics of one trajectory (a ``jaxsync.Trajectory``); ``jax.vmap`` it for a batch.
 
@@ -185,8 +198,8 @@ def summarize(traj, s: Scenario) -> Metrics:
     grip_err = jnp.abs(grip - s.grip_force) / s.grip_force
     mean_grip = _masked_mean(grip, mask)
     obj_err = safe_norm(traj.obj_pos - traj.plan_obj_pos)
-    finite = jnp.isfinite(traj.qpos).all(-1) & jnp.isfinite(traj.pad_forces).reshape(len(traj.time), -1).all(-1)
-    lost = (traj.phase >= 2) & ((obj_err > DROP_DISTANCE) | ~finite)
+    finite = _finite(traj)
+    lost = lost_mask(traj)
     return Metrics(
         settled_peak_resultant_N=jnp.max(jnp.where(mask > 0, res, 0.0)),
         rms_resultant_N=jnp.sqrt(_masked_mean(res**2, mask)),

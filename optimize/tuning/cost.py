@@ -67,7 +67,33 @@ def smooth_metrics(traj, s, temperature: float = CostWeights().peak_temperature)
 
 
 def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
-    """Each weighted term (scalars). ``traj`` a Trajectory, ``s`` its Scenario."""
+    """Each weighted term (scalars). ``traj`` a Trajectory, ``s`` its Scenario.
+
+    A rollout that loses the object (``jaxsync.sim.metrics.lost_mask``) costs
+    what holding nothing costs (:func:`held_nothing_terms`), a constant of the
+    scenario and the plan with no gradient: a dropped object's own cost is
+    as large (its weight unsupported: 2.4e5 for 0.5 kg) and moves erratically
+    with the gains, and its gradient, which says nothing about holding the
+    object, would swamp the batch's. A step that drops a held scenario still
+    raises the cost by that much, and one that saves a dropped one lowers it.
+    """
+    terms = _terms(traj, s, w)
+    lost = _metrics.lost_mask(traj).any()
+    nothing = held_nothing_terms(traj, s, w)
+    return {k: jnp.where(lost, nothing[k], v) for k, v in terms.items()}
+
+
+def held_nothing_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
+    """The terms of ``traj``'s plan with no force at the pads (the object's
+    planned weight and motion borne by nothing, the grip 100 % short),
+    synchronised and effortless: gain-independent (no gradient)."""
+    empty = traj._replace(
+        pad_forces=jnp.zeros_like(traj.pad_forces), delta=jnp.zeros_like(traj.delta), torque=jnp.zeros_like(traj.torque)
+    )
+    return jax.lax.stop_gradient(_terms(empty, s, w))
+
+
+def _terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     mask, n, res_norm, grip_err, sync = _settled(traj, s)
     return {
         "resultant_ms": w.resultant_ms * jnp.sum(mask * res_norm**2) / n / RESULTANT_SCALE**2,
