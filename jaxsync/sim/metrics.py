@@ -180,8 +180,11 @@ def lost_mask(traj) -> jax.Array:
     """(T,) the object lost: once carried (phase 2 on), more than DROP_DISTANCE
     from its planned position, or the state no longer finite. ``dropped`` is
     its ``any()``."""
-    obj_err = safe_norm(traj.obj_pos - traj.plan_obj_pos)
-    return (traj.phase >= 2) & ((obj_err > DROP_DISTANCE) | ~_finite(traj))
+    return _lost(traj.phase, safe_norm(traj.obj_pos - traj.plan_obj_pos), _finite(traj))
+
+
+def _lost(phase, obj_err, finite) -> jax.Array:
+    return (phase >= 2) & ((obj_err > DROP_DISTANCE) | ~finite)
 
 
 def summarize(traj, s: Scenario) -> Metrics:
@@ -199,7 +202,7 @@ def summarize(traj, s: Scenario) -> Metrics:
     mean_grip = _masked_mean(grip, mask)
     obj_err = safe_norm(traj.obj_pos - traj.plan_obj_pos)
     finite = _finite(traj)
-    lost = lost_mask(traj)
+    lost = _lost(traj.phase, obj_err, finite)
     return Metrics(
         settled_peak_resultant_N=jnp.max(jnp.where(mask > 0, res, 0.0)),
         rms_resultant_N=jnp.sqrt(_masked_mean(res**2, mask)),
