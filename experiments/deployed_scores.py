@@ -7,7 +7,8 @@ held-out scenarios of the position stack (the tuner's held-out seed, delays
 ros2-admittance export of the same gains runs), with the position stack's
 default gains as the reference; then 4 of the scenarios on MuJoCo C.
 Prints and writes each row: settled peak resultant, grip error, drops,
-chatter, and the MuJoCo C factor over the defaults.
+chatter, first impact (mean and largest), and the MuJoCo C factor over the
+defaults.
 
     python experiments/deployed_scores.py --robot mjcf/robots/ur5e_twice.yaml \\
         --controllers classical,ros2_admittance torque=results/tc/gains.json position=results/tp/gains.json
@@ -32,7 +33,7 @@ from jaxsync.runtime.xla import set_xla_flags
 from jaxsync.sim import crosscheck as C
 from jaxsync.sim.actuation import Stack
 
-KEYS = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "chattering", "nonfinite")
+KEYS = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "chattering", "nonfinite", "first_impact_peak_N")
 
 
 def main() -> None:
@@ -58,6 +59,8 @@ def main() -> None:
         for label, g in cands.items():
             s = L.eval_summary(ev(g, held))
             row = {k: s[k] for k in KEYS}
+            impacts = [x for x in s["metrics"]["first_impact_peak_N"] if x is not None]
+            row["first_impact_max_N"] = max(impacts, default=None)
             if label != "position stack's defaults" and not s["dropped"]:
                 c = C.sim_to_sim(model, g, base, held, 4.0, n=4, controller=controller, stack=stack, log=lambda m: None)
                 row["mujoco_check"] = {k: c.get(k) for k in ("factor_mjx", "factor_mujoco", "agree", "dropped")}

@@ -127,8 +127,12 @@ for name in sys.argv[1:]:
 def _compile_ahead(request, tmp_path_factory):
     """Start the process that compiles the selected modules' programs ahead
     (above); stop it, if still running, when the session ends. Only with a
-    compilation cache to share and at least two cores."""
+    compilation cache to share, at least two cores and no pytest-xdist workers."""
     cache = jax.config.jax_compilation_cache_dir
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # under pytest-xdist (.ci/run's slow tier) the workers already keep both cores busy
+        yield
+        return
     modules = [getattr(item, "module", None) for item in request.session.items]
     names = list(dict.fromkeys(m.__name__ for m in modules if m is not None and hasattr(m, "compile_ahead")))
     if names and modules and modules[0] is not None and modules[0].__name__ == names[0]:
