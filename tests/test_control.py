@@ -290,6 +290,35 @@ def test_a_lost_object_costs_holding_nothing_and_no_gradient():
     assert float(jax.grad(lambda a: scaled(far, a))(1.0)) == 0.0
 
 
+def test_the_friction_margin_term_reads_the_cone_before_the_loss():
+    """Opt-in: 0 while the pads keep half the nominal grip's cone, 1 on its
+    edge; a lost rollout's term reads the samples before the loss only and
+    keeps a gradient toward squeezing harder, where the other terms have none."""
+    tr = _hand_made()  # 10 N squeeze, each pad carrying 2.45 N of the weight: margin 0.755
+    s = fast_scenario(object_mass=0.5, grip_force=10.0, t_close=0.1, t_squeeze=0.1, t_carry=0.1, settle_time=0.2)
+    w = CostWeights(friction_margin=1.0)
+    assert "friction_margin" not in cost_terms(tr, s, CostWeights())  # not computed by default
+
+    def squeezed(traj, a):  # each pad's normal force scaled by a, its tangential load kept
+        f_n = _metrics.normal_forces(traj.pad_forces, traj.pad_normal)
+        return traj._replace(pad_forces=traj.pad_forces + (a - 1.0) * f_n[..., None] * traj.pad_normal)
+
+    assert 0.0 <= float(cost_terms(tr, s, w)["friction_margin"]) < 1e-4
+    # the normal force down to the tangential load (2.45 N at mu = 1): on the cone's edge
+    edge = 0.5 * 0.5 * 9.81 / 10.0
+    assert float(cost_terms(squeezed(tr, edge), s, w)["friction_margin"]) == pytest.approx(1.0, abs=0.01)
+    # lost from t = 0.4 s: whatever the pads do after the loss, the term is the same ...
+    far = squeezed(tr._replace(obj_pos=tr.obj_pos.at[4:, 2].set(-0.05)), edge)
+    after = far._replace(pad_forces=far.pad_forces.at[4:].multiply(3.0))
+    term = lambda traj: float(cost_terms(traj, s, w)["friction_margin"])  # noqa: E731
+    assert term(after) == term(far) and term(far) > 0.5
+    # ... and squeezing harder before it lowers the cost, the other terms being constant
+    # (d margin / d a = 2.45 N / (mu f_d), over the kept share 0.5)
+    grad = float(jax.grad(lambda a: cost(squeezed(far, a), s, w))(1.0))
+    assert grad == pytest.approx(-edge / 0.5, rel=0.02)
+    assert float(jax.grad(lambda a: cost(squeezed(far, a), s, CostWeights()))(1.0)) == 0.0
+
+
 def test_gains_validation_and_json(tmp_path):
     g = default_gains()
     for k, v in _gains.to_dict(_gains.from_dict(_gains.to_dict(g))).items():

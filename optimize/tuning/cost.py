@@ -26,6 +26,9 @@ class CostWeights(NamedTuple):
     sync: float = 0.1  # mean square synchronisation error, per (1 mm)^2
     effort: float = 1e-4  # mean |tau|^2, per (10 N m)^2
     peak_temperature: float = 0.002  # N, of the smooth peak
+    # opt-in: the pads' friction margin at its worst in carry and hold, short of
+    # FRICTION_MARGIN of the nominal grip's cone, per that share (0: not computed)
+    friction_margin: float = 0.0
 
 
 RESULTANT_SCALE = 0.01  # N
@@ -37,6 +40,8 @@ EFFORT_SCALE = 10.0  # N m
 
 
 SYNC_FLOOR2 = 1e-18  # m^2, under the root of the smooth rms synchronisation error
+FRICTION_MARGIN = 0.5  # share of mu f_d the friction margin is kept above
+FRICTION_SOFTNESS = 0.05  # of that share: softplus width, and the smooth worst's temperature
 
 
 def _settled(traj, s):
@@ -80,7 +85,33 @@ def cost_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
     terms = _terms(traj, s, w)
     lost = _metrics.lost_mask(traj).any()
     nothing = held_nothing_terms(traj, s, w)
-    return {k: jnp.where(lost, nothing[k], v) for k, v in terms.items()}
+    out = {k: jnp.where(lost, nothing[k], v) for k, v in terms.items()}
+    if w.friction_margin:  # read before any loss: a lost rollout's gradient toward holding on
+        out["friction_margin"] = w.friction_margin * friction_shortfall(traj, s)
+    return out
+
+
+def friction_shortfall(traj, s) -> jax.Array:
+    """How far the pads' friction margin falls short of ``FRICTION_MARGIN``,
+    at its worst over carry and hold before the object is lost (smooth; 0
+    while the margin stays above it, 1 on the cone's edge, more in slip).
+
+    A pad's margin is mu f_n - |f_t|, what the friction cone has left, as a
+    share of mu f_d, the nominal grip's cone (1: no tangential load; about
+    0.75 holding a 0.5 kg ball at 10 N and mu = 1). It falls as the pads part
+    or the load grows, before the object slips out: a gradient toward
+    holding on where a drop costs a constant with none (:func:`cost_terms`).
+    """
+    f_n = _metrics.normal_forces(traj.pad_forces, traj.pad_normal)  # (T, 2)
+    f_t = traj.pad_forces - f_n[..., None] * traj.pad_normal
+    margin = (s.friction * f_n - _metrics.safe_norm(f_t, floor2=RESULTANT_FLOOR2)) / (s.friction * s.grip_force)
+    t = FRICTION_SOFTNESS * FRICTION_MARGIN
+    short = t * jax.nn.softplus((FRICTION_MARGIN - jnp.min(margin, -1)) / t)  # the worse pad
+    held = jnp.cumsum(_metrics.lost_mask(traj)) == 0
+    mask = (traj.phase >= 2) & held
+    some = mask.any()  # none where lost at the carry's first sample: read one sample, weigh it 0
+    mask = mask | (~some & (jnp.arange(mask.shape[0]) == 0))
+    return some * _metrics.smooth_max(short, mask, t) / FRICTION_MARGIN
 
 
 def held_nothing_terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
