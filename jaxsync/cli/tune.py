@@ -12,6 +12,7 @@ from jaxsync.cli._common import (
     positive,
 )
 from jaxsync.cli._stack import add_stack_arguments, delay_text
+from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.methods import BATCH_METHODS
 from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TUNABLE
 
@@ -134,12 +135,8 @@ def add_parser(sub) -> None:
         choices=["stratified", "iid"],
         help="training batches: 'stratified' holds each scenario range's ends, 'iid' draws independently",
     )
-    p.add_argument(
-        "--weight",
-        action="append",
-        metavar="NAME=VALUE",
-        help="a cost weight (repeatable): resultant_ms, resultant_peak, grip, sync, effort, peak_temperature",
-    )
+    weights = f"a cost weight (repeatable): {', '.join(CostWeights._fields)} (docs/tuning.md)"
+    p.add_argument("--weight", action="append", metavar="NAME=VALUE", help=weights)
     add_stack_arguments(p, drawn=True)
     add_gains_argument(p, "start from this gains file (default: the model's own)")
     add_model_argument(p)
