@@ -30,6 +30,10 @@ from jaxsync.optimize.tuning.tune import tune
 from jaxsync.runtime import distributed as _distributed
 
 TIMEOUT_S = 600  # each launched process
+# heartbeat timeouts (s): where a killed process must be noticed, and elsewhere (JAX's default);
+# the CI runs this file beside another slow test on two cores, so a heartbeat can stall
+HEARTBEAT_KILL_S = 20
+HEARTBEAT_S = 100
 # 8 points in chunks of 2: four chunks, two per process
 GRID8 = ["--param", "k_rk=-0.5:0.5:4", "--param", "object_mass=0.5,0.6", "--chunk", "2", "--no-progress"]
 
@@ -84,9 +88,12 @@ def _free_port() -> int:
 
 
 @contextlib.contextmanager
-def _processes(argv: list[str], tmp_path, n: int = 2, heartbeat_s: int = 5):
+def _processes(argv: list[str], tmp_path, heartbeat_s: int, n: int = 2):
     """``jaxsync ARGV`` as ``n`` processes of one run; yields the Popen objects
-    (output in tmp_path/pK.log); kills what is still running on the way out."""
+    (output in tmp_path/pK.log); kills what is still running on the way out.
+    ``heartbeat_s``: the coordination service's heartbeat timeout; short only
+    where a test waits for a killed process to be noticed, as a heartbeat RPC
+    can stall for seconds while the other process compiles on a shared core."""
     port = _free_port()
     env = dict(os.environ, JAX_PLATFORMS="cpu", PYTHONUNBUFFERED="1")
     env["JAXSYNC_HEARTBEAT_TIMEOUT_S"] = str(heartbeat_s)
@@ -164,14 +171,14 @@ def killed_then_resumed(tmp_path_factory):
     argv = ["sweep", *FAST, *GRID8, "--out", str(out)]
     run1 = root / "run1"
     run1.mkdir()
-    with _processes(argv, run1) as (p0, p1):
+    with _processes(argv, run1, heartbeat_s=HEARTBEAT_KILL_S) as (p0, p1):
         t_end = time.monotonic() + TIMEOUT_S
         while not any(r["process"] == 1 for r in (_computed(out, True) if (out / "chunks").exists() else [])):
             if p1.poll() is not None or time.monotonic() > t_end:
                 pytest.fail(f"process 1 wrote no chunk (exit {p1.poll()}): {_logs(run1)}")
             time.sleep(0.02)
         os.killpg(p1.pid, signal.SIGKILL)
-        # process 0 finishes its own chunks, then the coordination service stops it (heartbeat 5 s)
+        # process 0 finishes its own chunks, then the coordination service stops it (heartbeat timeout)
         rc0 = _wait([p0], run1)[0]
     after_kill = {"chunks": _chunks(out), "computed": _computed(out), "rc0": rc0}
     # re-run on what is left (here one process, this one: its chunk function is compiled already)
@@ -218,7 +225,7 @@ def test_two_process_tuning_equals_one_process_with_both_batches(model, tuning_p
     out = tmp_path / "two"
     argv = ["tune", "--out", str(out), "--iterations", "2", "--batch", "1", "--method", "lbfgs"]
     argv += ["--validate-every", "0", "--heldout-batch", "1", "--no-mujoco-check"]
-    with _processes(argv, tmp_path) as procs:
+    with _processes(argv, tmp_path, heartbeat_s=HEARTBEAT_S) as procs:
         rcs = _wait(procs, tmp_path)
     assert rcs == [0, 0], _logs(tmp_path)
     got = json.loads((out / "gains.json").read_text())["gains"]
