@@ -155,9 +155,9 @@ def test_no_recompilation_on_new_values(model, batched):
 
 
 def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollouts):
-    """rollout() makes weak-typed gains (a Python number, jnp.asarray(0.2)) strong
-    and every argument committed to the device first: one program for all of
-    them (a weak float, or an array committed to a device, as a computation on
+    """rollout() makes weak-typed gains and scenario fields (a Python number,
+    jnp.asarray(0.2)) strong and every argument committed to the device
+    first: one program for all of them (a weak float, or an array committed to a device, as a computation on
     the model's arrays returns it, was another argument type, another 29 s
     compile), with the same values as the strong array."""
     s, g = rollouts["scenario"], rollouts["gains"]
@@ -166,7 +166,14 @@ def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollout
     n = program._cache_size()
     committed = jax.device_put(np.float64(0.2), _physics.local_device())
     assert committed.committed and not jnp.asarray(0.2).committed
-    for weak, scenario in ((0.2, s), (jnp.asarray(0.2), s), (committed, jax.device_put(s, _physics.local_device()))):
+    cases = (
+        (0.2, s),
+        (jnp.asarray(0.2), s),
+        (committed, jax.device_put(s, _physics.local_device())),
+        # scenario fields too: a Python number, a weak array, the same values
+        (0.2, s._replace(grip_force=float(s.grip_force), friction=jnp.asarray(float(s.friction)))),
+    )
+    for weak, scenario in cases:
         tr = rollout(model, g._replace(k_rl=weak), scenario, duration=TEST_DURATION)
         np.testing.assert_array_equal(np.asarray(tr.pad_forces), np.asarray(strong.pad_forces))
     assert program._cache_size() == n == 1

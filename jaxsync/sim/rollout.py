@@ -251,7 +251,8 @@ def rollout(
     _ros2_loop.check_actuation(controller, _actuation.check(actuation))
     if backend == "mjx" and controller in POSITION_ONLY:
         fn = _jitted_static(model, float(duration), int(control_substeps), actuation, controller, distro)
-        return fn(*jax.device_put((_gains.strongly_typed(gains), scenario), _physics.local_device()))
+        args = (_gains.strongly_typed(gains), _scenario.strongly_typed(scenario))
+        return fn(*jax.device_put(args, _physics.local_device()))
     if backend == "mjx":
         switch = ControllerSwitch.of(ControllerOptions(kind=controller, cross_term=cross_term))
         stack = () if _actuation.check(actuation) == "torque" else (actuation,)  # the torque stack's key as ever
@@ -261,7 +262,8 @@ def rollout(
         # array that a computation on the model's committed arrays returned is
         # committed, one built from Python or NumPy is not, and jit compiles a
         # program for each)
-        args = jax.device_put((_gains.strongly_typed(gains), scenario, switch), _physics.local_device())
+        args = (_gains.strongly_typed(gains), _scenario.strongly_typed(scenario), switch)
+        args = jax.device_put(args, _physics.local_device())
         return fn(*args)
     if backend == "mujoco":
         return rollout_mujoco(

@@ -154,6 +154,20 @@ def to_dict(s: Scenario) -> dict:
     return {k: np.asarray(v).tolist() for k, v in s._asdict().items()}
 
 
+def strongly_typed(s: Scenario) -> Scenario:
+    """``s`` with every weakly typed field (``s._replace(ft_filter=jnp.asarray(0.2))``,
+    a Python number) made the strongly typed array :func:`default_task` builds:
+    float64 fields, the uint32 noise key. A jitted rollout compiles once per
+    argument type; :func:`jaxsync.rollout` calls this first."""
+
+    def strong(name, x):
+        x = jnp.asarray(x)
+        want = jnp.uint32 if name == "noise_key" else jnp.result_type(float)
+        return x if (x.dtype == want and not x.weak_type) else jnp.asarray(x, dtype=want)
+
+    return Scenario(*(strong(k, v) for k, v in zip(Scenario._fields, s, strict=True)))
+
+
 def validate(s: Scenario) -> Scenario:
     """Eager range checks with messages that name the field."""
     checks = {
