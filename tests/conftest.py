@@ -48,14 +48,16 @@ enable_compilation_cache(min_compile_time_s=0.0)
 signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-# The slow tier's files, longest first (one run each on two xdist workers,
-# 2026-12-05, docs/performance.md): .ci/run hands a file to whichever worker
-# is free in the order collected, and longest-first has both end together
-# (alphabetical order left one worker 1168 s of files, the other 675 s).
+# The slow tier's files, longest first (two runs of the tier on two xdist
+# workers, alone, 2026-12-05; a file's time moved by up to 60 % between
+# them, docs/performance.md): .ci/run hands a file to whichever worker is
+# free in the order collected (--no-loadscope-reorder), and longest first
+# has both end together (xdist's own order, files with more tests first,
+# left one worker 1168 s of files and the other 675 s in the first run).
 # A file not listed runs after these.
 SLOW_FILES_LONGEST_FIRST = (
-    "test_distributed.py",
     "test_robot_commands.py",
+    "test_distributed.py",
     "test_gradient.py",
     "test_study.py",
     "test_bench.py",
