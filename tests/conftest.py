@@ -48,38 +48,13 @@ enable_compilation_cache(min_compile_time_s=0.0)
 signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-# The slow tier's files, longest first (two runs of the tier on two xdist
-# workers, alone, 2026-12-05; a file's time moved by up to 60 % between
-# them, docs/performance.md): .ci/run hands a file to whichever worker is
-# free in the order collected (--no-loadscope-reorder), and longest first
-# has both end together (xdist's own order, files with more tests first,
-# left one worker 1168 s of files and the other 675 s in the first run).
-# A file not listed runs after these.
-SLOW_FILES_LONGEST_FIRST = (
-    "test_robot_commands.py",
-    "test_distributed.py",
-    "test_gradient.py",
-    "test_study.py",
-    "test_bench.py",
-    "test_sensitivity.py",
-    "test_sensing.py",
-    "test_compare.py",
-    "test_sweep.py",
-)
-
-
 def pytest_collection_modifyitems(config, items):
     """The default run (the README's test command, .ci/run) leaves out the
     tests marked slow: deep checks that compile for minutes on a small CPU.
     ``-m`` decides instead when given (``-m slow``: only those), and a test
     named on the command line (``path::name``) runs whatever its mark; the
-    other slow tests of the same run stay out. With ``-m slow`` the files of
-    SLOW_FILES_LONGEST_FIRST come first, in that order."""
+    other slow tests of the same run stay out."""
     if config.option.markexpr:
-        if config.option.markexpr.strip() != "slow":
-            return
-        rank = {name: k for k, name in enumerate(SLOW_FILES_LONGEST_FIRST)}
-        items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: in-file order kept
         return
     named = [str(a).split("::", 1)[1] for a in config.args if "::" in str(a)]
 

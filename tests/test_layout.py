@@ -177,14 +177,3 @@ def test_a_command_parses_calls_one_job_and_prints(command):
     assert not beyond, f"{command} imports more than its job and what it prints: {beyond}"
     text = MODULES[command].read_text()
     assert "load_model" not in text and "gains_file" not in text and "default_gains" not in text
-
-
-def test_the_slow_tier_orders_every_slow_file():
-    """tests/conftest.py hands the slow tier's files to its workers longest
-    first: every file with a slow test is in its list, and nothing else."""
-    from conftest import SLOW_FILES_LONGEST_FIRST  # tests/ is on sys.path: pytest's rootdir conftest
-
-    slow = re.compile(r"^\s*@pytest\.mark\.slow\b|^pytestmark\b.*\bslow\b", re.M)
-    marked = {p.name for p in (ROOT / "tests").glob("test_*.py") if slow.search(p.read_text())}
-    assert marked == set(SLOW_FILES_LONGEST_FIRST)
-    assert len(SLOW_FILES_LONGEST_FIRST) == len(marked)
