@@ -157,9 +157,10 @@ def test_no_recompilation_on_new_values(model, batched):
 def test_gains_given_as_python_numbers_share_the_compiled_rollout(model, rollouts):
     """rollout() makes weak-typed gains and scenario fields (a Python number,
     jnp.asarray(0.2)) strong and every argument committed to the device
-    first: one program for all of them (a weak float, or an array committed to a device, as a computation on
-    the model's arrays returns it, was another argument type, another 29 s
-    compile), with the same values as the strong array."""
+    first: one program for all of them (a weak float, or an array committed
+    to a device, as a computation on the model's arrays returns it, was
+    another argument type, another 29 s compile), with the same values as
+    the strong array."""
     s, g = rollouts["scenario"], rollouts["gains"]
     program = _rollout._jitted(model, TEST_DURATION, 1)
     strong = rollout(model, g._replace(k_rl=jnp.asarray(np.float64(0.2))), s, duration=TEST_DURATION)
