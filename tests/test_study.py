@@ -203,6 +203,28 @@ def test_each_controller_of_a_study_starts_from_its_own_defaults(model, tmp_path
     assert seen["evaluated_k_rk"] == {"classical": 0.5, **own}  # the defaults scored, the reference's too
 
 
+def test_a_resumed_study_adds_bounds_seeds_and_controllers_and_tunes_only_those(model, tmp_path, fake_study):
+    """--resume with more bounds, seeds or controllers than the study ran tunes
+    the new runs only and reports them beside the old; one that leaves a saved
+    entry out is another study, refused by name."""
+    calls, _ = fake_study
+    two = ("classical", "synchronous")
+    cfg = study_mod.StudyConfig(controllers=two, bounds=(1.0,), seeds=(0,), heldout_batch=4, bootstrap=100)
+    out = str(tmp_path / "study")
+    study_mod.run_study(model, cfg, out, log=lambda m: None)
+    assert [c[:3] for c in calls] == [("classical", 6.0, 0), ("synchronous", 6.0, 0)]
+    three = (*two, "task_space")
+    more = study_mod.StudyConfig(**{**cfg.__dict__, "controllers": three, "bounds": (1.0, 1.5), "seeds": (0, 1)})
+    report = study_mod.run_study(model, more, out, resume=True, log=lambda m: None)
+    assert len(calls) == 12 and len({c[:3] for c in calls}) == 12  # the 10 new runs, the first two not again
+    assert report["bounds_reported"] == [1.0, 1.5] and report["runs_done"] == 12
+    assert {(r["controller"], r["bound"]) for r in report["rows"]} == {(c, b) for c in three for b in (None, 1.0, 1.5)}
+    fewer = study_mod.StudyConfig(**{**more.__dict__, "bounds": (1.5,)})
+    with pytest.raises(Exception, match="bounds differ"):
+        study_mod.run_study(model, fewer, out, resume=True, log=lambda m: None)
+    assert len(calls) == 12
+
+
 def test_study_cli_rejects_bad_input(tmp_path, capsys):
     out = tmp_path / "o"
     for args, msg in [

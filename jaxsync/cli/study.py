@@ -116,7 +116,11 @@ def add_parser(subparsers):
         help="the desired grip force randomised +- this share in every scenario (0.2: 8 to 12 N)",
     )
     p.add_argument("--out", default="results/study", help="output folder (results/study)")
-    p.add_argument("--resume", action="store_true", help="continue the study in --out")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the study in --out (adding any new --controllers, --bounds or --seeds)",
+    )
     p.add_argument("--restart", action="store_true", help="discard the study in --out and start over")
     p.add_argument(
         "--report-only",

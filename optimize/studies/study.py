@@ -164,7 +164,7 @@ def _prepare(out: str, cfg: StudyConfig, model_name: str, resume: bool, restart:
             diff = _differences(saved, cfg, model_name)
             raise ConfigError(
                 f"the study in {out!r} was run with other settings ({', '.join(diff)} differ): resume it with "
-                "those, or restart it",
+                "those (a resumed study may add controllers, bounds or seeds), or restart it",
                 inputs=("resume", "restart"),
             )
     elif resume:
@@ -178,11 +178,24 @@ def model_label(model) -> str:
     return f"{model.name} ({model.path}, fingerprint {model.fingerprint[:12]})"
 
 
+# the lists of runs a resumed study may extend: every run is tuned and scored
+# on its own (the held-out, validation and reference scenarios do not depend
+# on them), and the report is drawn from every run on disk
+EXTENSIBLE = ("controllers", "bounds", "seeds")
+
+
 def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
     """The settings in which a saved study differs from ``cfg`` (a setting the
-    file does not hold counts at its default)."""
+    file does not hold counts at its default). A list of ``EXTENSIBLE`` that
+    keeps every saved entry and adds others does not differ."""
     held = {**StudyConfig().describe(), **ABSENT_MEANS, **(saved.get("config") or {})}
-    diff = [k for k, v in cfg.describe().items() if held.get(k) != v]
+
+    def same(k, v):
+        if k in EXTENSIBLE and isinstance(held.get(k), list):
+            return set(held[k]) <= set(v)
+        return held.get(k) == v
+
+    diff = [k for k, v in cfg.describe().items() if not same(k, v)]
     return diff + ([f"model: {saved.get('model')} then, {model_name} now"] if saved.get("model") != model_name else [])
 
 
