@@ -206,13 +206,17 @@ def test_each_controller_of_a_study_starts_from_its_own_defaults(model, tmp_path
 def test_a_resumed_study_adds_bounds_seeds_and_controllers_and_tunes_only_those(model, tmp_path, fake_study):
     """--resume with more bounds, seeds or controllers than the study ran tunes
     the new runs only and reports them beside the old; one that leaves a saved
-    entry out is another study, refused by name."""
+    entry out is another study, refused by name. A cost weight the saved
+    study does not name counts at its default."""
     calls, _ = fake_study
     two = ("classical", "synchronous")
     cfg = study_mod.StudyConfig(controllers=two, bounds=(1.0,), seeds=(0,), heldout_batch=4, bootstrap=100)
     out = str(tmp_path / "study")
     study_mod.run_study(model, cfg, out, log=lambda m: None)
     assert [c[:3] for c in calls] == [("classical", 6.0, 0), ("synchronous", 6.0, 0)]
+    saved = json.loads((tmp_path / "study" / "study.json").read_text())
+    del saved["config"]["weights"]["friction_margin"]  # as a study saved before that weight existed
+    (tmp_path / "study" / "study.json").write_text(json.dumps(saved))
     three = (*two, "task_space")
     more = study_mod.StudyConfig(**{**cfg.__dict__, "controllers": three, "bounds": (1.0, 1.5), "seeds": (0, 1)})
     report = study_mod.run_study(model, more, out, resume=True, log=lambda m: None)

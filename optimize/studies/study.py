@@ -185,10 +185,15 @@ EXTENSIBLE = ("controllers", "bounds", "seeds")
 
 
 def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
-    """The settings in which a saved study differs from ``cfg`` (a setting the
-    file does not hold counts at its default). A list of ``EXTENSIBLE`` that
-    keeps every saved entry and adds others does not differ."""
-    held = {**StudyConfig().describe(), **ABSENT_MEANS, **(saved.get("config") or {})}
+    """The settings in which a saved study differs from ``cfg``. A setting
+    the file does not hold, also one within another (a cost weight added
+    since), counts at its default; a list of ``EXTENSIBLE`` that keeps every
+    saved entry and adds others does not differ."""
+    default = {**StudyConfig().describe(), **ABSENT_MEANS}
+    held = {**default, **(saved.get("config") or {})}
+    for k, v in default.items():  # a setting added since (a cost weight) counts at its default too
+        if isinstance(v, dict) and isinstance(held[k], dict):
+            held[k] = {**v, **held[k]}
 
     def same(k, v):
         if k in EXTENSIBLE and isinstance(held.get(k), list):
