@@ -4,18 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import types
 
 import numpy as np
 import pytest
-from conftest import ctrl_c_in_a_gc_callback
+from conftest import fake_study_parts
 
 from jaxsync._errors import ConfigError
 from jaxsync.cli import build_parser, main
 from jaxsync.optimize.studies import study as study_mod
 from jaxsync.optimize.studies import study_report as report_mod
-from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import pipeline as pipeline_mod
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.sim.actuation import Stack
@@ -69,54 +66,9 @@ def test_summarise_pools_seeds_and_leaves_dropped_scenarios_out():
 
 
 @pytest.fixture
-def fake_study(monkeypatch, model):
-    """The tuning runs and the held-out rollouts replaced by stand-ins: each
-    controller's settled peaks are a fixed multiple of the classical one's."""
-    scale = {"classical": 1.0, "synchronous": 0.25, "object_impedance": 0.9, "task_space": 0.5, "ros2_synchronous": 0.3}
-    calls = []
-    n = 4
-
-    def fake_evaluator(model, duration, controller="synchronous", **stack):
-        fake_study_interrupt.setdefault("stacks", []).append(stack)
-
-        def evaluate(g, scenarios):
-            fake_study_interrupt.setdefault("evaluated_k_rk", {})[controller] = float(g.k_rk)
-            peaks = np.linspace(0.05, 0.08, n) * scale[controller]
-            fields = {f: np.full(n, 0.01) for f in Metrics._fields}
-            fields.update(
-                settled_peak_resultant_N=peaks,
-                dropped=np.zeros(n, bool),
-                nonfinite=np.zeros(n, bool),
-                chattering=np.zeros(n, bool),
-                first_impact_peak_N=np.full(n, 6.0),
-                drop_time_s=np.full(n, np.nan),
-            )
-            return Metrics(**fields)
-
-        return evaluate
-
-    def fake_tune(model, base, cfg, *, out, resume, restart, before, **kw):
-        calls.append((cfg.problem.controller, cfg.problem.max_impact_N, cfg.data.seed, resume))
-        fake_study_interrupt.setdefault("tuned_from_k_rk", {})[cfg.problem.controller] = float(base.k_rk)
-        fake_study_interrupt.setdefault("tune_stacks", []).append((cfg.stack(), cfg.data.servo_spread))
-        if len(calls) == fake_study_interrupt.get("at"):
-            raise KeyboardInterrupt
-        if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
-            ctrl_c_in_a_gc_callback()  # Python's own handler: lost, and the run goes on
-        after = dict(before)
-        after["metrics"] = dict(before["metrics"])
-        after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
-        after["within_bounds"] = True
-        summary = {"heldout_before": before, "heldout_after": after, "controller": cfg.problem.controller, "bounds": {}}
-        os.makedirs(out, exist_ok=True)
-        with open(os.path.join(out, "summary.json"), "w") as f:
-            json.dump(summary, f)
-        return types.SimpleNamespace(to_dict=lambda: summary)
-
-    fake_study_interrupt = {}
-    monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
-    monkeypatch.setattr(pipeline_mod, "tune_and_evaluate", fake_tune)
-    return calls, fake_study_interrupt
+def fake_study(monkeypatch):
+    """The tuning runs and the held-out rollouts replaced by stand-ins (conftest.fake_study_parts)."""
+    return fake_study_parts(monkeypatch)
 
 
 def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_study):
