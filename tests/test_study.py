@@ -320,3 +320,28 @@ def test_the_reference_gains_count_as_within_their_own_bound():
     rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
     assert rows[("classical", 1.0)]["within_bounds"] == 2 and rows[("synchronous", 1.0)]["within_bounds"] == 0
     assert "validation scenarios" in report["bound_rule"] and "(1 + 0.001)" in report_mod.table(report)[0]
+
+
+def test_the_plot_labels_a_controllers_coinciding_bounds_once():
+    """A controller whose runs ended within the tighter bound sits at one point
+    for both: one label, "x1, x1.5", not two drawn over each other."""
+
+    def row(controller, bound, x, y):
+        return {
+            "controller": controller,
+            "bound": bound,
+            "settled_peak_resultant_N": {"median": y},
+            "apparent_stiffness_normal_N_per_m": {"median": x},
+        }
+
+    rows = [
+        row("rule", None, 2e4, 0.067),
+        row("rule", 1.0, 1.51e4, 0.01373),
+        row("rule", 1.5, 1.5101e4, 0.013731),
+        row("synchronous", 1.0, 1.8e4, 0.041),
+        row("synchronous", 1.5, 2.1e4, 0.022),
+        row("classical", 1.0, 1.51e4, 0.01373),  # another controller at the same point keeps its own label
+    ]
+    labels = report_mod.bound_labels(rows, "apparent_stiffness_normal_N_per_m")
+    assert [text for _, text in labels] == ["x1, x1.5", "x1", "x1.5", "x1"]
+    assert labels[0][0] == (1.51e4, 0.01373)

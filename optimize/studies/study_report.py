@@ -219,6 +219,24 @@ def write(out: str, report: dict) -> None:
     pareto_plot(report, os.path.join(out, "pareto.png"))
 
 
+def bound_labels(rows: list[dict], xkey: str, rtol: float = 0.01) -> list[tuple[tuple[float, float], str]]:
+    """Each tuned point's label on the plot against ``xkey``: its bound
+    ("x1.5"), one label for a controller's bounds whose points coincide
+    within ``rtol`` (runs that ended within the tighter bound: "x1, x1.5")."""
+    out: list[tuple[tuple[float, float], list[str], str]] = []
+    for r in rows:
+        y, x = r["settled_peak_resultant_N"]["median"], r[xkey]["median"]
+        if r["bound"] is None or y is None or x is None:
+            continue
+        for (px, py), names, controller in out:
+            if controller == r["controller"] and abs(px - x) <= rtol * abs(px) and abs(py - y) <= rtol * abs(py):
+                names.append(f"x{r['bound']:g}")
+                break
+        else:
+            out.append(((x, y), [f"x{r['bound']:g}"], r["controller"]))
+    return [(point, ", ".join(names)) for point, names, _ in out]
+
+
 def pareto_plot(report: dict, path: str) -> None:
     """Settled peak resultant (median, quartiles as bars) against the apparent
     normal stiffness and the first-impact peak: one colour per controller,
@@ -240,14 +258,8 @@ def pareto_plot(report: dict, path: str) -> None:
             yerr = [[y["median"] - y["q25"]], [y["q75"] - y["median"]]]
             ax.errorbar(x["median"], y["median"], yerr=yerr, fmt="none", ecolor=colours[r["controller"]], alpha=0.5)
             ax.scatter(x["median"], y["median"], s=size, facecolors=face, edgecolors=colours[r["controller"]])
-            if r["bound"] is not None:
-                ax.annotate(
-                    f"x{r['bound']:g}",
-                    (x["median"], y["median"]),
-                    fontsize=7,
-                    xytext=(4, 2),
-                    textcoords="offset points",
-                )
+        for (x, y), text in bound_labels(report["rows"], xkey):
+            ax.annotate(text, (x, y), fontsize=7, xytext=(4, 2), textcoords="offset points")
         ax.set_xscale("log")
         ax.set_yscale("log")
         for axis in (ax.xaxis, ax.yaxis):  # plain numbers at 1, 2, 5 per decade (a range under a decade stays legible)
