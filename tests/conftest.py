@@ -326,17 +326,18 @@ def fake_study_parts(monkeypatch):
     Returns the runs tuned, (controller, first-impact bound, seed, resumed),
     and a dict of what the stand-ins were given (``tuned``: each run's
     controller, starting gains and scenario settings; ``evaluated``: each
-    controller, gains and scenarios scored)."""
+    controller, gains and scenarios scored), in which a test may also set
+    ``at`` (the run that raises KeyboardInterrupt) or ``ctrl_c_lost_at``."""
     scale = {"classical": 1.0, "synchronous": 0.25, "object_impedance": 0.9, "task_space": 0.5, "ros2_synchronous": 0.3}
     calls = []
     n = 4
 
     def fake_evaluator(model, duration, controller="synchronous", **stack):
-        fake_study_interrupt.setdefault("stacks", []).append(stack)
+        seen.setdefault("stacks", []).append(stack)
 
         def evaluate(g, scenarios):
-            fake_study_interrupt.setdefault("evaluated_k_rk", {})[controller] = float(g.k_rk)
-            fake_study_interrupt.setdefault("evaluated", []).append((controller, g, scenarios))
+            seen.setdefault("evaluated_k_rk", {})[controller] = float(g.k_rk)
+            seen.setdefault("evaluated", []).append((controller, g, scenarios))
             peaks = np.linspace(0.05, 0.08, n) * scale[controller]
             fields = {f: np.full(n, 0.01) for f in Metrics._fields}
             fields.update(
@@ -353,12 +354,12 @@ def fake_study_parts(monkeypatch):
 
     def fake_tune(model, base, cfg, *, out, resume, restart, before, **kw):
         calls.append((cfg.problem.controller, cfg.problem.max_impact_N, cfg.data.seed, resume))
-        fake_study_interrupt.setdefault("tuned_from_k_rk", {})[cfg.problem.controller] = float(base.k_rk)
-        fake_study_interrupt.setdefault("tuned", []).append((cfg.problem.controller, base, dict(cfg.training.scenario)))
-        fake_study_interrupt.setdefault("tune_stacks", []).append((cfg.stack(), cfg.data.servo_spread))
-        if len(calls) == fake_study_interrupt.get("at"):
+        seen.setdefault("tuned_from_k_rk", {})[cfg.problem.controller] = float(base.k_rk)
+        seen.setdefault("tuned", []).append((cfg.problem.controller, base, dict(cfg.training.scenario)))
+        seen.setdefault("tune_stacks", []).append((cfg.stack(), cfg.data.servo_spread))
+        if len(calls) == seen.get("at"):
             raise KeyboardInterrupt
-        if len(calls) == fake_study_interrupt.get("ctrl_c_lost_at"):
+        if len(calls) == seen.get("ctrl_c_lost_at"):
             ctrl_c_in_a_gc_callback()  # Python's own handler: lost, and the run goes on
         after = dict(before)
         after["metrics"] = dict(before["metrics"])
@@ -370,7 +371,7 @@ def fake_study_parts(monkeypatch):
             json.dump(summary, f)
         return types.SimpleNamespace(to_dict=lambda: summary)
 
-    fake_study_interrupt = {}
+    seen = {}
     monkeypatch.setattr(loss_mod, "make_evaluator", fake_evaluator)
     monkeypatch.setattr(pipeline_mod, "tune_and_evaluate", fake_tune)
-    return calls, fake_study_interrupt
+    return calls, seen
