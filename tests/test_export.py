@@ -90,11 +90,11 @@ def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_wi
     a damping_ratio edited in an admittance file is what is read back (the D
     kept beside it only while the ratio still gives it); a newer schema, or a
     file written before the schema had a version, is said."""
-    g = _tuned_like()
+    g = _tuned_like()._replace(ff_vel=np.float64(0.0041234567891), ff_acc=np.float64(0.00123456789012))
     _export.export(g, "ros2-admittance", str(tmp_path))
     path = tmp_path / "synchronisation.yaml"
     sync = yaml.safe_load(path.read_text())["dual_arm_synchronisation"]["ros__parameters"]
-    assert sync["schema_version"] == _export.SYNC_SCHEMA == 1
+    assert sync["schema_version"] == _export.SYNC_SCHEMA == 2
     documented = open(os.path.join(os.path.dirname(__file__), "..", "docs", "export.md")).read()
     for key in sync:
         assert f"`{key}`" in documented, f"synchronisation.yaml key {key} is not documented in docs/export.md"
@@ -109,9 +109,17 @@ def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_wi
     expected = 2 * 0.5 * np.sqrt(adm["mass"][0] * adm["stiffness"][0])
     assert float(back.imp_damping[0, 0]) == pytest.approx(expected, rel=1e-12) != float(g.imp_damping[0, 0])
     np.testing.assert_array_equal(np.asarray(back.imp_damping)[1], np.asarray(g.imp_damping)[1])
+    assert (float(back.ff_vel), float(back.ff_acc)) == (float(g.ff_vel), float(g.ff_acc))
     written = path.read_text()
-    for version, message in ((2, "schema_version 2 is not one this jaxsync reads"), ("one", "'one'")):
-        path.write_text(written.replace("schema_version: 1", f"schema_version: {version}"))
+    # schema 1 had no feed-forward: such a file reads it as none
+    path.write_text(
+        "\n".join(x for x in written.splitlines() if not x.lstrip().startswith(("ff_vel", "ff_acc"))).replace(
+            "schema_version: 2", "schema_version: 1"
+        )
+    )
+    assert float(gains_file.load(tmp_path).ff_acc) == 0.0 == float(gains_file.load(tmp_path).ff_vel)
+    for version, message in ((3, "schema_version 3 is not one this jaxsync reads"), ("one", "'one'")):
+        path.write_text(written.replace("schema_version: 2", f"schema_version: {version}"))
         with pytest.raises(ConfigError, match=message):
             gains_file.load(tmp_path)
 

@@ -24,7 +24,8 @@ def recorded(model, tmp_path_factory):
     out = {}
     for controller in ("synchronous", "ros2_admittance"):
         folder = str(tmp_path_factory.mktemp(controller))
-        g = jaxsync.default_gains(model, "position")
+        # the command's feed-forward on: `sent` differs from `command` while the plan moves
+        g = jaxsync.default_gains(model, "position")._replace(ff_vel=np.float64(0.004), ff_acc=np.float64(0.0013))
         golden.export_golden(
             model, g, folder, controller=controller, steps=STEPS, stack=Stack("position", delay=(1, 1))
         )
@@ -47,6 +48,8 @@ def test_the_files_replay_exactly_and_name_every_column(recorded, controller):
     state = [c for c in outputs if c.startswith("state.")]
     assert state and all(np.array_equal(outputs[c][:-1], inputs["state_in." + c[6:]][1:]) for c in state)
     assert np.array_equal(outputs["command[0]"][:-1], inputs["command_in[0]"][1:])
+    lead = np.abs(np.asarray(outputs["sent[0]"]) - np.asarray(outputs["command[0]"])).max()
+    assert lead > 1e-6 if controller == "synchronous" else lead == 0.0  # the rule has no feed-forward
 
 
 def test_the_replay_sees_a_changed_input(recorded, tmp_path):

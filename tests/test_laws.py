@@ -115,6 +115,31 @@ def test_the_position_command_refines_the_planned_twist_alone(n):
     np.testing.assert_array_equal(rate(jnp.asarray(compliance), jnp.zeros(6)), rate(jnp.asarray(compliance), None))
 
 
+def test_the_command_feed_forward_is_the_damped_least_squares_of_the_plan():
+    """dq_ff = J# (ff_vel dx_plan + ff_acc ddx_plan) per arm for jaxsync's
+    laws, nothing for ros2_controllers' rule (it has no such term) and
+    nothing with both gains 0 (the defaults)."""
+    from jaxsync.control import controller as _controller  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    jacs = [rng.normal(size=(6, 7)) for _ in range(2)]
+    arms = tuple(_laws_arm(jnp.asarray(j), rng) for j in jacs)
+    vel, acc = rng.normal(size=(2, 6)), rng.normal(size=(2, 6))
+    ref = SimpleNamespace(pad_vel=jnp.asarray(vel), pad_acc=jnp.asarray(acc))
+    g = default_gains()._replace(ff_vel=jnp.asarray(0.004), ff_acc=jnp.asarray(0.0013))
+    alpha = _joint_space.COMMAND_ALPHA
+    dls = [np.linalg.solve(j.T @ j + alpha * np.eye(7), j.T) for j in jacs]
+    want = np.concatenate([d @ (0.004 * v + 0.0013 * a) for d, v, a in zip(dls, vel, acc, strict=True)])
+    opts = _controller.ControllerOptions
+    for kind in ("classical", "synchronous", "object_impedance", "task_space"):
+        got = _controller.command_feedforward(opts(kind=kind), g, arms, ref)
+        np.testing.assert_allclose(np.asarray(got), want, rtol=1e-12, atol=1e-15)
+    rule = _controller.command_feedforward(opts(kind="ros2_admittance"), g, arms, ref)
+    np.testing.assert_array_equal(np.asarray(rule), 0.0)
+    none = _controller.command_feedforward(opts(kind="synchronous"), default_gains(), arms, ref)
+    np.testing.assert_array_equal(np.asarray(none), 0.0)
+
+
 def _laws_arm(jac, rng):
     """The parts of an arm's sensed state the position command reads."""
     return SimpleNamespace(

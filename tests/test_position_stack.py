@@ -289,3 +289,19 @@ def test_mujoco_c_runs_the_same_position_stack(position_rollouts, model, shared_
     np.testing.assert_allclose(float(mc.settled_peak_resultant_N), float(mx.settled_peak_resultant_N), rtol=0.05)
     np.testing.assert_allclose(float(mc.grip_force_error_rel), float(mx.grip_force_error_rel), rtol=0.05, atol=1e-4)
     assert float(jnp.abs(x.obj_pos - c.obj_pos).max()) < 5e-4
+
+
+def test_the_servo_gets_the_plan_fed_forward_and_mujoco_c_runs_it_too(position_rollouts, model, shared_rollout):
+    """With the command's feed-forward (ff_vel, ff_acc) the servo gets the
+    integrated command plus J# (ff_vel dx_plan + ff_acc ddx_plan): the
+    joints move otherwise while the plan moves, the ball is held, and
+    MuJoCo C runs the same."""
+    s, plain = position_rollouts[3]
+    g = jaxsync.default_gains(model)._replace(ff_vel=jnp.asarray(0.006), ff_acc=jnp.asarray(1e-4))
+    x = shared_rollout(model, g, s, duration=TEST_DURATION, actuation="position")
+    c = shared_rollout(model, g, s, duration=TEST_DURATION, actuation="position", backend="mujoco")
+    assert float(jnp.abs(x.qpos - plain.qpos).max()) > 1e-4  # the plan's feed-forward moves the joints
+    mx, mc = _metrics.summarize(x, s), _metrics.summarize(c, s)
+    assert not bool(mx.dropped) and not bool(mx.chattering)
+    np.testing.assert_allclose(float(mc.settled_peak_resultant_N), float(mx.settled_peak_resultant_N), rtol=0.05)
+    assert float(jnp.abs(x.obj_pos - c.obj_pos).max()) < 5e-4

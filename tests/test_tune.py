@@ -506,34 +506,45 @@ def test_the_rule_plus_the_coupling_tunes_from_its_own_defaults(model, tmp_path,
 
 
 def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_path, fake_tuning, monkeypatch):
-    """A controller's default set gains kp_pos on position-controlled arms
-    whose servo lowered the joint-command loop (the iiwa-like pair's stands
-    in here for the paper model's, which does not), for jaxsync's own laws
-    only; named parameters, a frozen kp_pos, the torque stack and the rule
-    keep their sets; the job says why and records the set it tuned."""
+    """A controller's default set gains kp_pos and the command's feed-forward
+    (ff_vel, ff_acc) on position-controlled arms whose servo lowered the
+    joint-command loop (the iiwa-like pair's stands in here for the paper
+    model's, which does not), for jaxsync's own laws only; named parameters,
+    what is frozen, the torque stack and the rule keep their sets; the
+    feed-forward is refused where there is no joint command (torque) or no
+    law that reads it (the rule); the job says why and records the set it
+    tuned."""
     robots = os.path.join(os.path.dirname(jaxsync.default_model_path()), "robots")
     iiwa = jaxsync.load_model(os.path.join(robots, "iiwa14_pair.yaml"), visual=False)
     assert _gains.servo_limits_loop(iiwa) and not _gains.servo_limits_loop(model)
     sync = _params.spec_for("synchronous")
-    assert sync.for_model("synchronous", iiwa, "position").tuned == _params.DEFAULT_TUNED + ("kp_pos",)
+    added = ("kp_pos", "ff_vel", "ff_acc")
+    assert sync.for_model("synchronous", iiwa, "position").tuned == _params.DEFAULT_TUNED + added
     assert sync.for_model("synchronous", model, "position") is sync
     assert sync.for_model("synchronous", iiwa, "torque") is sync
     classical = _params.spec_for("classical")
-    assert classical.for_model("classical", iiwa, "position").tuned[-1] == "kp_pos"
+    assert classical.for_model("classical", iiwa, "position").tuned[-3:] == added
+    got = _params.spec_for("synchronous", frozen=["kp_pos"]).for_model("synchronous", iiwa, "position")
+    assert got.tuned == _params.DEFAULT_TUNED + ("ff_vel", "ff_acc")
     for spec in (
         _params.spec_for("synchronous", ["k_rk", "imp_mass"]),
-        _params.spec_for("synchronous", frozen=["kp_pos"]),
+        _params.spec_for("synchronous", frozen=list(added)),
     ):
         assert spec.for_model("synchronous", iiwa, "position") is spec
+    fed = _params.spec_for("synchronous", ["k_rk", "ff_acc"])
+    with pytest.raises(jaxsync.ConfigError, match="ff_acc: the joint command's feed-forward acts on position-"):
+        fed.for_model("synchronous", model, "torque")
+    with pytest.raises(jaxsync.ConfigError, match="the ros2_admittance controller does not use ff_vel"):
+        _params.check_tuned(("imp_mass", "ff_vel"), "ros2_admittance")
     rule = _params.spec_for("ros2_admittance")
     assert rule.for_model("ros2_admittance", iiwa, "position") is rule
     monkeypatch.setattr(_params, "servo_limits_loop", lambda m: True)
     said = []
     cfg = TuneConfig(iterations=1, actuation="position", delay=(0, 3))
     _run_tune(model, tmp_path / "run", cfg, log=said.append)
-    assert fake_tuning["cfg"].problem.tuned.tuned[-1] == "kp_pos"
-    assert json.loads((tmp_path / "run" / "summary.json").read_text())["tune"]["tuned"][-1] == "kp_pos"
-    assert any(line.startswith("kp_pos is tuned too") and "lambda = 40 1/s" in line for line in said)
+    assert fake_tuning["cfg"].problem.tuned.tuned[-3:] == added
+    assert tuple(json.loads((tmp_path / "run" / "summary.json").read_text())["tune"]["tuned"][-3:]) == added
+    assert any(line.startswith("kp_pos, ff_vel, ff_acc are tuned too") and "lambda = 40 1/s" in line for line in said)
     cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position")
     _run_tune(model, tmp_path / "rule", cfg)
     assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")

@@ -302,6 +302,23 @@ def step_position(
     return jnp.concatenate(out), state, info
 
 
+def command_feedforward(options: ControllerOptions | ControllerSwitch, gains: Gains, arms, ref: Reference) -> jax.Array:
+    """(2 n,) what each arm's joint command gains on its way to the servo:
+    the plan's feed-forward (``jaxsync.control.joint_space.plan_feedforward``,
+    gains ``ff_vel`` and ``ff_acc``) for jaxsync's laws; zero for
+    ros2_controllers' rule, which has none. :func:`step_position` returns
+    the integrated command; the servo gets that plus this."""
+    n = arms[0].jac.shape[1]
+    if not isinstance(options, ControllerSwitch) and options.kind in POSITION_ONLY:
+        return jnp.zeros(2 * n, dtype=arms[0].jac.dtype)
+    return jnp.concatenate(
+        [
+            _joint_space.plan_feedforward(arms[i], ref.pad_vel[i], ref.pad_acc[i], gains.ff_vel, gains.ff_acc)
+            for i in range(2)
+        ]
+    )
+
+
 def _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter):
     pads = Pads.of(arms)
     delta = jnp.stack(

@@ -26,6 +26,12 @@ class Gains(NamedTuple):
     kp_pos, kd_pos: inner position loop on x_ik - x_i (eq. 18), 1/s^2 and 1/s,
       translation and rotation.
     kp_null, kd_null: null-space posture term of eq. 18.
+    ff_vel, ff_acc: position-controlled arms only: the joint command's
+      feed-forward of the plan, s and s^2. The command sent to the servo is
+      the integrated command plus J# (ff_vel dx_plan + ff_acc ddx_plan)
+      (``jaxsync.control.joint_space.plan_feedforward``): a lead over the
+      command delay, and the inverse of a joint servo's inertial lag (I_j /
+      k_j = 1 / w_j^2). Zero by default (none).
 
     The baselines' own gains ((6,) arrays in the planned pad frame of the
     right arm, which is the object frame: x, y tangential, z the clamp
@@ -54,6 +60,8 @@ class Gains(NamedTuple):
     obj_stiffness: jax.Array
     force_p: jax.Array
     force_i: jax.Array
+    ff_vel: jax.Array
+    ff_acc: jax.Array
 
 
 # the gains each controller reads besides the shared joint-space law's (kp_pos, kd_pos, kp_null, kd_null)
@@ -137,6 +145,8 @@ def default_gains(model=None, actuation: str = "torque", controller: str | None 
         # in rotation proportional at the classical 1/K_d
         force_p=np.array([1 / 1500, 1 / 1500, 1e-4, 1 / 40, 1 / 40, 1 / 40]),
         force_i=np.array([1e-4, 1e-4, 1 / 2000, 1e-3, 1e-3, 1e-3]),
+        ff_vel=0.0,
+        ff_acc=0.0,
     )
     return strongly_typed(g)
 
@@ -265,6 +275,11 @@ def classical_equivalent(g: Gains) -> Gains:
 
 # ----------------------------------------------------------------- validation
 
+FF_VEL_MAX = 0.05
+"""|ff_vel| <= 0.05 s: 25 control periods of lead at 500 Hz."""
+FF_ACC_MAX = 0.01
+"""|ff_acc| <= 0.01 s^2: the inertial lag of a joint servo of 10 rad/s."""
+
 _BOUNDS = {
     "imp_mass": (0.0, math.inf, False),
     "imp_damping": (0.0, math.inf, False),
@@ -282,6 +297,8 @@ _BOUNDS = {
     "obj_stiffness": (0.0, math.inf, True),
     "force_p": (0.0, math.inf, True),
     "force_i": (0.0, math.inf, True),
+    "ff_vel": (-FF_VEL_MAX, FF_VEL_MAX, True),
+    "ff_acc": (-FF_ACC_MAX, FF_ACC_MAX, True),
 }
 
 

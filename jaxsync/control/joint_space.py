@@ -123,3 +123,33 @@ def command_rate(
     if plan_vel is not None:
         rate = rate + dls @ (plan_vel - jac @ (dls @ plan_vel))
     return rate
+
+
+def plan_feedforward(
+    arm: ArmState,
+    plan_vel: jax.Array,
+    plan_acc: jax.Array,
+    ff_vel: jax.Array,
+    ff_acc: jax.Array,
+    alpha: float = COMMAND_ALPHA,
+) -> jax.Array:
+    """(n,) the joint command's feed-forward of the plan, rad:
+
+        dq_ff = J# (ff_vel dx_plan + ff_acc ddx_plan),   J# = (J^T J + alpha I)^-1 J^T
+
+    added to the integrated command on its way to the servo (the integrator
+    does not see it, so at rest, with the plan still, the command is
+    unchanged). A joint servo with stiffness k_j, damping b_j on the
+    velocity error and inertia I_j follows a command with an error that
+    obeys I_j e'' + b_j e' + k_j e = I_j q''_cmd: it lags I_j / k_j q'' behind
+    an accelerating command, and releases that lag into its own lightly
+    damped mode when the acceleration ends. ff_acc = I_j / k_j = 1 / w_j^2
+    cancels it to first order; ff_vel leads the plan over a command delay
+    (a delay of N periods: N dt).
+
+    Args: plan_vel, plan_acc (6,) the planned pad twist and its rate;
+    ff_vel (s), ff_acc (s^2). Returns (n,) rad.
+    """
+    jac = arm.jac
+    dls = jnp.linalg.solve(jac.T @ jac + alpha * jnp.eye(jac.shape[1]), jac.T)
+    return dls @ (ff_vel * plan_vel + ff_acc * plan_acc)

@@ -72,8 +72,10 @@ MEANING = {
     "obj_stiffness": ("K_E, object-level impedance (object_impedance)", "N/m for x, y, z; N m/rad for rx, ry, rz"),
     "force_p": ("K_P, internal-force loop (task_space)", "m/N for x, y, z; rad/(N m) for rx, ry, rz"),
     "force_i": ("K_I, internal-force loop (task_space)", "m/(N s) for x, y, z; rad/(N m s) for rx, ry, rz"),
+    "ff_vel": ("the joint command's feed-forward of the planned twist (position-controlled arms)", "s"),
+    "ff_acc": ("the joint command's feed-forward of the planned acceleration (position-controlled arms)", "s^2"),
 }
-SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null")
+SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null", "ff_vel", "ff_acc")
 # the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
 BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")
 HEADER = "jaxsync_gains"
@@ -270,7 +272,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     return "\n".join(lines) + "\n"
 
 
-SYNC_SCHEMA = 1  # synchronisation.yaml's schema version (docs/export.md, "synchronisation.yaml")
+SYNC_SCHEMA = 2  # synchronisation.yaml's schema version (docs/export.md, "synchronisation.yaml"); 2: ff_vel, ff_acc
 SYNC_NODE = "dual_arm_synchronisation"
 
 
@@ -281,7 +283,8 @@ def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target, warnings=()) -> 
         + (f" synchronous controller adds (task phase '{phase}')" if phase else " synchronous controller adds"),
         "# to the two admittance controllers of admittance_right.yaml and admittance_left.yaml, for a dual-arm",
         "# controller to read (docs/deploy.md gives its update): relative-error factors k_rk, k_lk (eq. 13),",
-        "# compliant-offset factors k_rl, k_ll (eq. 17), the joint-command loop kp_pos, kd_pos, kp_null, kd_null.",
+        "# compliant-offset factors k_rl, k_ll (eq. 17), the joint-command loop kp_pos, kd_pos, kp_null, kd_null",
+        "# and the joint command's feed-forward of the plan ff_vel, ff_acc.",
         f"{SYNC_NODE}:",
         "  ros__parameters:",
         f"    schema_version: {SYNC_SCHEMA}",

@@ -135,6 +135,12 @@ def export_gains(
             f"(docs/ros2-rule.md): check them together (jaxsync compare --actuation position --controllers "
             f"ros2_synchronous{check}, with the robot's --robot) or tune with --controller ros2_synchronous"
         )
+    if fmt == "ros2-admittance" and _fed_forward(g):
+        coupling.append(
+            "WARNING: the joint command's feed-forward (ff_vel, ff_acc) is in synchronisation.yaml only: "
+            "ros2_controllers' admittance controller has none, so the two admittance files alone run without it "
+            "(docs/deploy.md gives the step a port adds)"
+        )
     paths = _export.export(g, fmt, out, target, warnings=tuple(warnings), sync_warnings=tuple(coupling))
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
     if from_file:
@@ -163,6 +169,13 @@ def _phases(gains) -> list[tuple[str | None, Gains]]:
 def _coupled(g) -> bool:
     """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
     return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in COUPLING_FIELDS)
+
+
+def _fed_forward(g) -> bool:
+    """Any phase's ff_vel or ff_acc nonzero."""
+    return any(
+        float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in ("ff_vel", "ff_acc")
+    )
 
 
 def _distro_notes(distro: str) -> list[str]:

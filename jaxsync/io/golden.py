@@ -8,8 +8,9 @@ read in period k: both arms' joint positions and velocities, pad poses,
 twists, Jacobians and pad wrenches (the sensing a port computes from its own
 kinematics and F/T sensor), the reference (plan, desired wrench, rest
 posture), the last joint command and the controller's state before the step;
-the same row of ``outputs.csv`` what it wrote: the joint commands and the
-state after. ``golden.json`` names the columns, units and frames, the gains
+the same row of ``outputs.csv`` what it wrote: the integrated joint
+commands, the commands sent to the servo (with the plan's feed-forward)
+and the state after. ``golden.json`` names the columns, units and frames, the gains
 (``jaxsync.io.export.document``'s form), the period and the stack.
 :func:`replay` runs jaxsync's step on the recorded inputs and returns how far
 its outputs are from the recorded ones, which is what a port's test does.
@@ -42,7 +43,7 @@ from jaxsync.physics.sensing import ArmState
 from jaxsync.sim import actuation as _actuation
 from jaxsync.sim.rollout_mujoco import rollout_mujoco
 
-GOLDEN_FORMAT = 2  # 2: jaxsync's own laws carry the F/T filter's state (wrench_filter)
+GOLDEN_FORMAT = 3  # 2: jaxsync's own laws carry the F/T filter's state (wrench_filter); 3: the command sent
 FILES = ("inputs.csv", "outputs.csv", "golden.json")
 MAX_STEPS = 100_000
 ARMS = ("right", "left")
@@ -100,7 +101,7 @@ def record(model, gains: Gains, scenario, *, controller: str, steps: int, stack:
     inputs, outputs = [], []
     dt = float(model.mj_model.opt.timestep) * stack.substeps(model)
 
-    def on_control(k, arms, ref, command_in, state_in, command, state):
+    def on_control(k, arms, ref, command_in, state_in, command, state, sent):
         row = {"t": k * dt}
         for a, arm in zip(ARMS, arms, strict=True):
             for field, _ in ARM_FIELDS:
@@ -111,7 +112,14 @@ def record(model, gains: Gains, scenario, *, controller: str, steps: int, stack:
         row.update(_flat("command_in", command_in))
         row.update(_state_columns("state_in.", state_in, parts))
         inputs.append(row)
-        outputs.append({"t": k * dt, **_flat("command", command), **_state_columns("state.", state, parts)})
+        outputs.append(
+            {
+                "t": k * dt,
+                **_flat("command", command),
+                **_flat("sent", sent),
+                **_state_columns("state.", state, parts),
+            }
+        )
 
     rollout_mujoco(
         model,
@@ -250,7 +258,12 @@ def replay(folder: str) -> float:
         return state
 
     a = meta.get("ft_filter", 1.0)
-    step = jax.jit(lambda g, s, arms, ref, c: _controller.step_position(options, g, s, arms, ref, meta["dt_s"], c, a))
+
+    def step(g, s, arms, ref, c):
+        command, state, info = _controller.step_position(options, g, s, arms, ref, meta["dt_s"], c, a)
+        return command, command + _controller.command_feedforward(options, g, arms, ref), state, info
+
+    step = jax.jit(step)
     worst = 0.0
     for k in range(int(meta["steps"])):
         arms = tuple(
@@ -269,12 +282,16 @@ def replay(folder: str) -> float:
                 for f, shape in _ref_shapes(n).items()
             }
         )
-        command, state, _ = step(
+        command, sent, state, _ = step(
             gains, state_at(inputs, "state_in.", k), arms, ref, _array(inputs, "command_in", (2 * n,), k)
         )
         want_state = state_at(outputs, "state.", k)
-        got = [command, *(getattr(state, p) for p in parts)]
-        want = [_array(outputs, "command", (2 * n,), k), *(getattr(want_state, p) for p in parts)]
+        got = [command, sent, *(getattr(state, p) for p in parts)]
+        want = [
+            _array(outputs, "command", (2 * n,), k),
+            _array(outputs, "sent", (2 * n,), k),
+            *(getattr(want_state, p) for p in parts),
+        ]
         for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
             worst = max(worst, float(np.max(np.abs(np.asarray(x) - np.asarray(y)), initial=0.0)))
     return worst

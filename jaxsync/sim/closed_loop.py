@@ -110,11 +110,14 @@ def control(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt):
 
 def control_position(options, gains, s, c: Consts, cstate, arms, pad_start, t, dt, command):
     """Plan, desired wrench and one controller step on position-controlled
-    arms: the next joint position commands (2 n,), the state, info, the plan
-    and the reference the controller read."""
+    arms: the next integrated joint commands (2 n,), what the servo is sent
+    (the same plus the plan's feed-forward,
+    ``jaxsync.control.controller.command_feedforward``), the state, info,
+    the plan and the reference the controller read."""
     gains, ref, pl = _planned(gains, s, c, pad_start, t)
     command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command, s.ft_filter)
-    return command, cstate, info, pl, ref
+    sent = command + _controller.command_feedforward(options, gains, arms, ref)
+    return command, sent, cstate, info, pl, ref
 
 
 def initial_command(model: DualArmModel, c: Consts) -> np.ndarray:

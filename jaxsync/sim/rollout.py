@@ -158,10 +158,10 @@ def _controlled_rollout(
             arms = (sensed.right, sensed.left)
             if position:
                 command, buffer = held
-                command, cstate, info, pl, _ = _closed_loop.control_position(
+                command, sent, cstate, info, pl, _ = _closed_loop.control_position(
                     options, gains, s, consts, cstate, arms, pad_start, t, dt, command
                 )
-                buffer = _actuation.push(buffer, command)
+                buffer = _actuation.push(buffer, sent)
                 acting, acting_vel = _actuation.acting(buffer, _actuation.delay_steps(s), dt)
                 held = (command, buffer)
                 for sub in range(control_substeps):

@@ -93,8 +93,9 @@ def rollout_mujoco(
     """The same control law against MuJoCo C (mj_step1 / mj_step2), one environment.
 
     ``on_control`` (position-controlled arms): called each control period k
-    with ``(k, arms, ref, command_in, state_in, command, state)``, what the
-    controller read and wrote (``jaxsync.io.golden`` records them).
+    with ``(k, arms, ref, command_in, state_in, command, state, sent)``, what the
+    controller read and wrote (``sent``: the command plus the plan's
+    feed-forward, what the servo gets) (``jaxsync.io.golden`` records them).
 
     Example:
       >>> model, s = jaxsync.load_model(), jaxsync.short_task()
@@ -136,10 +137,10 @@ def rollout_mujoco(
 
     @jax.jit
     def control_position(gains, s, cstate, arms, k, command, buffer):
-        command, cstate, info, pl, ref = _closed_loop.control_position(
+        command, sent, cstate, info, pl, ref = _closed_loop.control_position(
             options, gains, s, consts, cstate, arms, pad_start, k * dt, dt, command
         )
-        return command, _actuation.push(buffer, command), cstate, info, pl, ref
+        return command, sent, _actuation.push(buffer, sent), cstate, info, pl, ref
 
     noise = jax.jit(lambda s, k: _closed_loop.noise(s, consts, k))
     cstate = _controller.init(jnp.asarray(_closed_loop.initial_command(model, consts)))
@@ -163,9 +164,11 @@ def rollout_mujoco(
         va = idx.object_dof_adr
         if position:
             before = (command, cstate)
-            command, buffer, cstate, info, pl, ref = control_position(gains, scenario, cstate, arms, k, command, buffer)
+            command, sent, buffer, cstate, info, pl, ref = control_position(
+                gains, scenario, cstate, arms, k, command, buffer
+            )
             if on_control is not None:
-                on_control(k, arms, ref, *before, command, cstate)
+                on_control(k, arms, ref, *before, command, cstate, sent)
             acting, acting_vel = (np.asarray(x) for x in _actuation.acting(buffer, delay, dt))
             for sub in range(control_substeps):
                 if sub:

@@ -5,6 +5,8 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
 
 - k_rk, k_lk, k_rl, k_ll = tanh(theta): |k| < 1, the paper's range;
 - M_d = exp(theta), K_d = exp(theta): positive;
+- ff_vel, ff_acc = FF_MAX tanh(theta) (position-controlled arms: the joint
+  command's feed-forward of the plan, within its validation bounds; 0 at theta 0);
 - B_d = 2 zeta sqrt(M_d K_d) with the damping ratio
   zeta = ZETA_MIN + (ZETA_MAX - ZETA_MIN) sigmoid(theta): inside the band, so
   every tuned admittance filter is a stable, passive mass-spring-damper.
@@ -33,7 +35,7 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.gains import USED, Gains, servo_limits_loop
+from jaxsync.control.gains import FF_ACC_MAX, FF_VEL_MAX, USED, Gains, servo_limits_loop
 from jaxsync.control.names import CONTROLLERS
 
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
@@ -45,7 +47,10 @@ VECTORS = OBJECT + FORCE  # (6,) gains: one value per axis, not per arm
 # the joint-command loop every controller ends in: kp_pos (log space, kd_pos kept), so that on
 # position-controlled arms its bandwidth lambda = 2 kp_pos / kd_pos is tuned (on torque arms: its stiffness)
 LOOP = ("kp_pos",)
-TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP
+# the joint command's feed-forward of the plan (position-controlled arms, jaxsync's laws): a bounded scalar each
+FEED = ("ff_vel", "ff_acc")
+FF_MAX = {"ff_vel": FF_VEL_MAX, "ff_acc": FF_ACC_MAX}
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
 DEFAULT_TUNED_FOR = {
@@ -63,9 +68,10 @@ GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping
 def check_tuned(tuned, controller: str) -> None:
     """ConfigError when a tuned parameter is one ``controller`` never reads
     (its gradient would be zero and the search would wander in it)."""
-    unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller] and n not in LOOP]
+    own = LOOP + (FEED if controller in CONTROLLERS else ())  # the rule has no feed-forward
+    unused = [n for n in tuned if GAIN_OF.get(n, n) not in USED[controller] and n not in own]
     if unused:
-        usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller] or n in LOOP]
+        usable = [n for n in TUNABLE if GAIN_OF.get(n, n) in USED[controller] or n in own]
         raise ConfigError(f"the {controller} controller does not use {', '.join(unused)}; it tunes {', '.join(usable)}")
 
 
@@ -99,6 +105,7 @@ class TuneSpec:
     # ``tuned`` is the controller's default set, not named by the user: :meth:`for_model` adds the
     # joint-command loop's gain where the robot's servo limits that loop
     model_default: bool = False
+    frozen: tuple[str, ...] = ()  # what :meth:`for_model` leaves out of the model's additions
 
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
@@ -117,16 +124,29 @@ class TuneSpec:
         the delay and the servo spread it trains on (docs/deploy-tuning.md:
         on the iiwa-like pair 1.34x without it, 3.7x with it). Not for
         ros2_controllers' rule: its reference loop stands in for the user's
-        trajectory and is not exported. Anything else: this spec."""
+        trajectory and is not exported. There the joint command's
+        feed-forward of the plan (ff_vel, ff_acc) is tuned too: the slow
+        servo's inertial lag and the delay are what it leads
+        (docs/deploy-tuning.md). Anything else: this spec.
+
+        ConfigError where ff_vel or ff_acc is tuned on torque-driven arms (no
+        joint command to feed forward)."""
+        fed = [n for n in self.tuned if n in FEED]
+        if fed and actuation != "position":
+            raise ConfigError(
+                f"{', '.join(fed)}: the joint command's feed-forward acts on position-controlled arms only "
+                "(--actuation position)",
+                inputs=("spec",),
+            )
         if (
             not self.model_default
             or actuation != "position"
             or controller not in CONTROLLERS
-            or set(LOOP) <= set(self.tuned)
             or not servo_limits_loop(model)
         ):
             return self
-        return dataclasses.replace(self, tuned=self.tuned + LOOP, model_default=False)
+        added = tuple(n for n in LOOP + FEED if n not in self.frozen and n not in self.tuned)
+        return dataclasses.replace(self, tuned=self.tuned + added, model_default=False) if added else self
 
     # --- the shape of one impedance parameter in theta
     def _reduce(self, v: np.ndarray) -> np.ndarray:
@@ -207,6 +227,9 @@ class TuneSpec:
                 theta[name] = jnp.asarray(np.arctanh(np.clip(float(getattr(base, name)), -0.999, 0.999)))
             elif name in LOOP:
                 theta[name] = jnp.asarray(np.log(float(np.asarray(getattr(base, name)))))
+            elif name in FEED:
+                ratio = float(np.asarray(getattr(base, name))) / FF_MAX[name]
+                theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
             elif name == "imp_mass":
                 theta[name] = jnp.asarray(np.log(self._reduce(base.imp_mass)))
             elif name == "imp_stiffness":
@@ -238,6 +261,9 @@ class TuneSpec:
         for name in LOOP:
             if name in theta:
                 g[name] = jnp.exp(theta[name])
+        for name in FEED:
+            if name in theta:
+                g[name] = FF_MAX[name] * jnp.tanh(theta[name])
         zeta = damping_ratio(base)
         if "imp_mass" in theta:
             g["imp_mass"] = self._expand(jnp.exp(theta["imp_mass"]))
@@ -283,7 +309,7 @@ class TuneSpec:
         """How many scalars are tuned."""
         arms = 2 if self.per_arm else 1
         axes = 2 if self.isotropic else 6
-        n = sum(1 if name in SYNC + LOOP else axes if name in VECTORS else arms * axes for name in self.tuned)
+        n = sum(1 if name in SYNC + LOOP + FEED else axes if name in VECTORS else arms * axes for name in self.tuned)
         return n * (len(_schedule.PHASES) if self.schedule else 1)
 
     def describe(self) -> dict:
@@ -295,6 +321,9 @@ class TuneSpec:
             "parameters": self.size(),
             "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
             "k_range": [-1, 1],
+            **(
+                {"feedforward_range": {n: [-FF_MAX[n], FF_MAX[n]] for n in FEED}} if set(FEED) & set(self.tuned) else {}
+            ),
         }
 
 
@@ -329,5 +358,6 @@ def spec_for(
         per_arm=per_arm,
         isotropic=isotropic,
         schedule=schedule,
-        model_default=not tuned and not set(LOOP) & set(frozen),
+        model_default=not tuned,
+        frozen=tuple(frozen),
     )

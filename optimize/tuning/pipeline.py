@@ -217,10 +217,12 @@ def tune_and_evaluate(
     spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation)
     if spec is not given:
         loop = _gains.default_gains(model, "position")
+        added = [n for n in spec.tuned if n not in given.tuned]
         say(
-            "kp_pos is tuned too: this robot's slowest servo holds its joint-command loop at lambda = "
-            f"{2 * float(loop.kp_pos) / float(loop.kd_pos):.3g} 1/s by default, a trade of speed against the "
-            "delay (--freeze kp_pos keeps the starting gains')"
+            f"{', '.join(added)} {'is' if len(added) == 1 else 'are'} tuned too: this robot's slowest servo holds "
+            f"its joint-command loop at lambda = {2 * float(loop.kp_pos) / float(loop.kd_pos):.3g} 1/s by default, "
+            "a trade of speed against the delay, and lags an accelerating command that a feed-forward of the plan "
+            f"(ff_vel, ff_acc; 0 by default) can lead (--freeze {','.join(added)} keeps the starting gains')"
         )
         cfg = cfg.replace(problem=dataclasses.replace(cfg.problem, spec=spec))
     check_tuned(spec.tuned, cfg.problem.controller)
