@@ -507,7 +507,7 @@ def test_the_rule_plus_the_coupling_tunes_from_its_own_defaults(model, tmp_path,
 
 def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_path, fake_tuning, monkeypatch):
     """A controller's default set gains kp_pos and the command's feed-forward
-    (ff_vel, ff_acc) on position-controlled arms whose servo lowered the
+    of the plan's acceleration (ff_acc) on position-controlled arms whose servo lowered the
     joint-command loop (the iiwa-like pair's stands in here for the paper
     model's, which does not), for jaxsync's own laws only; named parameters,
     what is frozen, the torque stack and the rule keep their sets; the
@@ -518,14 +518,14 @@ def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_
     iiwa = jaxsync.load_model(os.path.join(robots, "iiwa14_pair.yaml"), visual=False)
     assert _gains.servo_limits_loop(iiwa) and not _gains.servo_limits_loop(model)
     sync = _params.spec_for("synchronous")
-    added = ("kp_pos", "ff_vel", "ff_acc")
+    added = ("kp_pos", "ff_acc")
     assert sync.for_model("synchronous", iiwa, "position").tuned == _params.DEFAULT_TUNED + added
     assert sync.for_model("synchronous", model, "position") is sync
     assert sync.for_model("synchronous", iiwa, "torque") is sync
     classical = _params.spec_for("classical")
-    assert classical.for_model("classical", iiwa, "position").tuned[-3:] == added
+    assert classical.for_model("classical", iiwa, "position").tuned[-2:] == added
     got = _params.spec_for("synchronous", frozen=["kp_pos"]).for_model("synchronous", iiwa, "position")
-    assert got.tuned == _params.DEFAULT_TUNED + ("ff_vel", "ff_acc")
+    assert got.tuned == _params.DEFAULT_TUNED + ("ff_acc",)
     for spec in (
         _params.spec_for("synchronous", ["k_rk", "imp_mass"]),
         _params.spec_for("synchronous", frozen=list(added)),
@@ -542,9 +542,9 @@ def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_
     said = []
     cfg = TuneConfig(iterations=1, actuation="position", delay=(0, 3))
     _run_tune(model, tmp_path / "run", cfg, log=said.append)
-    assert fake_tuning["cfg"].problem.tuned.tuned[-3:] == added
-    assert tuple(json.loads((tmp_path / "run" / "summary.json").read_text())["tune"]["tuned"][-3:]) == added
-    assert any(line.startswith("kp_pos, ff_vel, ff_acc are tuned too") and "lambda = 40 1/s" in line for line in said)
+    assert fake_tuning["cfg"].problem.tuned.tuned[-2:] == added
+    assert tuple(json.loads((tmp_path / "run" / "summary.json").read_text())["tune"]["tuned"][-2:]) == added
+    assert any(line.startswith("kp_pos, ff_acc are tuned too") and "lambda = 40 1/s" in line for line in said)
     cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position")
     _run_tune(model, tmp_path / "rule", cfg)
     assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")

@@ -50,6 +50,10 @@ LOOP = ("kp_pos",)
 # the joint command's feed-forward of the plan (position-controlled arms, jaxsync's laws): a bounded scalar each
 FEED = ("ff_vel", "ff_acc")
 FF_MAX = {"ff_vel": FF_VEL_MAX, "ff_acc": FF_ACC_MAX}
+# what a slow servo adds to a law's default set: its inertial lag's feed-forward. Not ff_vel: a lead
+# shifts the whole carry in time, and tuned on a batch of 4 it ran to its bound (0.05 s, where 6 ms
+# does better held out: docs/deploy-tuning.md); set it, or tune it by name
+SERVO_ADDED = LOOP + ("ff_acc",)
 TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
@@ -125,8 +129,8 @@ class TuneSpec:
         on the iiwa-like pair 1.34x without it, 3.7x with it). Not for
         ros2_controllers' rule: its reference loop stands in for the user's
         trajectory and is not exported. There the joint command's
-        feed-forward of the plan (ff_vel, ff_acc) is tuned too: the slow
-        servo's inertial lag and the delay are what it leads
+        feed-forward of the plan's acceleration (ff_acc) is tuned too: the
+        slow servo's inertial lag is what it cancels
         (docs/deploy-tuning.md). Anything else: this spec.
 
         ConfigError where ff_vel or ff_acc is tuned on torque-driven arms (no
@@ -145,7 +149,7 @@ class TuneSpec:
             or not servo_limits_loop(model)
         ):
             return self
-        added = tuple(n for n in LOOP + FEED if n not in self.frozen and n not in self.tuned)
+        added = tuple(n for n in SERVO_ADDED if n not in self.frozen and n not in self.tuned)
         return dataclasses.replace(self, tuned=self.tuned + added, model_default=False) if added else self
 
     # --- the shape of one impedance parameter in theta

@@ -221,8 +221,9 @@ def tune_and_evaluate(
         say(
             f"{', '.join(added)} {'is' if len(added) == 1 else 'are'} tuned too: this robot's slowest servo holds "
             f"its joint-command loop at lambda = {2 * float(loop.kp_pos) / float(loop.kd_pos):.3g} 1/s by default, "
-            "a trade of speed against the delay, and lags an accelerating command that a feed-forward of the plan "
-            f"(ff_vel, ff_acc; 0 by default) can lead (--freeze {','.join(added)} keeps the starting gains')"
+            "a trade of speed against the delay, and lags an accelerating command by I/k, which the plan's "
+            f"acceleration fed forward (ff_acc, 0 by default) cancels (--freeze {','.join(added)} keeps the starting "
+            "gains')"
         )
         cfg = cfg.replace(problem=dataclasses.replace(cfg.problem, spec=spec))
     check_tuned(spec.tuned, cfg.problem.controller)
