@@ -48,7 +48,7 @@ def test_elasticities_match_central_differences(model, computed):
     relative error at most 1e-4 per metric over the entries. The step is
     1e-4: at 1e-3 the differences themselves drift by up to 4e-4 (measured)."""
     scen, s = computed
-    assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 44)
+    assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 46)
     assert np.all(np.isfinite(s.elasticity)) and np.all(s.values > 0)
     f = jax.jit(metrics_function(model, DURATION))
     flat, unravel = ravel_pytree(_gains.default_gains())

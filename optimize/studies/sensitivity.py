@@ -42,7 +42,8 @@ from jaxsync.sim.rollout import make_rollout
 from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
-SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll")  # elasticity per unit k, not per log k
+# elasticity per unit k (and per s, s^2 of the command's feed-forward, 0 by default), not per log value
+SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll", "ff_vel", "ff_acc")
 _AXES = ("x", "y", "z", "rx", "ry", "rz")
 _ARMS = ("right", "left")
 
