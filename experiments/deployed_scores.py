@@ -8,7 +8,10 @@ ros2-admittance export of the same gains runs), with the position stack's
 default gains as the reference; then 4 of the scenarios on MuJoCo C.
 Prints and writes each row: settled peak resultant, grip error, drops,
 chatter, first impact (mean and largest), and the MuJoCo C factor over the
-defaults.
+defaults. ``--with NAME=VALUE[,NAME=VALUE]`` (repeatable) scores every
+candidate, the defaults included, again with those gains set (e.g. the
+command's feed-forward, ``--with ff_acc=0.0013``); ``--no-mujoco`` skips
+MuJoCo C.
 
     python experiments/deployed_scores.py --robot mjcf/robots/ur5e_twice.yaml \\
         --controllers classical,ros2_admittance torque=results/tc/gains.json position=results/tp/gains.json
@@ -22,6 +25,7 @@ from pathlib import Path
 
 import jax
 
+from jaxsync.control import gains as _gains
 from jaxsync.control.gains import default_gains
 from jaxsync.io import gains_file
 from jaxsync.optimize.tuning import loss as L
@@ -41,6 +45,8 @@ def main() -> None:
     p.add_argument("--robot", required=True)
     p.add_argument("--controllers", default="classical,ros2_admittance")
     p.add_argument("--out", default=None, help="write the rows here as JSON")
+    p.add_argument("--with", dest="variants", action="append", default=[], metavar="NAME=VALUE[,NAME=VALUE]")
+    p.add_argument("--no-mujoco", action="store_true")
     p.add_argument("gains", nargs="+", metavar="LABEL=PATH")
     args = p.parse_args()
     set_xla_flags()  # before the first JAX computation
@@ -53,6 +59,10 @@ def main() -> None:
     base = default_gains(model, "position")
     cands = {"position stack's defaults": base}
     cands |= {label: gains_file.load(path) for label, path in (g.split("=", 1) for g in args.gains)}
+    for variant in args.variants:
+        set_to = {k: float(v) for k, v in (kv.split("=", 1) for kv in variant.split(","))}
+        plain = [(label, g) for label, g in cands.items() if "=" not in label]  # not another variant's
+        cands |= {f"{label}, {variant}": _gains.from_dict(set_to, g) for label, g in plain}
     rows = {}
     for controller in args.controllers.split(","):
         ev = L.make_evaluator(model, 4.0, controller, **stack.rollout_options(model))
@@ -61,7 +71,7 @@ def main() -> None:
             row = {k: s[k] for k in KEYS}
             impacts = [x for x in s["metrics"]["first_impact_peak_N"] if x is not None]
             row["first_impact_max_N"] = max(impacts, default=None)
-            if label != "position stack's defaults" and not s["dropped"]:
+            if label != "position stack's defaults" and not s["dropped"] and not args.no_mujoco:
                 c = C.sim_to_sim(model, g, base, held, 4.0, n=4, controller=controller, stack=stack, log=lambda m: None)
                 row["mujoco_check"] = {k: c.get(k) for k in ("factor_mjx", "factor_mujoco", "agree", "dropped")}
             rows[f"{controller}: {label}"] = row
