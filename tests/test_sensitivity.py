@@ -48,7 +48,7 @@ def test_elasticities_match_central_differences(model, computed):
     relative error at most 1e-4 per metric over the entries. The step is
     1e-4: at 1e-3 the differences themselves drift by up to 4e-4 (measured)."""
     scen, s = computed
-    assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 46)
+    assert s.values.shape == (3,) and s.elasticity.shape == (3, len(s.names)) == (3, 44)
     assert np.all(np.isfinite(s.elasticity)) and np.all(s.values > 0)
     f = jax.jit(metrics_function(model, DURATION))
     flat, unravel = ravel_pytree(_gains.default_gains())
@@ -80,6 +80,26 @@ def test_elasticity_scaling():
     names = ["k_rk", "kp_pos"]
     e = elasticities(names, np.array([0.5, 200.0]), np.array([2.0]), np.array([[3.0, 0.01]]))
     np.testing.assert_allclose(e, [[1.5, 1.0]])  # k: (1/m) dm/dk; positive gain: (g/m) dm/dg
+
+
+def test_the_feed_forward_is_read_on_position_arms_per_unit(model, monkeypatch):
+    """On position-controlled arms jaxsync's laws read the command's
+    feed-forward (0 by default): its entries are kept, their elasticity per
+    unit (an elasticity per log value would be 0 at 0); on the torque stack
+    and for the rule they are left out. The program is a stand-in whose
+    derivative is 1 for every entry."""
+
+    def program(model, duration, start, controller, stack):
+        return lambda g, s: (np.full(3, 2.0), jax.tree_util.tree_map(lambda x: np.ones((3, *np.shape(x))), g))
+
+    monkeypatch.setattr(_sensitivity, "program", program)
+    g = _gains.default_gains()
+    on = sensitivity(model, g, None, DURATION, stack=Stack("position", None, (0, 0)))
+    assert on.names[-2:] == ["ff_vel", "ff_acc"] and len(on.names) == 46
+    np.testing.assert_array_equal(on.elasticity[:, -2:], 0.5)  # (1/m) dm/dff
+    for controller, stack in (("synchronous", Stack()), ("ros2_admittance", Stack("position", None, (0, 0)))):
+        off = sensitivity(model, g, None, DURATION, controller=controller, stack=stack)
+        assert "ff_acc" not in off.names and "ff_vel" not in off.names
 
 
 @pytest.mark.slow

@@ -30,6 +30,7 @@ from jax.flatten_util import ravel_pytree
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
+from jaxsync.control.names import CONTROLLERS
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning.cost import smooth_metrics
@@ -142,7 +143,8 @@ def sensitivity(
 ) -> Sensitivity:
     """The sensitivities at ``gains`` over a batch of ``scenarios`` (leading
     axis), of the gains ``controller`` reads (``jaxsync.control.gains.USED``)
-    and the joint-space law's, on the arms' ``stack``."""
+    and the joint-space law's (on position-controlled arms with jaxsync's
+    laws: its feed-forward ff_vel, ff_acc too), on the arms' ``stack``."""
 
     fn = program(model, float(duration), start, controller, stack)
     values, grads = jax.block_until_ready(fn(gains, scenarios))
@@ -153,6 +155,8 @@ def sensitivity(
     names = entry_names()
     values, flat = np.asarray(values), np.asarray(flat)
     read = set(_gains.USED[controller]) | {"kp_pos", "kd_pos", "kp_null", "kd_null"}
+    if stack.actuation == "position" and controller in CONTROLLERS:  # the command's feed-forward
+        read |= {"ff_vel", "ff_acc"}
     keep = np.array([n.split("[")[0] in read for n in names])
     names, flat, deriv = [n for n, k in zip(names, keep, strict=True) if k], flat[keep], deriv[:, keep]
     return Sensitivity(names, flat, values, deriv, elasticities(names, flat, values, deriv))
