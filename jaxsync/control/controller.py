@@ -319,6 +319,11 @@ def command_feedforward(options: ControllerOptions | ControllerSwitch, gains: Ga
     )
 
 
+def sent_command(options: ControllerOptions | ControllerSwitch, gains: Gains, arms, ref: Reference, command):
+    """(2 n,) what the servo gets: the integrated ``command`` plus :func:`command_feedforward`."""
+    return command + command_feedforward(options, gains, arms, ref)
+
+
 def _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter):
     pads = Pads.of(arms)
     delta = jnp.stack(

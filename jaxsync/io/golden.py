@@ -261,7 +261,7 @@ def replay(folder: str) -> float:
 
     def step(g, s, arms, ref, c):
         command, state, info = _controller.step_position(options, g, s, arms, ref, meta["dt_s"], c, a)
-        return command, command + _controller.command_feedforward(options, g, arms, ref), state, info
+        return command, _controller.sent_command(options, g, arms, ref, command), state, info
 
     step = jax.jit(step)
     worst = 0.0

@@ -116,7 +116,7 @@ def control_position(options, gains, s, c: Consts, cstate, arms, pad_start, t, d
     the plan and the reference the controller read."""
     gains, ref, pl = _planned(gains, s, c, pad_start, t)
     command, cstate, info = _controller.step_position(options, gains, cstate, arms, ref, dt, command, s.ft_filter)
-    sent = command + _controller.command_feedforward(options, gains, arms, ref)
+    sent = _controller.sent_command(options, gains, arms, ref, command)
     return command, sent, cstate, info, pl, ref
 
 
