@@ -45,7 +45,7 @@ def _robot_file(path: Path, doc: dict, arm_file: str) -> Path:
     return path
 
 
-def _score(robot: Path, gains: dict, controller: str, delay: int) -> dict:
+def _score(robot: Path, gains: dict, controller: str, delay: int, heldout: int = 16) -> dict:
     # the tuner's pieces are imported here: only the scoring needs them
     from jaxsync.control.gains import default_gains
     from jaxsync.io import gains_file
@@ -56,7 +56,7 @@ def _score(robot: Path, gains: dict, controller: str, delay: int) -> dict:
 
     model = load_model(str(robot), visual=False)
     stack = Stack("position", None, (delay, delay))
-    cfg = TuneConfig(actuation="position", delay=(delay, delay))
+    cfg = TuneConfig(actuation="position", delay=(delay, delay), heldout_batch=heldout)
     cfg = cfg.replace(scenario=S.model_overrides(model))
     held = S.heldout_scenarios(cfg)
     ev = L.make_evaluator(model, 4.0, controller, **stack.rollout_options(model))
@@ -77,10 +77,19 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--score-only", action="store_true", help="score the tuned gains already in --out")
     p.add_argument(
+        "--heldout", type=int, default=16, help="held-out scenarios to score on (the tuner's seed; 16 as the tuner)"
+    )
+    p.add_argument(
         "--tune-seed", type=int, default=0, help="the tuner's training seed (a robot pair in --out is reused)"
     )
     p.add_argument(
         "--robust", action="store_true", help="tune over drawn servos and delays (--servo-spread 0.3 --delay 1:3)"
+    )
+    p.add_argument(
+        "--weight", action="append", default=[], metavar="NAME=VALUE", help="a tuning cost weight (jaxsync tune's)"
+    )
+    p.add_argument(
+        "--resume", action="store_true", help="continue the tuning runs in --out (e.g. with more --iterations)"
     )
     p.add_argument(
         "--perturbed", action="store_true", help="also tune on the true stack moved by the calibration's largest error"
@@ -110,6 +119,7 @@ def main() -> None:
     cal_file = out / "calibrated" / "robot.yaml"
     pert_file = out / "perturbed" / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
+    tag += "".join("_" + w.replace("=", "") for w in args.weight)
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
@@ -118,11 +128,11 @@ def main() -> None:
         gains["tuned on the perturbed stack"] = str(out / f"tune_perturbed{tag}" / "gains.json")
         gains["perturbed stack, last iterate"] = str(out / f"tune_perturbed{tag}" / "gains_last.json")
     if args.score_only:
-        _report(out, true_file, cal_file, gains, args.controller, tag)
+        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
         _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-        _report(out, true_file, cal_file, gains, args.controller, tag)
+        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
         return
     _robot_file(true_file, true_doc, arm_file)
     ex = excite.excitation(model)
@@ -149,7 +159,7 @@ def main() -> None:
     _robot_file(pert_file, pert_doc, arm_file)
     print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-    _report(out, true_file, cal_file, gains, args.controller, tag)
+    _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
 
 
 def _tune(robots: list[Path], args, tag: str) -> None:
@@ -161,15 +171,18 @@ def _tune(robots: list[Path], args, tag: str) -> None:
         robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
                   args.controller, "--iterations", args.iterations, "--seed", str(args.tune_seed),
-                  "--out", str(dest), *robust])  # fmt: skip
+                  "--out", str(dest), *robust, *(["--resume"] if args.resume else []),
+                  *(a for w in args.weight for a in ("--weight", w))])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
 
 
-def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller: str, tag: str = "") -> None:
+def _report(
+    out: Path, true_file: Path, cal_file: Path, gains: dict, controller: str, tag: str = "", heldout: int = 16
+) -> None:
     """Both tuned gains on the true stack (the target) and on the calibrated one (does the model
     predict what the gains do on the robot?)."""
-    scores = {"on the true stack": _score(true_file, gains, controller, 2),
-              "on the calibrated stack": _score(cal_file, gains, controller, 2)}  # fmt: skip
+    scores = {"on the true stack": _score(true_file, gains, controller, 2, heldout),
+              "on the calibrated stack": _score(cal_file, gains, controller, 2, heldout)}  # fmt: skip
     peak = [scores["on the true stack"][k]["settled_peak_resultant_N"] for k in gains]
     scores["calibrated_over_true"] = {"selected": peak[1] / peak[0], "last iterate": peak[3] / peak[2]}
     if len(peak) > 4:
@@ -179,7 +192,9 @@ def _report(out: Path, true_file: Path, cal_file: Path, gains: dict, controller:
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
           f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
           f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip
-    (out / f"scores{tag}.json").write_text(json.dumps(scores, indent=1, default=float))
+    (out / f"scores{tag}{'' if heldout == 16 else f'_heldout{heldout}'}.json").write_text(
+        json.dumps(scores, indent=1, default=float)
+    )
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import default_gains
 from jaxsync.io import gains_file
+from jaxsync.optimize.tuning.config import Problem
 from jaxsync.optimize.tuning.cost import CostWeights, cost, cost_terms
 from jaxsync.physics import step as _physics
 from jaxsync.sim import metrics as _metrics
@@ -296,6 +297,25 @@ def test_a_lost_object_costs_holding_nothing_and_no_gradient():
     # ... whatever the pads did, and without a gradient
     assert float(scaled(far, 1.0)) == pytest.approx(float(scaled(far, 1.7)), rel=1e-12)
     assert float(jax.grad(lambda a: scaled(far, a))(1.0)) == 0.0
+
+
+def test_the_grip_term_is_flat_below_its_smoothing():
+    tr = _hand_made()
+    s = fast_scenario(t_close=0.1, t_squeeze=0.1, t_carry=0.1, settle_time=0.2)
+
+    def grip(a, smooth):  # the pads 10 N x (1 + a): a relative grip error a
+        traj = tr._replace(pad_forces=tr.pad_forces * (1.0 + a))
+        return cost_terms(traj, s, CostWeights(grip_smooth=smooth))["grip"]
+
+    for e in (3e-4, 5e-3):
+        for smooth in (1e-4, 1e-3):  # 10 per 1 %, of sqrt(e^2 + s^2)
+            assert float(grip(e, smooth)) == pytest.approx(10.0 * np.hypot(e, smooth) / 0.01, rel=1e-6)
+    # at 0.03 %, above the default smoothing the slope is nearly the |e|'s (1000 per unit);
+    # below a smoothing of 0.1 % it is e / s of that: the term stops chasing errors that small
+    assert float(jax.grad(grip)(3e-4, 1e-4)) == pytest.approx(1000 * 3 / np.hypot(3, 1), rel=1e-5)
+    assert float(jax.grad(grip)(3e-4, 1e-3)) == pytest.approx(1000 * 0.3 / np.hypot(0.3, 1), rel=1e-5)
+    with pytest.raises(ConfigError, match="grip_smooth"):
+        Problem(weights=CostWeights(grip_smooth=0.0)).validate()
 
 
 def test_the_friction_margin_term_reads_the_cone_before_the_loss():

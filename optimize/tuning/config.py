@@ -66,9 +66,10 @@ class Problem:
             if v is not None and not (v > 0 and math.isfinite(v)):
                 raise ConfigError(f"{name} must be a positive number (or None: unbounded), got {v}", inputs=(name,))
         for name, v in self.weights._asdict().items():
-            if not (math.isfinite(v) and v >= 0) or (name == "peak_temperature" and v <= 0):
+            if not (math.isfinite(v) and v >= 0) or (name in ("peak_temperature", "grip_smooth") and v <= 0):
                 raise ConfigError(
-                    f"cost weight {name} must be a finite number >= 0 (temperature > 0), got {v}", inputs=("weights",)
+                    f"cost weight {name} must be a finite number >= 0 (peak_temperature, grip_smooth > 0), got {v}",
+                    inputs=("weights",),
                 )
 
 

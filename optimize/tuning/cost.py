@@ -26,6 +26,8 @@ class CostWeights(NamedTuple):
     sync: float = 0.1  # mean square synchronisation error, per (1 mm)^2
     effort: float = 1e-4  # mean |tau|^2, per (10 N m)^2
     peak_temperature: float = 0.002  # N, of the smooth peak
+    # relative: the grip term is sqrt(e^2 + s^2), |e| above s, quadratic (flat) below it
+    grip_smooth: float = 1e-4
     # opt-in: the pads' friction margin at its worst in carry and hold, short of
     # FRICTION_MARGIN of the nominal grip's cone, per that share (0: not computed)
     friction_margin: float = 0.0
@@ -34,7 +36,7 @@ class CostWeights(NamedTuple):
 RESULTANT_SCALE = 0.01  # N
 RESULTANT_FLOOR2 = 1e-12  # N^2, under the root of the resultant's norm (smooth at zero)
 GRIP_SCALE = 0.01  # relative
-GRIP_SMOOTH = 1e-4  # relative: |x| ~ sqrt(x^2 + s^2)
+GRIP_SMOOTH = CostWeights().grip_smooth  # relative: the smooth metric's |x| ~ sqrt(x^2 + s^2)
 SYNC_SCALE = 1e-3  # m
 EFFORT_SCALE = 10.0  # N m
 
@@ -131,7 +133,7 @@ def _terms(traj, s, w: CostWeights) -> dict[str, jax.Array]:
         "resultant_peak": w.resultant_peak * _metrics.smooth_max(res_norm, mask, w.peak_temperature) / RESULTANT_SCALE,
         # the metric's statistic (mean |error| over scenarios), not its square:
         # a squared term is flat near the small errors the task starts from
-        "grip": w.grip * jnp.sqrt(grip_err**2 + GRIP_SMOOTH**2) / GRIP_SCALE,
+        "grip": w.grip * jnp.sqrt(grip_err**2 + w.grip_smooth**2) / GRIP_SCALE,
         "sync": w.sync * jnp.sum(mask * sync**2) / n / SYNC_SCALE**2,
         "effort": w.effort * jnp.mean(jnp.sum(traj.torque**2, -1)) / EFFORT_SCALE**2,
     }
