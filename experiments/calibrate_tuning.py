@@ -12,7 +12,7 @@ stack's held-out scenarios (the tuner's own held-out seed). With
 moved at random by up to the calibration's largest error: how far the
 tuner's result moves under a model change of that size, whatever its source.
 
-    python experiments/calibrate_tuning.py --out results/calibrate_tuning --iterations 30
+    python experiments/calibrate_tuning.py --out results/calibrate_tuning --perturbed --weight grip_smooth=0.001
 """
 
 from __future__ import annotations
