@@ -192,9 +192,8 @@ def _report(
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
           f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
           f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip
-    (out / f"scores{tag}{'' if heldout == 16 else f'_heldout{heldout}'}.json").write_text(
-        json.dumps(scores, indent=1, default=float)
-    )
+    suffix = "" if heldout == 16 else f"_heldout{heldout}"
+    (out / f"scores{tag}{suffix}.json").write_text(json.dumps(scores, indent=1, default=float))
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from jaxsync.control.names import CONTROLLERS
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
 from jaxsync.optimize.tuning.cost import smooth_metrics
+from jaxsync.optimize.tuning.params import FEED
 from jaxsync.optimize.tuning.scenarios import sample_scenarios
 from jaxsync.physics.model import as_model, identity
 from jaxsync.runtime import programs
@@ -156,7 +157,7 @@ def sensitivity(
     values, flat = np.asarray(values), np.asarray(flat)
     read = set(_gains.USED[controller]) | {"kp_pos", "kd_pos", "kp_null", "kd_null"}
     if stack.actuation == "position" and controller in CONTROLLERS:  # the command's feed-forward
-        read |= {"ff_vel", "ff_acc"}
+        read |= set(FEED)
     keep = np.array([n.split("[")[0] in read for n in names])
     names, flat, deriv = [n for n, k in zip(names, keep, strict=True) if k], flat[keep], deriv[:, keep]
     return Sensitivity(names, flat, values, deriv, elasticities(names, flat, values, deriv))
