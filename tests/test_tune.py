@@ -24,6 +24,7 @@ from jaxsync.io import results as _results
 from jaxsync.optimize.tuning import checkpoint, methods, pipeline, scenarios, tune_state
 from jaxsync.optimize.tuning import loss as loss_mod
 from jaxsync.optimize.tuning import params as _params
+from jaxsync.optimize.tuning import starts as starts_mod
 from jaxsync.optimize.tuning import tune as tune_mod
 from jaxsync.optimize.tuning.config import Problem
 from jaxsync.optimize.tuning.cost import CostWeights
@@ -316,6 +317,8 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         (["--actuation", "position", "--servo-spread", "1.5"], "servo_spread must be a share in [0, 1)"),
         (["--actuation", "position", "--delay", "2:1"], "within 0..8, got '2:1' (--delay)"),
         (["--actuation", "position", "--control-rate", "300"], "divide the physics rate 500 Hz"),
+        (["--starts", "2", "--validate-every", "0"], "validate_every must be positive with starts > 1"),
+        (["--starts", "2", "--resume"], "no tuning starts in"),
     ]
     for args, msg in cases:  # in this process (the console script itself: tests/test_model.py)
         rc = main(["tune", "--out", str(tmp_path / "o"), *args])
@@ -327,6 +330,7 @@ def test_tune_cli_rejects_bad_input(tmp_path, capsys):
         (["--controller", "bogus"], "invalid choice"),
         (["--max-impact", "0"], "must be positive"),
         (["--max-stiffness", "-5"], "must be positive"),
+        (["--starts", "0"], "must be positive"),
     ]:  # argparse's own: usage and exit status 2 (the console script: tests/test_model.py)
         with pytest.raises((SystemExit, argparse.ArgumentError)) as err:
             parser.parse_args(["tune", *args])
@@ -638,6 +642,67 @@ def test_the_summary_is_said_in_lines(model, tmp_path, fake_tuning):
     assert lines[0] == "held-out settled peak resultant: 0.01500 N -> 0.01500 N (unchanged)"
     assert lines[1] == "held-out grip-force error: 0.0050 -> 0.0050"
     assert "WARNING: MuJoCo C and MJX disagree" in lines[2] and lines[-1].startswith(f"results in {out}: gains.json")
+
+
+def test_the_kept_start_is_the_best_qualifying_one_on_validation():
+    v0 = {"iteration": 0, "settled_peak_resultant_N": 0.02, "grip_force_error_rel": 0.01, "dropped": 0, "nonfinite": 0}
+    a = dict(v0, iteration=40, settled_peak_resultant_N=0.004)
+    b = dict(v0, iteration=55, settled_peak_resultant_N=0.001)
+    loose = dict(b, grip_force_error_rel=0.02)  # lower, but gripping worse than the start
+    assert starts_mod.select_start([[v0, a], [v0, b]], [40, 55]) == 1
+    assert starts_mod.select_start([[v0, a], [v0, loose]], [40, 55]) == 0
+    assert starts_mod.select_start([[v0, a], [v0, b], [v0, dict(b)]], [40, 55, 55]) == 1  # a tie: the first
+    assert starts_mod.select_start([[v0], [v0]], [0, 0]) == 0  # none improved on the start
+
+
+def test_starts_tune_on_successive_seeds_and_keep_the_best_validated(model, tmp_path, fake_tuning, monkeypatch):
+    """Each start a whole run in OUT/seed_<s> on its own training seed; the one with the
+    lowest validation peak copied to OUT; resumed starts read back, not run again."""
+    peaks = {3: 0.004, 4: 0.001}
+    tuned = []
+
+    def fake_tune(model, base, cfg, *, validate=None, **kw):
+        seed = cfg.data.seed
+        tuned.append(seed)
+        v0 = {"iteration": 0, **validate(base)}
+        v1 = dict(v0, iteration=1, settled_peak_resultant_N=peaks[seed])
+        g = base._replace(k_rl=0.1 * seed)
+        row = {"iteration": 0, "cost": 2.0, "grad_norm": 1.0, "skipped": 0, "seconds": 0.1}
+        return TuneResult(g, [row], [v0, v1], v1, g._replace(k_ll=0.3), None)
+
+    monkeypatch.setattr(tune_mod, "tune", fake_tune)
+    out = tmp_path / "run"
+    cfg = TuneConfig(iterations=1, seed=3)
+    summary = _run_tune(model, out, cfg, starts=2)
+    assert tuned == [3, 4] and [s["seed"] for s in summary.starts] == [3, 4]
+    assert [s["kept"] for s in summary.starts] == [False, True]
+    assert [s["validation"]["settled_peak_resultant_N"] for s in summary.starts] == [0.004, 0.001]
+    assert summary.config["data"]["seed"] == 4 and summary.to_dict() == json.loads((out / "summary.json").read_text())
+    assert json.loads((out / "gains.json").read_text())["gains"]["k_rl"] == pytest.approx(0.4)
+    assert (out / "gains.json").read_bytes() == (out / "seed_4" / "gains.json").read_bytes()
+    for s in (3, 4):
+        assert json.loads((out / f"seed_{s}" / "summary.json").read_text())["config"]["data"]["seed"] == s
+    assert summary_lines(summary, str(out))[-2] == f"kept the start on seed 4 of 2 (the lowest validation settled " \
+        f"peak; every start in {out}/seed_*)"  # fmt: skip
+    with pytest.raises(jaxsync.ConfigError, match="holds tuning starts"):  # no resume, no restart: nothing overwritten
+        _run_tune(model, out, cfg, starts=2)
+    again = _run_tune(model, out, cfg, starts=2, resume=True)  # every start finished: read back
+    assert tuned == [3, 4] and again.starts == summary.starts
+    (out / "seed_3" / "summary.json").unlink()  # a start that did not finish (here: with no checkpoint)
+    rerun = _run_tune(model, out, cfg, starts=2, resume=True).starts  # that one run again
+    assert [(r["seed"], r["kept"], r["validation"]) for r in rerun] == [
+        (r["seed"], r["kept"], r["validation"]) for r in summary.starts
+    ]
+    assert tuned == [3, 4, 3]
+    _run_tune(model, out, cfg, starts=2, restart=True)
+    assert tuned == [3, 4, 3, 3, 4]
+    with pytest.raises(jaxsync.ConfigError, match="no tuning starts in"):
+        _run_tune(model, tmp_path / "none", cfg, starts=2, resume=True)
+    with pytest.raises(jaxsync.ConfigError, match="validate_every must be positive with starts > 1"):
+        _run_tune(model, tmp_path / "x", cfg.replace(validate_every=0), starts=2)
+    with pytest.raises(jaxsync.ConfigError, match="seeds must differ"):  # seed 500 is the validation seed
+        _run_tune(model, tmp_path / "x", cfg.replace(seed=499), starts=2)
+    assert not (tmp_path / "none").exists() and not (tmp_path / "x").exists()
 
 
 def test_vector_gains_round_trip_through_the_parametrisation():

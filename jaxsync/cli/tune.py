@@ -62,6 +62,7 @@ def run(args) -> int:
         resume=args.resume,
         restart=args.restart,
         mujoco_check=args.mujoco_check,
+        starts=args.starts,
         options={k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")},
         log=lambda m: print(m, flush=True),
     )
@@ -83,6 +84,8 @@ def add_parser(sub) -> None:
     p.add_argument("--max-stiffness", type=positive(float), metavar="N_PER_M", help=f"{bound[1]} (docs/metrics.md)")
     p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
     p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4; per process)")
+    starts = "K tuning runs on training seeds --seed, --seed+1, ..., in OUT/seed_<s>, the best validated kept (1)"
+    p.add_argument("--starts", type=positive(int), default=1, metavar="K", help=starts)
     p.add_argument(
         "--method",
         default="lbfgs",

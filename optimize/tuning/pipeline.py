@@ -148,6 +148,7 @@ class TuneSummary:
     start_moved_into_bands: list
     mujoco_check: dict | None
     stack: dict  # the arms' stack the job ran (jaxsync.sim.actuation.Stack.to_dict, with the servo)
+    starts: list = dataclasses.field(default_factory=list)  # a multi-start run's starts (optimize.tuning.starts)
 
     @property
     def peak_before(self) -> float | None:
@@ -413,12 +414,15 @@ def run_tune(
     mujoco_check: bool = True,
     options: dict | None = None,
     log: Callable[[str], None] = print,
+    starts: int = 1,
 ) -> TuneSummary | None:
     """``jaxsync tune``'s job: ``model`` (a model, an MJCF or robot file, or
     None: the paper model), starting from ``gains`` (a gains file, refused
     when tuned on another model unless ``any_model``; gains; None: the
     model's own defaults on ``cfg``'s stack), tuned as ``cfg`` says (None:
-    ``TuneConfig()``), then :func:`tune_and_evaluate`.
+    ``TuneConfig()``), then :func:`tune_and_evaluate`; with ``starts`` > 1,
+    that many runs on successive training seeds, the best by validation
+    (:mod:`jaxsync.optimize.tuning.starts`).
 
     Example:
       >>> cfg = TuneConfig(iterations=2)
@@ -428,9 +432,12 @@ def run_tune(
     model = as_model(model, visual=visual)
     base = gains_file.load_or_default(gains, model, any_model, cfg.training.actuation, cfg.problem.controller)
     cfg.stack().substeps(model)  # a control rate that does not divide the physics rate: before any folder
-    return tune_and_evaluate(
-        model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
-    )
+    job = {"out": out, "resume": resume, "restart": restart, "mujoco_check": mujoco_check, "options": options}
+    if starts != 1:
+        from jaxsync.optimize.tuning.starts import run_starts  # it builds on this module
+
+        return run_starts(model, base, cfg, starts, log=log, **job)
+    return tune_and_evaluate(model, base, cfg, log=log, **job)
 
 
 def _identity_text(model) -> str:

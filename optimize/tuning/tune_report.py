@@ -57,6 +57,10 @@ def summary_lines(summary, out: str) -> list[str]:
         lines.append(worse_text(summary))
     if summary.mujoco_check is not None:
         lines.append(mujoco_text(summary.mujoco_check))
+    kept = [s for s in getattr(summary, "starts", ()) if s["kept"]]
+    if kept:
+        lines.append(f"kept the start on seed {kept[0]['seed']} of {len(summary.starts)} (the lowest validation "
+                     f"settled peak; every start in {out}/seed_*)")  # fmt: skip
     lines.append(f"results in {out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return lines
 
