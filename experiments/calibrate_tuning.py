@@ -92,6 +92,9 @@ def main() -> None:
         "--resume", action="store_true", help="continue the tuning runs in --out (e.g. with more --iterations)"
     )
     p.add_argument(
+        "--starts", type=int, default=1, help="tuning starts per run (jaxsync tune --starts; seeds from --tune-seed)"
+    )
+    p.add_argument(
         "--perturbed", action="store_true", help="also tune on the true stack moved by the calibration's largest error"
     )
     args = p.parse_args()
@@ -119,7 +122,7 @@ def main() -> None:
     cal_file = out / "calibrated" / "robot.yaml"
     pert_file = out / "perturbed" / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
-    tag += "".join("_" + w.replace("=", "") for w in args.weight)
+    tag += "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" if args.starts > 1 else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
@@ -171,7 +174,7 @@ def _tune(robots: list[Path], args, tag: str) -> None:
         robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
                   args.controller, "--iterations", args.iterations, "--seed", str(args.tune_seed),
-                  "--out", str(dest), *robust, *(["--resume"] if args.resume else []),
+                  "--out", str(dest), "--starts", str(args.starts), *robust, *(["--resume"] if args.resume else []),
                   *(a for w in args.weight for a in ("--weight", w))])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
 

@@ -671,6 +671,8 @@ def test_starts_tune_on_successive_seeds_and_keep_the_best_validated(model, tmp_
         return TuneResult(g, [row], [v0, v1], v1, g._replace(k_ll=0.3), None)
 
     monkeypatch.setattr(tune_mod, "tune", fake_tune)
+    # a robot file's object (as a job records it in its config, which a finished start is read back by)
+    monkeypatch.setattr(scenarios, "model_overrides", lambda model: (("object_mass", 0.5),))
     out = tmp_path / "run"
     cfg = TuneConfig(iterations=1, seed=3)
     summary = _run_tune(model, out, cfg, starts=2)

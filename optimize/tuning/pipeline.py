@@ -178,6 +178,21 @@ class TuneSummary:
         return d
 
 
+def job_config(model: DualArmModel, cfg: _tune.TuneConfig) -> tuple[_tune.TuneConfig, list[str]]:
+    """``cfg`` as a job on ``model`` runs it (what ``summary.json``'s ``config`` records), checked: the
+    model's own object as every scenario's base where none is given, and the parameters the model's
+    stack adds to the tuned ones (returned by name: the loop gain where a servo limits it)."""
+    if not cfg.training.scenario:  # the model's own object (a robot file's): every scenario's base
+        cfg = cfg.replace(scenario=_scenarios.model_overrides(model))
+    cfg.validate()
+    given = cfg.problem.tuned  # a new TuneSpec on each read where the problem names none: read once
+    spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation)
+    if spec is given:
+        return cfg, []
+    added = [n for n in spec.tuned if n not in given.tuned]
+    return cfg.replace(problem=dataclasses.replace(cfg.problem, spec=spec)), added
+
+
 @_interrupt.deferred()  # Ctrl-C stops at a safe point (between iterations, after tuning)
 def tune_and_evaluate(
     model: DualArmModel,
@@ -209,16 +224,12 @@ def tune_and_evaluate(
       ...                             TuneConfig(iterations=2, task="short"), out="results/tune")  # doctest: +SKIP
       >>> summary.peak_after  # doctest: +SKIP
     """
-    if not cfg.training.scenario:  # the model's own object (a robot file's): every scenario's base
-        cfg = cfg.replace(scenario=_scenarios.model_overrides(model))
-    cfg.validate()
+    cfg, added = job_config(model, cfg)
     main = _distributed.is_main()
     say = log if main else (lambda *a, **k: None)
-    given = cfg.problem.tuned  # a new TuneSpec on each read where the problem names none: read once
-    spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation)
-    if spec is not given:
+    spec = cfg.problem.tuned
+    if added:
         loop = _gains.default_gains(model, "position")
-        added = [n for n in spec.tuned if n not in given.tuned]
         say(
             f"{', '.join(added)} {'is' if len(added) == 1 else 'are'} tuned too: this robot's slowest servo holds "
             f"its joint-command loop at lambda = {2 * float(loop.kp_pos) / float(loop.kd_pos):.3g} 1/s by default, "
@@ -226,7 +237,6 @@ def tune_and_evaluate(
             f"acceleration fed forward (ff_acc, 0 by default) cancels (--freeze {','.join(added)} keeps the starting "
             "gains')"
         )
-        cfg = cfg.replace(problem=dataclasses.replace(cfg.problem, spec=spec))
     check_tuned(spec.tuned, cfg.problem.controller)
     spec.init(base)  # a schedule needs a per-phase spec: say so before any folder is touched
     run_args = (model, base, cfg, out, resume, mujoco_check, options, fingerprint, say, main)

@@ -137,7 +137,7 @@ def _run_starts(model, base, cfg, seeds, out, resume, restart, log, main, job):
     runs = []
     for k, s in enumerate(seeds):
         folder, cfg_k = start_folder(out, s), cfg.replace(seed=s)
-        done = _finished(folder, cfg_k) if resume else None
+        done = _finished(folder, _pipeline.job_config(model, cfg_k)[0]) if resume else None  # as it records it
         if done is not None:
             log(f"start {k + 1} of {starts} (seed {s}): finished in {folder}, read back")
         else:
