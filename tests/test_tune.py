@@ -962,6 +962,7 @@ def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
             break
     assert [r["renewed"] for r in rows if "renewed" in r] == [1, 2]
     assert rows[-1].get("converged") == 1 and oracle.batch == 2
+    assert m.converged(state) and m.converged(m.from_data(m.to_data(state))) and not m.converged(m.init(np.ones(3)))
     np.testing.assert_allclose(m.incumbent(state), centres[2], atol=1e-6)
     # where the oracle cannot renew: converged on the first batch, as before
     m2, state2, rows2 = LBFGS(), LBFGS().init(np.ones(3)), []
@@ -1048,6 +1049,11 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
     expected = [_fingerprint(training_batch(cfg, k, train_base)) for k in range(5)]
     assert len(set(expected)) == 5
     assert list(dict.fromkeys(seen)) == expected
+    # resumed (with iterations to spare), a converged run takes no step and validates nothing again
+    calls = len(seen)
+    again = tune(model, _gains.default_gains(), cfg.replace(iterations=20), out=str(tmp_path), resume=True,
+                 progress=False, validate=_fake_validation)  # fmt: skip
+    assert len(again.history) == 10 and len(seen) == calls and len(again.validation) == 3
 
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):

@@ -234,10 +234,14 @@ class LBFGS:
             row["renewed"] = batch + 1
             return {"x": x, "f": None, "g": None, "s": [], "y": [], "batch": batch + 1, "stalled": False}, row
         row["converged"] = 1
-        return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True}, row
+        return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "converged": True}, row
 
     def incumbent(self, state):
         return state["x"]
+
+    def converged(self, state) -> bool:
+        """Whether the run has converged (a resumed one does not step again)."""
+        return bool(state.get("converged", False))
 
     def to_data(self, state) -> dict:
         return dict(state)  # arrays, floats and lists of arrays already
@@ -245,6 +249,7 @@ class LBFGS:
     def from_data(self, data) -> dict:
         out = {**data, "s": list(data["s"]), "y": list(data["y"])}
         out = {**out, "batch": int(out.get("batch", 0)), "stalled": bool(out.get("stalled", False))}
+        out = {**out, "converged": bool(out.get("converged", False))}
         return {**out, "backtracked": bool(out.get("backtracked", False))}
 
 

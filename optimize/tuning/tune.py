@@ -252,7 +252,10 @@ def tune(
         forward = make_loss(model, base, cfg, differentiated=False)  # CMA-ES's populations only evaluate the loss
         fresh = lambda k: training_batch(batch_cfg, k, train_base)  # noqa: E731
         oracle = _MethodOracle(forward, get_value_and_grad, state.theta, fresh(0), cfg, n_total, fresh)
-        for i in range(start, iterations):
+        converged = getattr(method, "converged", lambda s: False)(state.opt_state)
+        if converged:
+            say(f"{cfg.method.name} had converged on its batch after {start} iterations: nothing to continue")
+        for i in range(start, start if converged else iterations):
             if fresh_batches:  # a first-order method: a fresh batch every iteration
                 oracle.oracle.use(i)
             state, row, converged = _method_step(state, method, oracle, cfg, spec, base, say)
