@@ -6,6 +6,7 @@ plumbing and errors."""
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import time
@@ -381,10 +382,12 @@ def fake_tuning(monkeypatch):
     return calls
 
 
-def _run_tune(model, out, cfg=None, **kw):
-    """``jaxsync tune``'s job (``pipeline.run_tune``) with one iteration and no MuJoCo C check unless told."""
+def _run_tune(model, out, cfg=None, starts=1, **kw):
+    """``jaxsync tune``'s job (``pipeline.run_tune``; ``starts.run_tune`` with starts) with one iteration
+    and no MuJoCo C check unless told."""
     cfg = cfg if cfg is not None else TuneConfig(iterations=1)
-    return pipeline.run_tune(model, cfg, out=str(out), **{"mujoco_check": False, "log": lambda m: None, **kw})
+    job = pipeline.run_tune if starts == 1 else functools.partial(starts_mod.run_tune, starts=starts)
+    return job(model, cfg, out=str(out), **{"mujoco_check": False, "log": lambda m: None, **kw})
 
 
 def test_tune_job_writes_its_results(model, tmp_path, fake_tuning):

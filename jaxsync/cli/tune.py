@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 from jaxsync.cli._common import (
     add_controller_argument,
     add_distributed_arguments,
@@ -49,10 +51,11 @@ def config_from_args(args):
 
 def run(args) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
-    from jaxsync.optimize.tuning import pipeline
+    from jaxsync.optimize.tuning import pipeline, starts
     from jaxsync.optimize.tuning.tune_report import summary_lines
 
-    summary = pipeline.run_tune(
+    job = pipeline.run_tune if args.starts == 1 else functools.partial(starts.run_tune, starts=args.starts)
+    summary = job(
         model_source(args),
         config_from_args(args),
         gains=args.gains,
@@ -62,7 +65,6 @@ def run(args) -> int:
         resume=args.resume,
         restart=args.restart,
         mujoco_check=args.mujoco_check,
-        starts=args.starts,
         options={k: v for k, v in vars(args).items() if k not in ("func", "interrupted_hint")},
         log=lambda m: print(m, flush=True),
     )
@@ -126,12 +128,8 @@ def add_parser(sub) -> None:
         ("validation-batch", 16, "validation scenarios"),
     ):
         p.add_argument(f"--{name}", type=int, default=default, help=f"{what} ({default})")
-    p.add_argument(
-        "--task",
-        default="full",
-        choices=["full", "short"],
-        help="training task: 'full' (the 4 s task the held-out scenarios use) or 'short' (2 s) (full)",
-    )
+    task = "training task: 'full' (the 4 s task the held-out scenarios use) or 'short' (2 s) (full)"
+    p.add_argument("--task", default="full", choices=["full", "short"], help=task)
     p.add_argument(
         "--sampling",
         default="stratified",

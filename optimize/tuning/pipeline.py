@@ -424,30 +424,32 @@ def run_tune(
     mujoco_check: bool = True,
     options: dict | None = None,
     log: Callable[[str], None] = print,
-    starts: int = 1,
 ) -> TuneSummary | None:
     """``jaxsync tune``'s job: ``model`` (a model, an MJCF or robot file, or
     None: the paper model), starting from ``gains`` (a gains file, refused
     when tuned on another model unless ``any_model``; gains; None: the
     model's own defaults on ``cfg``'s stack), tuned as ``cfg`` says (None:
-    ``TuneConfig()``), then :func:`tune_and_evaluate`; with ``starts`` > 1,
-    that many runs on successive training seeds, the best by validation
-    (:mod:`jaxsync.optimize.tuning.starts`).
+    ``TuneConfig()``), then :func:`tune_and_evaluate` (several runs, the best
+    by validation: :func:`jaxsync.optimize.tuning.starts.run_tune`).
 
     Example:
       >>> cfg = TuneConfig(iterations=2)
       >>> summary = run_tune("mjcf/robots/iiwa14_twice.yaml", cfg, out="results/tune")  # doctest: +SKIP
     """
+    model, base, cfg = job_inputs(model, cfg, gains, any_model, visual)
+    return tune_and_evaluate(
+        model, base, cfg, out=out, resume=resume, restart=restart, mujoco_check=mujoco_check, options=options, log=log
+    )
+
+
+def job_inputs(model, cfg, gains, any_model: bool, visual: bool):
+    """:func:`run_tune`'s model, starting gains and config from what it was given,
+    checked before any folder is touched."""
     cfg = (cfg if cfg is not None else _tune.TuneConfig()).validate()  # checked before the model compiles
     model = as_model(model, visual=visual)
     base = gains_file.load_or_default(gains, model, any_model, cfg.training.actuation, cfg.problem.controller)
     cfg.stack().substeps(model)  # a control rate that does not divide the physics rate: before any folder
-    job = {"out": out, "resume": resume, "restart": restart, "mujoco_check": mujoco_check, "options": options}
-    if starts != 1:
-        from jaxsync.optimize.tuning.starts import run_starts  # it builds on this module
-
-        return run_starts(model, base, cfg, starts, log=log, **job)
-    return tune_and_evaluate(model, base, cfg, log=log, **job)
+    return model, base, cfg
 
 
 def _identity_text(model) -> str:

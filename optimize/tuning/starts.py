@@ -85,6 +85,19 @@ def _finished(folder: str, cfg) -> _pipeline.TuneSummary | None:
     )
 
 
+def run_tune(model=None, cfg=None, starts: int = 2, *, gains=None, any_model: bool = False, visual: bool = True,
+             **job) -> _pipeline.TuneSummary | None:  # fmt: skip
+    """``jaxsync tune --starts K``'s job: :func:`pipeline.run_tune`'s arguments
+    (``job``: ``out``, ``resume``, ``restart``, ``mujoco_check``, ``options``,
+    ``log``), ``starts`` runs, the best by validation (:func:`run_starts`).
+
+    Example:
+      >>> summary = run_tune("mjcf/robots/iiwa14_twice.yaml", TuneConfig(), 2, out="results/tune")  # doctest: +SKIP
+    """
+    model, base, cfg = _pipeline.job_inputs(model, cfg, gains, any_model, visual)
+    return run_starts(model, base, cfg, starts, **job)
+
+
 def run_starts(model, base, cfg, starts: int, *, out: str, resume: bool = False, restart: bool = False,
                log: Callable[[str], None] = print, **job) -> _pipeline.TuneSummary | None:  # fmt: skip
     """``starts`` tuning runs (training seeds ``cfg.data.seed`` and on), the best
