@@ -240,12 +240,6 @@ def fast_scenario(**overrides):
 @pytest.fixture(scope="session")
 def rollouts(model):
     """Rollouts of the fast scenario, computed once per session and shared."""
-    return build_rollouts(model)
-
-
-def build_rollouts(model):
-    """The session's ``rollouts``: every controller on the fast scenario at the default
-    gains (tests/test_compare.py, their first user, compiles them ahead)."""
     assert min_duration(fast_scenario()) == TEST_DURATION
 
     g = default_gains()

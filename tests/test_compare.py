@@ -11,7 +11,7 @@ import sys
 import jax
 import numpy as np
 import pytest
-from conftest import TEST_DURATION, build_rollouts, paper_model
+from conftest import TEST_DURATION
 from PIL import Image
 
 import jaxsync
@@ -29,12 +29,6 @@ from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import crosscheck as _crosscheck
 from jaxsync.sim import metrics as _metrics
 from jaxsync.sim.scenario import default_scenario
-
-
-def compile_ahead():
-    """The session's ``rollouts``, which this module uses first (tests/conftest.py: compiled ahead
-    in a second process while the modules before it run)."""
-    build_rollouts(paper_model())
 
 
 def _cli(*args, cwd):
