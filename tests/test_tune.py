@@ -678,8 +678,13 @@ def test_starts_tune_on_successive_seeds_and_keep_the_best_validated(model, tmp_
     monkeypatch.setattr(scenarios, "model_overrides", lambda model: (("object_mass", 0.5),))
     out = tmp_path / "run"
     cfg = TuneConfig(iterations=1, seed=3)
-    summary = _run_tune(model, out, cfg, starts=2)
+    logs = []
+    summary = _run_tune(model, out, cfg, starts=2, log=logs.append)
     assert tuned == [3, 4] and [s["seed"] for s in summary.starts] == [3, 4]
+    # the starting gains scored on the held-out scenarios once, by the first start; each folder holds them
+    assert sum(m.startswith("held-out evaluation before tuning") for m in logs) == 1
+    before = [(out / f"seed_{s}" / "heldout_before.json").read_bytes() for s in (3, 4)]
+    assert before[0] == before[1]
     assert [s["kept"] for s in summary.starts] == [False, True]
     assert [s["validation"]["settled_peak_resultant_N"] for s in summary.starts] == [0.004, 0.001]
     assert summary.config["data"]["seed"] == 4 and summary.to_dict() == json.loads((out / "summary.json").read_text())

@@ -275,6 +275,8 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
     elif resume and os.path.exists(before_path):
         with open(before_path) as f:
             before = json.load(f)
+    elif before is not None:
+        _results.write_json(before_path, before)  # given: the folder holds what a run scoring them would
     if before is None:
         say(f"held-out evaluation before tuning ({data.heldout_batch} scenarios, {eval_duration:g} s)...")
         before = _loss.eval_summary(evaluate(base, held))

@@ -10,7 +10,8 @@ keeping the best validated one makes the result depend less on one path, at
 
 Start ``k`` is a whole tuning run (:func:`pipeline.tune_and_evaluate`) with
 training seed ``seed + k``, in ``out/seed_<seed + k>``: the same starting
-gains, validation and held-out scenarios, settings otherwise. Each is resumed
+gains, validation and held-out scenarios, settings otherwise (the starting
+gains' held-out scores are the first start's, given to the others). Each is resumed
 on its own, and a finished one (its ``summary.json`` from the same settings)
 is read back, not run again. The kept start is the one whose selected iterate
 has the lowest validation settled peak among those that qualify
@@ -147,7 +148,7 @@ def _check_out(out: str, seeds: list[int], resume: bool, restart: bool) -> None:
 
 def _run_starts(model, base, cfg, seeds, out, resume, restart, log, main, job):
     starts = len(seeds)
-    runs = []
+    runs, before = [], None
     for k, s in enumerate(seeds):
         folder, cfg_k = start_folder(out, s), cfg.replace(seed=s)
         done = _finished(folder, _pipeline.job_config(model, cfg_k)[0]) if resume else None  # as it records it
@@ -157,8 +158,10 @@ def _run_starts(model, base, cfg, seeds, out, resume, restart, log, main, job):
             log(f"start {k + 1} of {starts} (seed {s}) in {folder}")
             again = resume and os.path.exists(os.path.join(folder, CHECKPOINT))
             done = _pipeline.tune_and_evaluate(model, base, cfg_k, out=folder, resume=again, restart=restart or (
-                not again and os.path.isdir(folder)), log=log, **job)  # fmt: skip
+                not again and os.path.isdir(folder)), log=log, before=before, **job)  # fmt: skip
         runs.append(done)
+        if main and before is None:  # the same gains on the same held-out scenarios: scored once, by the first
+            before = _read_before(folder)
     if not main:
         return None
     k = select_start([r.validation for r in runs], [r.selected_iteration for r in runs])
@@ -180,6 +183,14 @@ def _run_starts(model, base, cfg, seeds, out, resume, restart, log, main, job):
         log(f"seed {row['seed']}: validation settled peak " + (f"{peak:.5f} N" if peak is not None else "none")
             + f" at iteration {row['selected_iteration']}" + (" (kept)" if row["kept"] else ""))  # fmt: skip
     return kept
+
+
+def _read_before(folder: str) -> dict | None:
+    path = os.path.join(folder, _pipeline.HELDOUT_BEFORE)
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
 
 
 def _figures(e: dict) -> dict:
