@@ -10,9 +10,12 @@ otherwise, and both tuned gains (and the defaults) are scored on the true
 stack's held-out scenarios (the tuner's own held-out seed). With
 ``--perturbed``, a third run tunes on the true stack with each servo gain
 moved at random by up to the calibration's largest error: how far the
-tuner's result moves under a model change of that size, whatever its source.
+tuner's result moves under a model change of that size, whatever its source;
+``--perturb-size REL`` moves them by up to REL instead (1e-6: far below any
+calibration's error, the tuner's own spread under a model change).
 
     python experiments/calibrate_tuning.py --out results/calibrate_tuning --perturbed --weight grip_smooth=0.001
+    python experiments/calibrate_tuning.py --out results/calibrate_tuning --perturb-size 1e-6 --weight grip_smooth=0.001
 """
 
 from __future__ import annotations
@@ -97,7 +100,14 @@ def main() -> None:
     p.add_argument(
         "--perturbed", action="store_true", help="also tune on the true stack moved by the calibration's largest error"
     )
+    p.add_argument(
+        "--perturb-size", type=float, default=None, metavar="REL",
+        help="instead: the true stack's servo gains moved at random by up to REL (e.g. 1e-6; folder perturbed_REL)",
+    )  # fmt: skip
     args = p.parse_args()
+    if args.perturb_size is not None and not 0 < args.perturb_size < 1:
+        p.error(f"--perturb-size must be in (0, 1), got {args.perturb_size}")
+    args.perturbed = args.perturbed or args.perturb_size is not None
     set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
@@ -120,7 +130,7 @@ def main() -> None:
     true_doc["delay"] = {"periods": 2, "control_rate": 500}
     true_file = out / "true" / "robot.yaml"
     cal_file = out / "calibrated" / "robot.yaml"
-    pert_file = out / "perturbed" / "robot.yaml"
+    pert_file = out / ("perturbed" if args.perturb_size is None else f"perturbed_{args.perturb_size:g}") / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
     tag += "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" if args.starts > 1 else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
@@ -128,12 +138,14 @@ def main() -> None:
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
              "calibrated stack, last iterate": str(out / f"tune_calibrated{tag}" / "gains_last.json")}  # fmt: skip
     if args.perturbed:
-        gains["tuned on the perturbed stack"] = str(out / f"tune_perturbed{tag}" / "gains.json")
-        gains["perturbed stack, last iterate"] = str(out / f"tune_perturbed{tag}" / "gains_last.json")
+        gains["tuned on the perturbed stack"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains.json")
+        gains["perturbed stack, last iterate"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains_last.json")
     if args.score_only:
         _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
+        if args.perturb_size is not None and not pert_file.exists():
+            _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
         _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
         _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
         return
@@ -159,10 +171,24 @@ def main() -> None:
         arm: {"stiffness": moved.stiffness[sl].tolist(), "damping": moved.damping[sl].tolist()}
         for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
     }
-    _robot_file(pert_file, pert_doc, arm_file)
-    print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
+    if args.perturb_size is None:
+        _robot_file(pert_file, pert_doc, arm_file)
+        print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
+    elif args.perturbed:
+        _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
     _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
+
+
+def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str) -> None:
+    """The true robot file with each servo gain moved at random by up to ``size`` (relative)."""
+    doc = yaml.safe_load(true_file.read_text())
+    doc["servo"] = {
+        arm: {key: (np.asarray(v) * (1 + rng.uniform(-size, size, len(v)))).tolist() for key, v in gains.items()}
+        for arm, gains in doc["servo"].items()
+    }
+    _robot_file(pert_file, doc, arm_file)
+    print(f"perturbed stack: every servo gain moved by up to {100 * size:.2g} %", flush=True)
 
 
 def _tune(robots: list[Path], args, tag: str) -> None:
@@ -170,6 +196,9 @@ def _tune(robots: list[Path], args, tag: str) -> None:
     for robot in robots:
         label = f"tuned on the {robot.parent.name} stack"
         dest = robot.parent.parent / f"tune_{robot.parent.name}{tag}"
+        if (dest / "summary.json").exists() and not args.resume:
+            print(f"{label}: finished in {dest}, kept", flush=True)
+            continue
         start = time.perf_counter()
         robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
