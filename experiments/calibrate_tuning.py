@@ -141,13 +141,17 @@ def main() -> None:
         gains["tuned on the perturbed stack"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains.json")
         gains["perturbed stack, last iterate"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains_last.json")
     if args.score_only:
-        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
+        _report(
+            out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None
+        )
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
         if args.perturb_size is not None and not pert_file.exists():
             _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
         _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
+        _report(
+            out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None
+        )
         return
     _robot_file(true_file, true_doc, arm_file)
     ex = excite.excitation(model)
@@ -177,7 +181,7 @@ def main() -> None:
     elif args.perturbed:
         _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-    _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout)
+    _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None)
 
 
 def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str) -> None:
@@ -209,7 +213,14 @@ def _tune(robots: list[Path], args, tag: str) -> None:
 
 
 def _report(
-    out: Path, true_file: Path, cal_file: Path, gains: dict, controller: str, tag: str = "", heldout: int = 16
+    out: Path,
+    true_file: Path,
+    cal_file: Path,
+    gains: dict,
+    controller: str,
+    tag: str = "",
+    heldout: int = 16,
+    pert_file: Path | None = None,
 ) -> None:
     """Both tuned gains on the true stack (the target) and on the calibrated one (does the model
     predict what the gains do on the robot?)."""
@@ -224,7 +235,9 @@ def _report(
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
           f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
           f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip
-    suffix = "" if heldout == 16 else f"_heldout{heldout}"
+    suffix = ("" if heldout == 16 else f"_heldout{heldout}") + (
+        "" if pert_file is None else "_" + pert_file.parent.name
+    )
     (out / f"scores{tag}{suffix}.json").write_text(json.dumps(scores, indent=1, default=float))
 
 
