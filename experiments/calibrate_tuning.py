@@ -94,6 +94,7 @@ def main() -> None:
     p.add_argument(
         "--resume", action="store_true", help="continue the tuning runs in --out (e.g. with more --iterations)"
     )
+    p.add_argument("--method", default="lbfgs", help="the tuner's method (jaxsync tune --method)")
     p.add_argument(
         "--starts", type=int, default=1, help="tuning starts per run (jaxsync tune --starts; seeds from --tune-seed)"
     )
@@ -132,6 +133,7 @@ def main() -> None:
     cal_file = out / "calibrated" / "robot.yaml"
     pert_file = out / ("perturbed" if args.perturb_size is None else f"perturbed_{args.perturb_size:g}") / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
+    tag += "" if args.method == "lbfgs" else f"_{args.method}"
     tag += "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" if args.starts > 1 else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
@@ -206,8 +208,9 @@ def _tune(robots: list[Path], args, tag: str) -> None:
         start = time.perf_counter()
         robust = ["--servo-spread", "0.3", "--delay", "1:3"] if args.robust else []
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
-                  args.controller, "--iterations", args.iterations, "--seed", str(args.tune_seed),
-                  "--out", str(dest), "--starts", str(args.starts), *robust, *(["--resume"] if args.resume else []),
+                  args.controller, "--method", args.method, "--iterations", args.iterations,
+                  "--seed", str(args.tune_seed), "--out", str(dest), "--starts", str(args.starts), *robust,
+                  *(["--resume"] if args.resume else []),
                   *(a for w in args.weight for a in ("--weight", w))])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
 
