@@ -95,6 +95,7 @@ def main() -> None:
         "--resume", action="store_true", help="continue the tuning runs in --out (e.g. with more --iterations)"
     )
     p.add_argument("--method", default="lbfgs", help="the tuner's method (jaxsync tune --method)")
+    p.add_argument("--lr", default=None, help="a first-order method's learning rate (jaxsync tune --lr)")
     p.add_argument(
         "--starts", type=int, default=1, help="tuning starts per run (jaxsync tune --starts; seeds from --tune-seed)"
     )
@@ -133,7 +134,7 @@ def main() -> None:
     cal_file = out / "calibrated" / "robot.yaml"
     pert_file = out / ("perturbed" if args.perturb_size is None else f"perturbed_{args.perturb_size:g}") / "robot.yaml"
     tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
-    tag += "" if args.method == "lbfgs" else f"_{args.method}"
+    tag += ("" if args.method == "lbfgs" else f"_{args.method}") + ("" if args.lr is None else f"_lr{args.lr}")
     tag += "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" if args.starts > 1 else "")
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
@@ -210,7 +211,7 @@ def _tune(robots: list[Path], args, tag: str) -> None:
         rc = cli(["tune", "--robot", str(robot), "--no-visual", "--actuation", "position", "--controller",
                   args.controller, "--method", args.method, "--iterations", args.iterations,
                   "--seed", str(args.tune_seed), "--out", str(dest), "--starts", str(args.starts), *robust,
-                  *(["--resume"] if args.resume else []),
+                  *(["--resume"] if args.resume else []), *(["--lr", args.lr] if args.lr is not None else []),
                   *(a for w in args.weight for a in ("--weight", w))])  # fmt: skip
         print(f"{label}: exit {rc}, {time.perf_counter() - start:.0f} s", flush=True)
 
