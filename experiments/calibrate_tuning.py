@@ -230,19 +230,29 @@ def _report(
     predict what the gains do on the robot?)."""
     scores = {"on the true stack": _score(true_file, gains, controller, 2, heldout),
               "on the calibrated stack": _score(cal_file, gains, controller, 2, heldout)}  # fmt: skip
+    # a gain set that dropped the object in every scenario has no settled peak: no ratio, "n/a"
     peak = [scores["on the true stack"][k]["settled_peak_resultant_N"] for k in gains]
-    scores["calibrated_over_true"] = {"selected": peak[1] / peak[0], "last iterate": peak[3] / peak[2]}
+    scores["calibrated_over_true"] = {"selected": _ratio(peak[1], peak[0]), "last iterate": _ratio(peak[3], peak[2])}
     if len(peak) > 4:
-        scores["perturbed_over_true"] = {"selected": peak[4] / peak[0], "last iterate": peak[5] / peak[2]}
-        print(f"perturbed-tuned / true-tuned: selected {peak[4]:.5f} / {peak[0]:.5f} N = {peak[4] / peak[0]:.3f}; "
-              f"last iterates {peak[5]:.5f} / {peak[2]:.5f} N = {peak[5] / peak[2]:.3f}", flush=True)  # fmt: skip
+        scores["perturbed_over_true"] = {"selected": _ratio(peak[4], peak[0]), "last iterate": _ratio(peak[5], peak[2])}
+        print(f"perturbed-tuned / true-tuned: selected {_line(peak[4], peak[0])}; "
+              f"last iterates {_line(peak[5], peak[2])}", flush=True)  # fmt: skip
     print(f"held-out settled peak on the true stack, calibrated-tuned / true-tuned: selected gains "
-          f"{peak[1]:.5f} / {peak[0]:.5f} N = {peak[1] / peak[0]:.3f}; last iterates {peak[3]:.5f} / {peak[2]:.5f} N "
-          f"= {peak[3] / peak[2]:.3f}", flush=True)  # fmt: skip
+          f"{_line(peak[1], peak[0])}; last iterates {_line(peak[3], peak[2])}", flush=True)  # fmt: skip
     suffix = ("" if heldout == 16 else f"_heldout{heldout}") + (
         "" if pert_file is None else "_" + pert_file.parent.name
     )
     (out / f"scores{tag}{suffix}.json").write_text(json.dumps(scores, indent=1, default=float))
+
+
+def _ratio(a, b):
+    return None if a is None or b is None else a / b
+
+
+def _line(a, b) -> str:
+    f = lambda v: "n/a" if v is None else f"{v:.5f}"  # noqa: E731
+    r = _ratio(a, b)
+    return f"{f(a)} / {f(b)} N = " + ("n/a" if r is None else f"{r:.3f}")
 
 
 if __name__ == "__main__":
