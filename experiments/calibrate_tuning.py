@@ -140,21 +140,18 @@ def main() -> None:
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
              "calibrated stack, last iterate": str(out / f"tune_calibrated{tag}" / "gains_last.json")}  # fmt: skip
+    pert = pert_file if args.perturbed else None
     if args.perturbed:
         gains["tuned on the perturbed stack"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains.json")
         gains["perturbed stack, last iterate"] = str(out / f"tune_{pert_file.parent.name}{tag}" / "gains_last.json")
     if args.score_only:
-        _report(
-            out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None
-        )
+        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
         if args.perturb_size is not None and not pert_file.exists():
             _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
         _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-        _report(
-            out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None
-        )
+        _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
         return
     _robot_file(true_file, true_doc, arm_file)
     ex = excite.excitation(model)
@@ -181,10 +178,10 @@ def main() -> None:
     if args.perturb_size is None:
         _robot_file(pert_file, pert_doc, arm_file)
         print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
-    elif args.perturbed:
+    else:
         _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
-    _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert_file if args.perturbed else None)
+    _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
 
 
 def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str) -> None:
@@ -250,9 +247,10 @@ def _ratio(a, b):
 
 
 def _line(a, b) -> str:
-    f = lambda v: "n/a" if v is None else f"{v:.5f}"  # noqa: E731
-    r = _ratio(a, b)
-    return f"{f(a)} / {f(b)} N = " + ("n/a" if r is None else f"{r:.3f}")
+    def f(v, digits=5):
+        return "n/a" if v is None else f"{v:.{digits}f}"
+
+    return f"{f(a)} / {f(b)} N = {f(_ratio(a, b), 3)}"
 
 
 if __name__ == "__main__":
