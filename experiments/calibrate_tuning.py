@@ -106,6 +106,10 @@ def main() -> None:
         "--perturb-size", type=float, default=None, metavar="REL",
         help="instead: the true stack's servo gains moved at random by up to REL (e.g. 1e-6; folder perturbed_REL)",
     )  # fmt: skip
+    p.add_argument(
+        "--table", type=lambda t: [int(x) for x in t.split(",")], metavar="SEEDS",
+        help="print the scored runs of training seeds SEEDS (e.g. 0,1,2,3) as a table, with medians; runs nothing",
+    )  # fmt: skip
     args = p.parse_args()
     if args.perturb_size is not None and not 0 < args.perturb_size < 1:
         p.error(f"--perturb-size must be in (0, 1), got {args.perturb_size}")
@@ -133,9 +137,10 @@ def main() -> None:
     true_file = out / "true" / "robot.yaml"
     cal_file = out / "calibrated" / "robot.yaml"
     pert_file = out / ("perturbed" if args.perturb_size is None else f"perturbed_{args.perturb_size:g}") / "robot.yaml"
-    tag = ("" if args.tune_seed == 0 else f"_seed{args.tune_seed}") + ("_robust" if args.robust else "")
-    tag += ("" if args.method == "lbfgs" else f"_{args.method}") + ("" if args.lr is None else f"_lr{args.lr}")
-    tag += "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" if args.starts > 1 else "")
+    if args.table:
+        _table(out, {s: _tag(args, s) for s in args.table})
+        return
+    tag = _tag(args, args.tune_seed)
     gains = {"tuned on the true stack": str(out / f"tune_true{tag}" / "gains.json"),
              "tuned on the calibrated stack": str(out / f"tune_calibrated{tag}" / "gains.json"),
              "true stack, last iterate": str(out / f"tune_true{tag}" / "gains_last.json"),
@@ -182,6 +187,47 @@ def main() -> None:
         _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
     _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
+
+
+def _tag(args, seed: int) -> str:
+    """The run's name in the folder: its training seed and whatever differs from the default run."""
+    tag = ("" if seed == 0 else f"_seed{seed}") + ("_robust" if args.robust else "")
+    tag += ("" if args.method == "lbfgs" else f"_{args.method}") + ("" if args.lr is None else f"_lr{args.lr}")
+    return tag + "".join("_" + w.replace("=", "") for w in args.weight) + (f"_starts{args.starts}" * (args.starts > 1))
+
+
+def _table(out: Path, tags: dict[int, str]) -> None:
+    """The scored runs of each seed as a table (markdown): every tuned gain set's held-out
+    settled peak on the true stack, over the true-stack tune of the same seed; then the
+    median and the geometric mean over the seeds of each column."""
+    cols: dict[str, dict[int, float | None]] = {}
+    for seed, tag in tags.items():
+        files = sorted(out.glob(f"scores{tag}.json")) + sorted(out.glob(f"scores{tag}_perturbed*.json"))
+        if not files:
+            raise SystemExit(f"--table: no scores{tag}.json in {out} (score seed {seed} first: --score-only)")
+        for f in files:
+            on_true = json.loads(f.read_text())["on the true stack"]
+            name = "perturbed" + f.stem[len(f"scores{tag}_perturbed") :] if "_perturbed" in f.stem else None
+            for label, v in on_true.items():
+                col = label.replace("tuned on the ", "").replace(" stack", "")
+                if col in ("true", "calibrated", "perturbed") and (name is None) == (col != "perturbed"):
+                    cols.setdefault(name or col, {})[seed] = v["settled_peak_resultant_N"]
+    names = list(cols)
+    print("| training | " + " | ".join(names) + " |\n|---" * 1 + "|---" * len(names) + "|")
+    for seed in tags:
+        base = cols["true"].get(seed)
+        cells = [_cell(cols[c].get(seed), None if c == "true" else base) for c in names]
+        print(f"| seed {seed} | " + " | ".join(cells) + " |")
+    for stat, fn in (("median", np.median), ("geometric mean", lambda v: float(np.exp(np.mean(np.log(v)))))):
+        vals = {c: [v for v in cols[c].values() if v is not None] for c in names}
+        row = {c: float(fn(v)) if len(v) == len(tags) else None for c, v in vals.items()}
+        print(f"| {stat} | " + " | ".join(_cell(row[c], None if c == "true" else row["true"]) for c in names) + " |")
+
+
+def _cell(v, base) -> str:
+    if v is None:
+        return "n/a"
+    return f"{v:.5f} N" + ("" if base is None else f" ({v / base:.2f}x)")
 
 
 def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str) -> None:
