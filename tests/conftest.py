@@ -108,16 +108,21 @@ def _free_compiled_programs():
 # second process runs those of the selected modules, in the order the tests
 # come, and writes them to the persistent compilation cache; when a test comes
 # to one, it reads it back instead of compiling. The first module's are left
-# out (its tests would be compiling them at the same time). Nothing depends on
-# it: a program not in the cache yet is compiled by the test as before; the
-# process runs at a lower priority, so that a busy machine runs the tests first.
-# Measured cold, the default run on 2 cores: 9 min 15 s without, 6 min 46 s with;
-# with another job holding a core, eight of the modules gained about 10 s.
+# out (its tests would be compiling them at the same time), and so is any module
+# the tests have reached: when a module starts while the process is still on it
+# or an earlier one, the process is stopped and started again on the modules
+# after it (compiling what the tests compile anyway gains nothing). Nothing
+# depends on it: a program not in the cache yet is compiled by the test as
+# before; the process runs at a lower priority, so that a busy machine runs the
+# tests first. Measured cold, the default run on 2 cores: 9 min 15 s without,
+# 6 min 46 s with; with another job holding a core, eight of the modules gained
+# about 10 s.
 _COMPILE_AHEAD = """
 import os, sys, time, traceback
 os.nice(10)
 import conftest  # the tests' settings: XLA flags, float64, the compilation cache
 for name in sys.argv[1:]:
+    print(f"start {name}", flush=True)
     t = time.perf_counter()
     try:
         __import__(name).compile_ahead()
@@ -127,14 +132,74 @@ for name in sys.argv[1:]:
 """
 
 
+class _AheadProcess:
+    """The compile-ahead process (above): started on the modules still to come,
+    restarted past the tests when they catch up with it. Its log is one file."""
+
+    def __init__(self, names: list[str], cache: str, log_path):
+        self.names, self.cache, self.log_path, self.proc = names, cache, log_path, None
+        self.start(names)
+
+    def start(self, names: list[str]) -> None:
+        if not names:
+            return
+        with open(self.log_path, "a") as log:
+            self.offset = log.tell()  # where this process's lines begin
+            self.proc = subprocess.Popen(
+                [sys.executable, "-c", _COMPILE_AHEAD, *names],
+                cwd=os.path.dirname(os.path.abspath(__file__)),  # python -c imports from here: conftest, the modules
+                env=dict(os.environ, JAXSYNC_CACHE_DIR=self.cache),
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        self.running = names
+
+    def current(self) -> str | None:
+        """The module the process is compiling, None when it has ended."""
+        if self.proc is None or self.proc.poll() is not None:
+            return None
+        with open(self.log_path) as log:
+            log.seek(self.offset)
+            started = [line.split()[1] for line in log if line.startswith("start ")]
+        return started[-1] if started else self.running[0]
+
+    def reached(self, name: str) -> None:
+        """The tests start module ``name``: restart past it if the process is on it or behind."""
+        if name not in self.names:
+            return
+        at = self.current()
+        if at is None or self.names.index(at) > self.names.index(name):
+            return
+        self.stop()
+        with open(self.log_path, "a") as log:
+            log.write(f"the tests reached {name} while this process compiled {at}: restarted past it\n")
+        self.start(self.names[self.names.index(name) + 1 :])
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+        if self.proc is not None:
+            self.proc.wait()
+
+
+_AHEAD: _AheadProcess | None = None
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _compile_ahead(request, tmp_path_factory):
     """Start the process that compiles the selected modules' programs ahead
     (above); stop it, if still running, when the session ends. Only with a
     compilation cache to share, at least two cores and no pytest-xdist workers."""
+    global _AHEAD
     cache = jax.config.jax_compilation_cache_dir
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        # under pytest-xdist (.ci/run's slow tier) the workers already keep both cores busy
+        # under pytest-xdist the workers already keep both cores busy
+        yield
+        return
+    if all(item.get_closest_marker("slow") for item in request.session.items):
+        # the slow tier alone (.ci/run runs it in two processes): the modules'
+        # compile_ahead builds their default tests' programs, none of these
         yield
         return
     modules = [getattr(item, "module", None) for item in request.session.items]
@@ -144,19 +209,17 @@ def _compile_ahead(request, tmp_path_factory):
     if not cache or not names or (os.cpu_count() or 1) < 2:
         yield
         return
-    with open(tmp_path_factory.getbasetemp() / "compile_ahead.log", "w") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-c", _COMPILE_AHEAD, *names],
-            cwd=os.path.dirname(os.path.abspath(__file__)),  # python -c imports from here: conftest, the modules
-            env=dict(os.environ, JAXSYNC_CACHE_DIR=cache),
-            stdin=subprocess.DEVNULL,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-        )
+    _AHEAD = _AheadProcess(names, cache, tmp_path_factory.getbasetemp() / "compile_ahead.log")
     yield
-    if proc.poll() is None:
-        proc.kill()
-    proc.wait()
+    _AHEAD.stop()
+    _AHEAD = None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _ahead_of_the_tests(request, _compile_ahead):
+    """Each module, as it starts, tells the compile-ahead process (above)."""
+    if _AHEAD is not None and request.module is not None:
+        _AHEAD.reached(request.module.__name__)
 
 
 def paper_model():
