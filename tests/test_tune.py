@@ -1064,6 +1064,44 @@ def test_lbfgs_goes_on_with_fresh_batches_then_stops_when_no_step_lowers_the_cos
     assert len(again.history) == 10 and len(seen) == calls and len(again.validation) == 3
 
 
+def test_a_run_whose_iterates_drop_everything_stops_and_stays_stopped(model, monkeypatch, tmp_path):
+    """Adam on a stand-in cost; the validation drops every scenario from
+    iteration 10 on: after the second such validation (15) the run stops,
+    checkpointed, the selected iterate before; resumed with iterations to
+    spare, it takes no step. Lost at its last validation alone, a run ends
+    where it would have."""
+
+    def fake_traced(loss, model, base, cfg, args, log):
+        def value_and_grad(theta, scenarios):
+            ones = jax.tree_util.tree_map(jax.numpy.ones_like, theta)
+            return (jax.numpy.asarray(1.0), {"grip": jax.numpy.asarray(1.0)}), ones
+
+        return value_and_grad
+
+    def validation(lost_from):
+        def validate(g):
+            calls.append(1)
+            lost = len(calls) > 1 and (len(calls) - 1) * 5 >= lost_from
+            held = {"settled_peak_resultant_N": 0.01 / len(calls), "grip_force_error_rel": 0.01, "dropped": 0}
+            return {**held, "nonfinite": 0, **({"settled_peak_resultant_N": None, "dropped": 4} if lost else {})}
+
+        return validate
+
+    monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
+    monkeypatch.setattr(tune_mod, "make_loss", lambda *a, **k: None)  # no rollout is compiled
+    cfg = TuneConfig(iterations=30, batch=1, validate_every=5, task="short", method="adam", schedule="constant")
+    calls = []
+    r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "a"), progress=False, validate=validation(10))
+    assert len(r.history) == 15 and [v["iteration"] for v in r.validation] == [0, 5, 10, 15]
+    assert r.selected["iteration"] == 5 and (tmp_path / "a" / "checkpoint.npz").exists()
+    again = tune(model, _gains.default_gains(), cfg.replace(iterations=40), out=str(tmp_path / "a"), resume=True,
+                 progress=False, validate=validation(10))  # fmt: skip
+    assert len(again.history) == 15 and len(again.validation) == 4
+    calls.clear()  # lost at the last validation only (30): the run goes to its end
+    r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "b"), progress=False, validate=validation(30))
+    assert len(r.history) == 30 and r.validation[-1]["dropped"] == 4
+
+
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):
     """The gains before and after on MuJoCo C beside MJX, through
     the one sim-to-sim check (jaxsync.sim.crosscheck.sim_to_sim) with MJX's rows as tune

@@ -55,6 +55,23 @@ class TuneError(JaxsyncError):
 # ------------------------------------------------------------------- the loop
 
 
+LOST_VALIDATIONS = 2
+"""Validations in a row that drop the object in every scenario, after which a run stops."""
+
+
+def lost_everywhere(validation) -> bool:
+    """Whether the last :data:`LOST_VALIDATIONS` validations (not the start's)
+    dropped the object in every scenario: the iterates have walked where the
+    scenarios are lost, whose training cost is a constant with no gradient
+    (``optimize.cost``), so that a first-order method moves on its momentum
+    alone (measured: Adam at 0.2 on the UR5e-like pair never came back,
+    docs/calibrate.md)."""
+    last = list(validation)[1:][-LOST_VALIDATIONS:]
+    return len(last) == LOST_VALIDATIONS and all(
+        v["settled_peak_resultant_N"] is None and v.get("dropped") for v in last
+    )
+
+
 def method_of(cfg: TuneConfig):
     """The configuration's method (``optimize.methods``), with its options."""
     m = cfg.method
@@ -255,6 +272,9 @@ def tune(
         converged = getattr(method, "converged", lambda s: False)(state.opt_state)
         if converged:
             say(f"{cfg.method.name} had converged on its batch after {start} iterations: nothing to continue")
+        elif lost_everywhere(state.validation):
+            converged = True
+            say(f"the run had stopped after {start} iterations, its iterates dropping everything: nothing to continue")
         for i in range(start, start if converged else iterations):
             if fresh_batches:  # a first-order method: a fresh batch every iteration
                 oracle.oracle.use(i)
@@ -267,13 +287,21 @@ def tune(
             if on_iteration is not None:
                 on_iteration(i, state.theta, row)
             last = converged or i + 1 == iterations
+            lost = False
             if every and ((i + 1) % every == 0 or last):
                 state = validated(state, validate, spec, base, say)
-            if (i + 1) % cfg.loop.checkpoint_every == 0 or last:
+                lost = not last and lost_everywhere(state.validation)
+            if (i + 1) % cfg.loop.checkpoint_every == 0 or last or lost:
                 save_state(write_ckpt, state, fingerprint, method, decay)
             _interrupt.check()  # a safe point: a Ctrl-C recorded during the iteration stops here
             if converged:
                 say(f"{cfg.method.name} converged on its batch after {i + 1} iterations: stopped early")
+                break
+            if lost:
+                say(
+                    f"the last {LOST_VALIDATIONS} validations dropped the object in every scenario: stopped after "
+                    f"{i + 1} iterations (the selected iterate stands; a lower learning rate may go further)"
+                )
                 break
     except KeyboardInterrupt:
         if write_ckpt:
