@@ -213,7 +213,8 @@ def _table(out: Path, tags: dict[int, str]) -> None:
                 if col in ("true", "calibrated", "perturbed") and (name is None) == (col != "perturbed"):
                     cols.setdefault(name or col, {})[seed] = v["settled_peak_resultant_N"]
     names = list(cols)
-    print("| training | " + " | ".join(names) + " |\n|---" * 1 + "|---" * len(names) + "|")
+    print("| training | " + " | ".join(names) + " |")
+    print("|---" * (len(names) + 1) + "|")
     for seed in tags:
         base = cols["true"].get(seed)
         cells = [_cell(cols[c].get(seed), None if c == "true" else base) for c in names]
