@@ -207,11 +207,11 @@ def _table(out: Path, tags: dict[int, str]) -> None:
             raise SystemExit(f"--table: no scores{tag}.json in {out} (score seed {seed} first: --score-only)")
         for f in files:
             on_true = json.loads(f.read_text())["on the true stack"]
-            name = "perturbed" + f.stem[len(f"scores{tag}_perturbed") :] if "_perturbed" in f.stem else None
-            for label, v in on_true.items():
-                col = label.replace("tuned on the ", "").replace(" stack", "")
-                if col in ("true", "calibrated", "perturbed") and (name is None) == (col != "perturbed"):
-                    cols.setdefault(name or col, {})[seed] = v["settled_peak_resultant_N"]
+            # the pair's own file gives the true and calibrated tunes, a perturbed stack's file its own
+            pert = f.stem[len(f"scores{tag}_") :] if f.stem != f"scores{tag}" else None
+            picked = {pert: "perturbed"} if pert else {"true": "true", "calibrated": "calibrated"}
+            for col, stack in picked.items():
+                cols.setdefault(col, {})[seed] = on_true[f"tuned on the {stack} stack"]["settled_peak_resultant_N"]
     names = list(cols)
     print("| training | " + " | ".join(names) + " |")
     print("|---" * (len(names) + 1) + "|")
