@@ -7,11 +7,15 @@ controller there reads the force error through fixed at each coefficient
 of ``--filters`` (``ft_sensor.filter_coefficient`` = a, each new sample's
 weight; 1: unfiltered; ros2_controllers' default 0.05, a time constant of
 about dt / a), and with the scalar gains of ``--set`` changed (e.g.
-``k_rl=0.25,k_ll=0.25``). Prints per controller and coefficient the
-settled peak resultant over the scenarios kept, the grip error, drops (or
-non-finite runs), chatter and the first impact. Deterministic: no timing.
+``k_rl=0.25,k_ll=0.25``). ``--gains LABEL=PATH`` (repeatable) rolls gains
+files out beside the defaults; ``--delays 0,1,2,3`` runs every scenario
+again at each of those delays instead of its own draw. Prints per
+controller, gains, coefficient (and delay) the settled peak resultant over
+the scenarios kept, the grip error, drops (or non-finite runs), chatter and
+the first impact. Deterministic: no timing.
 
     python experiments/position_defaults.py --robot mjcf/dual_arm.xml --filters 1,0.2,0.05
+    python experiments/position_defaults.py --robot mjcf/robots/ur5e_twice.yaml --filters 1 --delays 0,1,2,3
     python experiments/position_defaults.py --robot mjcf/robots/iiwa14_pair.yaml \
         --controllers ros2_synchronous --filters 1 --set k_rl=0,k_ll=0
 """
@@ -25,6 +29,7 @@ import jax
 import numpy as np
 
 from jaxsync.control.gains import default_gains
+from jaxsync.io import gains_file
 from jaxsync.optimize.tuning import scenarios as S
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.physics.model import load_model
@@ -40,6 +45,8 @@ def main() -> None:
     p.add_argument("--controllers", default="classical,synchronous,ros2_admittance,ros2_synchronous")
     p.add_argument("--filters", default="1,0.2,0.05")
     p.add_argument("--set", default="", metavar="NAME=VALUE,...", help="scalar gains changed from the defaults")
+    p.add_argument("--gains", action="append", default=[], metavar="LABEL=PATH", help="gains files beside the defaults")
+    p.add_argument("--delays", default="", metavar="N,...", help="every scenario at each of these delays (periods)")
     args = p.parse_args()
     set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
@@ -47,28 +54,43 @@ def main() -> None:
     model = load_model(args.robot, visual=False)
     cfg = TuneConfig(actuation="position", delay=(0, 3), servo_spread=0.3)
     held = S.heldout_scenarios(cfg.replace(scenario=S.model_overrides(model)))
+    delays = args.delays.split(",") if args.delays else [None]
+    runs = [(float(a), d) for a in args.filters.split(",") for d in delays]
     for controller in args.controllers.split(","):
-        g = default_gains(model, "position", controller)  # ros2_synchronous: its own relative-error factor
-        for item in filter(None, args.set.split(",")):
-            name, value = item.split("=")
-            g = g._replace(**{name: np.asarray(getattr(g, name)) * 0.0 + float(value)})
+        candidates = {"defaults": default_gains(model, "position", controller)}  # ros2_synchronous: its own
+        for item in args.gains:
+            label, path = item.split("=", 1)
+            candidates[label] = gains_file.load_for(path, model)
         fn = make_rollout(model, controller=controller, duration=4.0, actuation="position")
-        batch = jax.jit(jax.vmap(lambda s, fn=fn, g=g: fn(g, s)))
-        for a in (float(x) for x in args.filters.split(",")):
-            scenarios = held._replace(ft_filter=np.full_like(np.asarray(held.ft_filter), a))
-            m = jax.vmap(M.summarize)(batch(scenarios), scenarios)
-            drop = np.asarray(m.dropped) | np.asarray(m.nonfinite)
-            kept = ~drop
-            row = {
-                "dropped": int(drop.sum()),
-                "chattering": int(np.asarray(m.chattering).sum()),
-                "settled_peak_resultant_N": float(np.asarray(m.settled_peak_resultant_N)[kept].mean())
-                if kept.any()
-                else None,
-                "grip_force_error_rel": float(np.asarray(m.grip_force_error_rel)[kept].mean()) if kept.any() else None,
-                "first_impact_peak_N": float(np.asarray(m.first_impact_peak_N)[kept].mean()) if kept.any() else None,
-            }
-            print(f"{controller} a={a:g} {args.set}", json.dumps(row), flush=True)
+        batch = jax.jit(jax.vmap(fn, in_axes=(None, 0)))
+        for label, g in candidates.items():
+            for item in filter(None, args.set.split(",")):
+                name, value = item.split("=")
+                g = g._replace(**{name: np.asarray(getattr(g, name)) * 0.0 + float(value)})
+            for a, d in runs:
+                scenarios = held._replace(ft_filter=np.full_like(np.asarray(held.ft_filter), a))
+                if d is not None:
+                    scenarios = scenarios._replace(delay=np.full_like(np.asarray(held.delay), float(d)))
+                m = jax.vmap(M.summarize)(batch(g, scenarios), scenarios)
+                at = "" if d is None else f" delay={d}"
+                print(f"{controller} {label} a={a:g}{at} {args.set}", json.dumps(_row(m)), flush=True)
+
+
+def _row(m) -> dict:
+    """Drops (or non-finite runs), chatter, and means over the scenarios kept."""
+    drop = np.asarray(m.dropped) | np.asarray(m.nonfinite)
+    kept = ~drop
+
+    def mean(x):
+        return float(np.asarray(x)[kept].mean()) if kept.any() else None
+
+    return {
+        "dropped": int(drop.sum()),
+        "chattering": int(np.asarray(m.chattering).sum()),
+        "settled_peak_resultant_N": mean(m.settled_peak_resultant_N),
+        "grip_force_error_rel": mean(m.grip_force_error_rel),
+        "first_impact_peak_N": mean(m.first_impact_peak_N),
+    }
 
 
 if __name__ == "__main__":
