@@ -48,6 +48,10 @@ def main() -> None:
     p.add_argument("--gains", action="append", default=[], metavar="LABEL=PATH", help="gains files beside the defaults")
     p.add_argument("--delays", default="", metavar="N,...", help="every scenario at each of these delays (periods)")
     args = p.parse_args()
+    if any("=" not in item for item in args.gains):
+        p.error(f"--gains takes LABEL=PATH, got {args.gains}")
+    if args.delays and not all(d.isdigit() for d in args.delays.split(",")):
+        p.error(f"--delays takes whole periods >= 0, comma-separated, got {args.delays!r}")
     set_xla_flags()  # before the first JAX computation
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
