@@ -11,7 +11,7 @@ about dt / a), and with the scalar gains of ``--set`` changed (e.g.
 files out beside the defaults; ``--delays 0,1,2,3`` runs every scenario
 again at each of those delays instead of its own draw. Prints per
 controller, gains, coefficient (and delay) the settled peak resultant over
-the scenarios kept, the grip error, drops (or non-finite runs), chatter and
+the scenarios kept, the grip error, drops, non-finite runs, chatter and
 the first impact. Deterministic: no timing.
 
     python experiments/position_defaults.py --robot mjcf/dual_arm.xml --filters 1,0.2,0.05
@@ -30,13 +30,15 @@ import numpy as np
 
 from jaxsync.control.gains import default_gains
 from jaxsync.io import gains_file
+from jaxsync.optimize.tuning import loss as L
 from jaxsync.optimize.tuning import scenarios as S
 from jaxsync.optimize.tuning.config import TuneConfig
 from jaxsync.physics.model import load_model
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
-from jaxsync.sim import metrics as M
-from jaxsync.sim.rollout import make_rollout
+
+# printed per row: means over the scenarios kept (neither dropped nor non-finite), and the counts
+KEYS = ("settled_peak_resultant_N", "grip_force_error_rel", "dropped", "nonfinite", "chattering", "first_impact_peak_N")
 
 
 def main() -> None:
@@ -65,8 +67,7 @@ def main() -> None:
         for item in args.gains:
             label, path = item.split("=", 1)
             candidates[label] = gains_file.load_for(path, model)
-        fn = make_rollout(model, controller=controller, duration=4.0, actuation="position")
-        batch = jax.jit(jax.vmap(fn, in_axes=(None, 0)))
+        evaluate = L.make_evaluator(model, 4.0, controller, actuation="position")
         for label, g in candidates.items():
             for item in filter(None, args.set.split(",")):
                 name, value = item.split("=")
@@ -75,26 +76,10 @@ def main() -> None:
                 scenarios = held._replace(ft_filter=np.full_like(np.asarray(held.ft_filter), a))
                 if d is not None:
                     scenarios = scenarios._replace(delay=np.full_like(np.asarray(held.delay), float(d)))
-                m = jax.vmap(M.summarize)(batch(g, scenarios), scenarios)
+                summary = L.eval_summary(evaluate(g, scenarios))
+                row = {k: summary[k] for k in KEYS}
                 at = "" if d is None else f" delay={d}"
-                print(f"{controller} {label} a={a:g}{at} {args.set}", json.dumps(_row(m)), flush=True)
-
-
-def _row(m) -> dict:
-    """Drops (or non-finite runs), chatter, and means over the scenarios kept."""
-    drop = np.asarray(m.dropped) | np.asarray(m.nonfinite)
-    kept = ~drop
-
-    def mean(x):
-        return float(np.asarray(x)[kept].mean()) if kept.any() else None
-
-    return {
-        "dropped": int(drop.sum()),
-        "chattering": int(np.asarray(m.chattering).sum()),
-        "settled_peak_resultant_N": mean(m.settled_peak_resultant_N),
-        "grip_force_error_rel": mean(m.grip_force_error_rel),
-        "first_impact_peak_N": mean(m.first_impact_peak_N),
-    }
+                print(f"{controller} {label} a={a:g}{at} {args.set}", json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":
