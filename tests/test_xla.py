@@ -68,3 +68,37 @@ def test_the_test_process_runs_with_jaxsyncs_flags():
     # conftest calls set_xla_flags() before any JAX computation, as the command line does
     present = os.environ.get("XLA_FLAGS", "").split()
     assert all(f"--{k}={v}" in present for k, v in _xla.FLAGS.items())
+
+
+def test_the_pinned_jaxlib_knows_every_flag_and_a_made_up_one_is_unknown():
+    libs = _xla.xla_libraries()
+    assert libs, "no XLA library found beside jaxlib"
+    assert all(_xla.flag_known(k, libs) for k in _xla.FLAGS)
+    assert not _xla.flag_known("xla_cpu_no_such_flag_in_any_release", libs)
+    # a prefix of a real flag is not that flag
+    assert not _xla.flag_known("xla_cpu_use_fusion", libs)
+    assert not _xla.flag_known("xla_cpu_use_fusion_emitters", [])
+
+
+def test_a_flag_this_jaxlib_lacks_is_left_out_said_and_jax_still_starts():
+    # a jaxlib without the flag (as JAX 0.11's): set_xla_flags must not pass it to XLA,
+    # which would abort the process; it warns, naming the flag
+    probe = (
+        "import os, warnings\n"
+        "from jaxsync.runtime import xla\n"
+        "xla.FLAGS = {**xla.FLAGS, 'xla_cpu_no_such_flag_in_any_release': 'true'}\n"
+        "with warnings.catch_warnings(record=True) as w:\n"
+        "    warnings.simplefilter('always')\n"
+        "    ok = xla.set_xla_flags()\n"
+        "import jax.numpy as jnp\n"
+        "print(ok, float(jnp.ones(3).sum()), os.environ.get('XLA_FLAGS', ''), '|'.join(str(x.message) for x in w))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    ok, total, flags, said = out.stdout.strip().splitlines()[-1].split(" ", 3)
+    assert ok == "False" and total == "3.0"
+    assert "xla_cpu_no_such_flag" not in flags
+    assert "--xla_cpu_use_fusion_emitters=false" in flags  # the known flag still set
+    assert "--xla_cpu_no_such_flag_in_any_release" in said and "does not know" in said

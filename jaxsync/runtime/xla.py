@@ -12,11 +12,22 @@ computation). :func:`set_xla_flags` adds jaxsync's flags to it; the command
 line, the benchmark's child processes, the experiments and the tests call it
 first thing. Importing jaxsync changes nothing. A flag the user already set
 in ``$XLA_FLAGS`` (either value) is left as it is.
+
+XLA aborts the process on a flag it does not know, and its flags come and go
+between releases (JAX 0.11's XLA no longer has the fusion-emitter switch).
+Before adding a flag, :func:`set_xla_flags` therefore looks for its name in
+the XLA libraries this process would load (jaxlib's and any PJRT plugin's, such
+as CUDA's), without starting XLA: a flag missing from any of them is left out,
+with a warning that names it, and jaxsync runs on XLA's default.
 """
 
 from __future__ import annotations
 
+import functools
+import mmap
 import os
+import pathlib
+import re
 import warnings
 
 from jax._src import xla_bridge
@@ -25,6 +36,48 @@ FUSION_EMITTERS = "xla_cpu_use_fusion_emitters"
 # name -> value; XLA aborts on a flag it does not know, so each is checked
 # against the pinned jaxlib (tests/test_xla.py)
 FLAGS = {FUSION_EMITTERS: "false"}
+
+
+# XLA's own code is in its large shared libraries (jaxlib's, ~20 MB and more;
+# a PJRT plugin's); the small ones are Python bindings that load them
+_XLA_LIBRARY_BYTES = 5_000_000
+
+
+def xla_libraries() -> list[pathlib.Path]:
+    """The shared libraries that hold XLA for this process: jaxlib's and installed PJRT plugins'."""
+    import importlib.util  # noqa: PLC0415 -- the standard library, only on this call
+
+    dirs = []
+    for package in ("jaxlib", "jax_plugins"):
+        spec = importlib.util.find_spec(package)
+        if spec is not None and spec.submodule_search_locations:
+            dirs += [pathlib.Path(p) for p in spec.submodule_search_locations]
+    libs = set()
+    for d in dirs:
+        for path in d.rglob("*.so*"):
+            try:
+                if path.is_file() and path.stat().st_size >= _XLA_LIBRARY_BYTES:
+                    libs.add(path.resolve())
+            except OSError:
+                continue
+    return sorted(libs)
+
+
+@functools.cache
+def _library_has(path: pathlib.Path, name: str) -> bool:
+    # flag names sit in the library's read-only data as NUL-terminated strings
+    pattern = re.compile(re.escape(name.encode()) + rb"(?![A-Za-z0-9_])")
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+        return pattern.search(m) is not None
+
+
+def flag_known(name: str, libraries: list[pathlib.Path] | None = None) -> bool:
+    """Whether every XLA library of this process knows the flag ``name`` (no leading dashes).
+
+    Reads the libraries' bytes; starts nothing. False when no XLA library is found.
+    """
+    libs = xla_libraries() if libraries is None else libraries
+    return bool(libs) and all(_library_has(p, name) for p in libs)
 
 
 def _backend_started() -> bool:
@@ -40,7 +93,9 @@ def set_xla_flags() -> bool:
     or already there). If the backend has already started it changes nothing
     (the persistent cache keys programs by ``$XLA_FLAGS``: adding flags that
     XLA will not read would file programs under the wrong key), warns and
-    returns False.
+    returns False. A flag the running jaxlib (or a PJRT plugin) does not know
+    is left out, with a warning naming it, and the call returns False: XLA
+    would abort on it.
 
     Example:
       >>> import jaxsync
@@ -49,9 +104,23 @@ def set_xla_flags() -> bool:
     """
     current = os.environ.get("XLA_FLAGS", "")
     present = {tok.lstrip("-").split("=", 1)[0] for tok in current.split()}
-    missing = [f"--{k}={v}" for k, v in FLAGS.items() if k not in present]
-    if not missing:
+    wanted = {k: v for k, v in FLAGS.items() if k not in present}
+    if not wanted:
         return True
+    libs = xla_libraries()
+    unknown = [k for k in wanted if not flag_known(k, libs)]
+    if unknown:
+        import jaxlib  # noqa: PLC0415 -- its version, for the message only
+
+        warnings.warn(
+            f"jaxsync.set_xla_flags(): this jaxlib ({getattr(jaxlib, '__version__', '?')}) does not know "
+            f"{', '.join('--' + k for k in unknown)}; left unset (XLA aborts on a flag it does not know), "
+            "XLA's default is used",
+            stacklevel=2,
+        )
+    missing = [f"--{k}={v}" for k, v in wanted.items() if k not in unknown]
+    if not missing:
+        return not unknown
     if _backend_started():
         warnings.warn(
             "jaxsync.set_xla_flags(): JAX's backend has already started, so XLA will not read "
@@ -61,4 +130,4 @@ def set_xla_flags() -> bool:
         )
         return False
     os.environ["XLA_FLAGS"] = " ".join([current, *missing]).strip()
-    return True
+    return not unknown
