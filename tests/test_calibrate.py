@@ -14,6 +14,7 @@ from jaxsync._errors import ConfigError
 from jaxsync.calibrate import excite, replay, sensor
 from jaxsync.cli import main
 from jaxsync.io import bags
+from jaxsync.physics.compose import robot_delay
 from jaxsync.physics.model import load_model
 from jaxsync.physics.robot import load_robot
 from jaxsync.physics.servo import servo_of
@@ -277,11 +278,9 @@ def test_robot_file_delay_and_per_arm_servo(tmp_path):
         load_robot(tmp_path / "r.yaml")
     doc["delay"] = {"periods": 2, "control_rate": 1000}
     (tmp_path / "r.yaml").write_text(yaml.safe_dump(doc))
-    from jaxsync.sim.actuation import robot_delay
-
-    assert robot_delay(str(tmp_path / "r.yaml")) == "1"  # 2 periods at 1 kHz: 1 of the scene's 500 Hz
-    assert robot_delay(str(tmp_path / "r.yaml"), 1000.0) == "2"
-    assert robot_delay(UR5E) == "0"
+    assert robot_delay(str(tmp_path / "r.yaml")) == 1  # 2 periods at 1 kHz: 1 of the scene's 500 Hz
+    assert robot_delay(str(tmp_path / "r.yaml"), 1000.0) == 2
+    assert robot_delay(UR5E) == 0
 
 
 def test_fitted_joint_dynamics_reach_the_model(ur5e, tmp_path):

@@ -87,6 +87,30 @@ def test_imports_run_down_the_layers(module):
     assert not upward, f"{module} imports from a layer above it ({LAYERS[here]}): {upward}"
 
 
+def test_library_modules_import_jaxsync_at_the_top_only():
+    """Only the command line defers jaxsync's own modules (its start-up time): in the library
+    every dependency between modules is at the top, where the layer test and a reader see it."""
+    hidden = [
+        f"{MODULES[m].relative_to(ROOT)}:{line}: {n}"
+        for m in sorted(MODULES)
+        if not m.startswith("jaxsync.cli")
+        for n, line, top in _imports(MODULES[m])
+        if not top
+    ]
+    assert not hidden, f"imports of jaxsync modules inside library functions: {hidden}"
+
+
+def test_command_line_text_is_parsed_by_the_commands():
+    """Text a user typed ("0:3", "0.05:1") is read in jaxsync.cli; the library takes numbers."""
+    found = [
+        f"{MODULES[m].relative_to(ROOT)}: {name}"
+        for m in sorted(MODULES)
+        if not m.startswith("jaxsync.cli")
+        for name in re.findall(r"^def (parse_delay|parse_ft_filter|delay_text)\b", MODULES[m].read_text(), re.M)
+    ]
+    assert not found, found
+
+
 def test_imports_inside_functions_say_why():
     """An import inside a function is there only for an optional dependency, a
     private module another version may lack, or the command line's start-up

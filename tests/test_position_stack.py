@@ -13,6 +13,7 @@ from conftest import TEST_DURATION, fast_scenario
 
 import jaxsync
 from jaxsync._errors import ConfigError
+from jaxsync.cli import _stack
 from jaxsync.control import gains as _gains
 from jaxsync.physics import servo as _servo
 from jaxsync.physics.robot import load_robot
@@ -132,13 +133,32 @@ def test_control_rate_sets_the_substeps_and_refuses_rates_that_do_not_divide(mod
 
 @pytest.mark.parametrize(("text", "want"), [("0", (0, 0)), ("2", (2, 2)), ("0:3", (0, 3)), (f"{MAX_DELAY}", (8, 8))])
 def test_delay_reads_a_number_or_a_range(text, want):
-    assert _actuation.parse_delay(text) == want
+    assert _stack.parse_delay(text) == want
+    assert _actuation.check_delay(want) == want and _actuation.check_delay(want[0]) == (want[0], want[0])
 
 
 @pytest.mark.parametrize("bad", ["-1", "3:1", "a", "1:2:3", f"0:{MAX_DELAY + 1}", "1.5"])
 def test_delay_refuses_what_is_not_whole_periods_in_range(bad):
-    with pytest.raises(ConfigError, match=f"within 0..{MAX_DELAY}"):
-        _actuation.parse_delay(bad)
+    with pytest.raises(ConfigError, match=f"--delay must be .* within 0..{MAX_DELAY}, got '{bad}'"):
+        _stack.parse_delay(bad)
+
+
+@pytest.mark.parametrize("bad", [-1, (3, 1), "2", 1.5, (0, MAX_DELAY + 1), True, (1, 2, 3)])
+def test_the_library_takes_periods_not_text(bad):
+    with pytest.raises(ConfigError, match=f"delay must be whole control periods .* within 0..{MAX_DELAY}"):
+        _actuation.check_delay(bad)
+
+
+@pytest.mark.parametrize(("text", "want"), [("1", (1.0, 1.0)), ("0.05:1", (0.05, 1.0))])
+def test_ft_filter_reads_a_coefficient_or_a_range(text, want):
+    assert _stack.parse_ft_filter(text) == want == _actuation.check_ft_filter(want)
+    for bad in ("0:1", "a", "1:0.5", "2"):
+        with pytest.raises(ConfigError, match=f"--ft-filter must be .* within 0.001..1 .*, got '{bad}'"):
+            _stack.parse_ft_filter(bad)
+    with pytest.raises(ConfigError, match="one coefficient here"):
+        _stack.parse_ft_filter("0.05:1", one=True)
+    with pytest.raises(ConfigError, match="ft_filter must be"):
+        _actuation.check_ft_filter("0.5")
 
 
 def test_actuation_names_what_is_allowed():
@@ -149,7 +169,7 @@ def test_actuation_names_what_is_allowed():
 
 
 def test_a_stack_reads_what_a_user_writes_and_refuses_what_does_not_run(model):
-    stack = _actuation.Stack.of("position", 250.0, "2", "rolling")
+    stack = _actuation.Stack.of("position", 250.0, 2, "rolling")
     assert stack == _actuation.Stack("position", 250.0, (2, 2), "rolling") and stack.scenario_delay() == 2
     assert stack.rollout_options(model) == {"actuation": "position", "control_substeps": 2, "distro": "rolling"}
     written = stack.to_dict(model)
@@ -160,10 +180,10 @@ def test_a_stack_reads_what_a_user_writes_and_refuses_what_does_not_run(model):
     assert written["servo"]["source"] == _servo.servo_of(model).source
     assert "servo" not in _actuation.TORQUE.to_dict(model)  # a torque stack has no servo
     with pytest.raises(ConfigError, match="delay applies to position-controlled arms") as err:
-        _actuation.Stack.of("torque", None, "1")
+        _actuation.Stack.of("torque", None, 1)
     assert err.value.inputs == ("delay", "actuation")
     with pytest.raises(ConfigError, match="one scenario runs one delay, got the range 0:3"):
-        _actuation.Stack.of("position", None, "0:3").scenario_delay()
+        _actuation.Stack.of("position", None, (0, 3)).scenario_delay()
 
 
 def test_position_defaults_hold_the_inner_loop_below_the_slowest_servo(model):

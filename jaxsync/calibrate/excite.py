@@ -22,6 +22,8 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.physics.servo import joint_inertia
+from jaxsync.sim.closed_loop import consts
 
 GRASP_KEY = "grasp"
 STEP_SHARE = 0.5  # of each joint's segment: the steps; the rest the chirp and a rest at the end
@@ -136,9 +138,6 @@ def _segment(T: float, A: float, v: float, a: float, rate: float, f0: float, f1:
 def accel_caps(model, share: float = TORQUE_SHARE) -> np.ndarray:
     """(n,) each joint's acceleration cap, rad/s^2: ``share`` of its torque limit over its own inertia
     at the grasp (the larger of the two arms')."""
-    # the servo and closed-loop constants are imported here: only the excitation needs them
-    from jaxsync.physics.servo import joint_inertia
-    from jaxsync.sim.closed_loop import consts
 
     inertia = joint_inertia(model)  # (2, n)
     limit = np.asarray(consts(model).torque_limit, float).reshape(2, -1)

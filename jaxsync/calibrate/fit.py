@@ -32,6 +32,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
+from jaxsync.physics.servo import joint_inertia, servo_of
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
 SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
@@ -312,8 +313,6 @@ def replay_step(model, wh: float = 0.1) -> float:
     """The replay's physics step: the model's, divided until the stiffest servo joint's w h <= ``wh``
     (a 25 Hz servo is fast for a 2 ms explicit step: fitted there, its gains come out tens of percent
     off; docs/calibrate.md)."""
-    # the servo's numbers are imported here: only the default step needs them
-    from jaxsync.physics.servo import joint_inertia, servo_of
 
     w = float(np.sqrt(servo_of(model).stiffness / joint_inertia(model)).max())
     step = float(model.mj_model.opt.timestep)

@@ -21,6 +21,7 @@ import yaml
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate import excite as _excite
 from jaxsync.calibrate import sensor as _sensor
+from jaxsync.calibrate.fit import calibrate
 from jaxsync.calibrate.replay import UNITS
 from jaxsync.io import bags
 
@@ -141,8 +142,6 @@ def calibrate_job(
     """Read ``bag``, fit, and write ``out``: calibration.yaml (the robot-file lines), calibration.json
     (every figure), calibration.png (recorded against simulated) and report/report.html (the toolbox's).
     ``wrench_topics`` (right arm's sensor, then left's): their noise while still, for ``sensor:``."""
-    # the fit is imported here, not at the top: it loads the identification toolbox
-    from jaxsync.calibrate.fit import calibrate
 
     names = tuple(joints) if joints else _excite.bag_joint_names(model)
     if len(names) != len(_excite.bag_joint_names(model)):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from jaxsync._errors import ConfigError
 from jaxsync.cli._common import model_source, positive
 from jaxsync.control.names import DEFAULT_DISTRO, DISTROS
 
@@ -60,15 +61,43 @@ def stack_of(args):
     """The parsed stack flags as a ``Stack`` (a JaxsyncError names a bad one)."""
     from jaxsync.sim.actuation import Stack  # here, not at the top: `jaxsync --help` stays fast
 
-    return Stack.of(args.actuation, args.control_rate, delay_text(args), args.ros_distro)
+    return Stack.of(args.actuation, args.control_rate, delay_of(args), args.ros_distro)
 
 
-def delay_text(args, actuation: str | None = None) -> str:
-    """--delay as given, else the robot file's delay for position-controlled arms, else "0"."""
-    from jaxsync.sim.actuation import robot_delay  # here, not at the top: `jaxsync --help` stays fast
+def _range(text, name: str, kind, allowed: str):
+    """``"A"`` or ``"lo:hi"`` -> (lo, hi) of ``kind``; a ConfigError names ``--name`` and what it takes."""
+    parts = str(text).split(":")
+    try:
+        if len(parts) in (1, 2):
+            return kind(parts[0]), kind(parts[-1])
+    except ValueError:
+        pass
+    raise ConfigError(f"--{name.replace('_', '-')} must be {allowed}, got {text!r}", inputs=(name,))
+
+
+def parse_delay(text) -> tuple[int, int]:
+    """--delay ``"N"`` or ``"lo:hi"`` control periods -> (lo, hi), checked by the stack's own rule."""
+    from jaxsync.sim.actuation import check_delay  # here, not at the top: `jaxsync --help` stays fast
+    from jaxsync.sim.scenario import MAX_DELAY  # here, not at the top: `jaxsync --help` stays fast
+
+    return check_delay(_range(text, "delay", int, f"whole control periods N or a range lo:hi within 0..{MAX_DELAY}"))
+
+
+def parse_ft_filter(text, one: bool = False) -> tuple[float, float]:
+    """--ft-filter ``"A"`` or ``"lo:hi"`` -> (lo, hi); ``one``: a single coefficient only."""
+    from jaxsync.sim.actuation import check_ft_filter  # here, not at the top: `jaxsync --help` stays fast
+
+    allowed = "a filter coefficient A or a range lo:hi within 0.001..1 (1: unfiltered)"
+    return check_ft_filter(_range(text, "ft_filter", float, allowed), one=one)
+
+
+def delay_of(args, actuation: str | None = None) -> tuple[int, int]:
+    """--delay as given, else the robot file's delay for position-controlled arms, else 0."""
+    from jaxsync.physics.compose import robot_delay  # here, not at the top: `jaxsync --help` stays fast
 
     if args.delay is not None:
-        return args.delay
+        return parse_delay(args.delay)
     if (actuation or args.actuation) != "position":
-        return "0"
-    return robot_delay(model_source(args), args.control_rate)
+        return 0, 0
+    n = robot_delay(model_source(args), args.control_rate)
+    return n, n

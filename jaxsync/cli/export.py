@@ -12,7 +12,7 @@ from jaxsync.cli._common import (
     model_source,
     positive,
 )
-from jaxsync.cli._stack import delay_text
+from jaxsync.cli._stack import delay_of, parse_ft_filter
 from jaxsync.io.export import COMMAND_INTERFACES, COMPLIANCE_FRAMES, DISTROS, FORMATS
 from jaxsync.io.export_gains import export_gains
 from jaxsync.io.golden import golden_job
@@ -33,7 +33,7 @@ def run(args) -> int:
         args.gains, args.format, args.out, model=model_source(args), **model_options(args), distro=args.ros_distro,
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
         any_model=args.any_model, actuation=args.actuation or "torque", force=args.force,
-        compliance_at=args.compliance_at, ft_filter=args.ft_filter,
+        compliance_at=args.compliance_at, ft_filter=parse_ft_filter(args.ft_filter, one=True)[0],
     )  # fmt: skip
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
@@ -52,10 +52,10 @@ def _golden(args) -> int:
         steps=1000 if args.steps is None else args.steps,
         actuation=args.actuation or "position",
         control_rate=args.control_rate,
-        delay=delay_text(args, args.actuation or "position"),
+        delay=delay_of(args, args.actuation or "position"),
         distro=args.ros_distro,
         any_model=args.any_model,
-        ft_filter=args.ft_filter,
+        ft_filter=parse_ft_filter(args.ft_filter, one=True)[0],
     )
     d = r.delay
     print(f"wrote {r.controller}'s golden files ({d} period{'s' * (d != 1)} of delay): " + ", ".join(r.paths))

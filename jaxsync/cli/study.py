@@ -13,7 +13,7 @@ from jaxsync.cli._common import (
     model_source,
     positive,
 )
-from jaxsync.cli._stack import add_stack_arguments, delay_text
+from jaxsync.cli._stack import add_stack_arguments, delay_of, parse_ft_filter
 
 
 def _numbers(kind):
@@ -36,7 +36,6 @@ def run(args) -> int:
     from jaxsync.optimize.studies import study as _study
     from jaxsync.optimize.studies import study_report as _report
     from jaxsync.physics.model import load_model
-    from jaxsync.sim.actuation import parse_delay, parse_ft_filter
 
     cfg = _study.StudyConfig(
         controllers=tuple(args.controllers),
@@ -54,7 +53,7 @@ def run(args) -> int:
         actuation=args.actuation,
         control_rate=args.control_rate,
         distro=args.ros_distro,
-        delay=parse_delay(delay_text(args)),
+        delay=delay_of(args),
         servo_spread=args.servo_spread,
         ft_filter=parse_ft_filter(args.ft_filter),
     ).validate()  # every input is checked before anything is written or compiled

@@ -13,7 +13,7 @@ from jaxsync.cli._common import (
     model_source,
     positive,
 )
-from jaxsync.cli._stack import add_stack_arguments, delay_text
+from jaxsync.cli._stack import add_stack_arguments, delay_of, parse_ft_filter
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.methods import BATCH_METHODS
 from jaxsync.optimize.tuning.params import DEFAULT_TUNED_FOR, TUNABLE
@@ -25,7 +25,6 @@ def config_from_args(args):
     from jaxsync.optimize.tuning.config import Problem, TuneConfig
     from jaxsync.optimize.tuning.cost import parse_weights
     from jaxsync.optimize.tuning.params import spec_for
-    from jaxsync.sim.actuation import parse_delay, parse_ft_filter
 
     names = lambda text: [t.strip() for t in text.split(",") if t.strip()] if text else []  # noqa: E731
     spec = spec_for(args.controller, names(args.tune), names(args.freeze), per_arm=args.per_arm,
@@ -42,7 +41,7 @@ def config_from_args(args):
         actuation=args.actuation,
         control_rate=args.control_rate,
         distro=args.ros_distro,
-        delay=parse_delay(delay_text(args)),
+        delay=delay_of(args),
         servo_spread=args.servo_spread,
         ft_filter=parse_ft_filter(args.ft_filter),
         **{k: getattr(args, k) for k in settings},

@@ -51,6 +51,7 @@ from jaxsync.io.ros2_target import (  # noqa: F401  (jaxsync.io.export's public 
     mass_in_base,
     ros2_target,
 )
+from jaxsync.physics.model import load_mj_model
 
 FORMATS = ("yaml", "json", "ros2-admittance")
 AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -428,8 +429,6 @@ def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings
         raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", inputs=("fmt",))
     if fmt == "ros2-admittance":
         if target is None:
-            from jaxsync.physics.model import load_mj_model  # noqa: PLC0415 -- only this format needs a model
-
             target = ros2_target(load_mj_model())
         if isinstance(gains, _schedule.Schedule):
             for i, p in enumerate(_schedule.PHASES):  # every phase checked before anything is written

@@ -103,7 +103,7 @@ def export_gains(
                 command_interfaces=tuple(command_interfaces),
                 compliance_at=compliance_at,
             )
-            target = dataclasses.replace(target, filter_coefficient=_actuation.parse_ft_filter(ft_filter, one=True)[0])
+            target = dataclasses.replace(target, filter_coefficient=_actuation.check_ft_filter(ft_filter, one=True)[0])
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     warnings = []
     if fmt == "ros2-admittance":

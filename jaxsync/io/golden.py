@@ -38,10 +38,14 @@ from jaxsync.control import controller as _controller
 from jaxsync.control.gains import Gains
 from jaxsync.control.names import ALL_CONTROLLERS
 from jaxsync.io import export as _export
+from jaxsync.io import gains_file
 from jaxsync.io import results as _results
+from jaxsync.physics import robot_names
+from jaxsync.physics.model import as_model
 from jaxsync.physics.sensing import ArmState
 from jaxsync.sim import actuation as _actuation
 from jaxsync.sim.rollout_mujoco import rollout_mujoco
+from jaxsync.sim.scenario import default_scenario
 
 GOLDEN_FORMAT = 3  # 2: jaxsync's own laws carry the F/T filter's state (wrench_filter); 3: the command sent
 FILES = ("inputs.csv", "outputs.csv", "golden.json")
@@ -157,8 +161,6 @@ def export_golden(
     if not (isinstance(steps, int) and 1 <= steps <= MAX_STEPS):
         raise ConfigError(f"steps must be a whole number in 1..{MAX_STEPS}, got {steps!r}", inputs=("steps",))
     if scenario is None:
-        from jaxsync.sim.scenario import default_scenario  # noqa: PLC0415 -- sim's task, only when not given
-
         scenario = default_scenario(model)._replace(delay=np.float64(stack.scenario_delay()))
     _results.ensure_writable_dir(out)
     inputs, outputs, dt = record(model, gains, scenario, controller=controller, steps=steps, stack=stack)
@@ -188,8 +190,6 @@ def export_golden(
 def _joint_names(model) -> dict:
     robot = getattr(model, "robot", None)
     if robot is not None:  # as the ros2-admittance files name them: each arm's ros_prefix before them
-        from jaxsync.physics import robot_names  # noqa: PLC0415 -- a robot file's names only
-
         return {a: [robot_names.ros_prefix(model.mj_model, a) + j for j in robot.joint_names[a]] for a in ARMS}
     import mujoco  # noqa: PLC0415 -- the names only
 
@@ -328,7 +328,7 @@ def golden_job(
     steps: int = 1000,
     actuation: str = "position",
     control_rate: float | None = None,
-    delay="0",
+    delay=0,
     distro: str = "jazzy",
     any_model: bool = False,
     ft_filter: float = 1.0,
@@ -341,18 +341,14 @@ def golden_job(
     them. ``controller`` None: the one the gains file was tuned for, else
     synchronous. ``ft_filter``: the rule's F/T filter coefficient in the
     scenario recorded."""
-    from jaxsync.io import gains_file  # noqa: PLC0415 -- gains_file reads exports through this layer's export
-    from jaxsync.physics.model import as_model  # noqa: PLC0415 -- the model only once the inputs are checked
-
     stack = _actuation.Stack.of(actuation, control_rate, delay, distro)
     lag = stack.scenario_delay()
-    coefficient = _actuation.parse_ft_filter(ft_filter, one=True)[0]
+    coefficient = _actuation.check_ft_filter(ft_filter, one=True)[0]
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
     if controller is None:
         controller = (gains_file.controller_of(gains) if from_file else None) or "synchronous"
     loaded = as_model(model, visual=visual)
     g = gains_file.load_or_default(gains, loaded, any_model, stack.actuation, controller)
-    from jaxsync.sim.scenario import default_scenario  # noqa: PLC0415 -- the comparison scenario, loaded model
 
     scenario = default_scenario(loaded)._replace(delay=np.float64(lag), ft_filter=np.float64(coefficient))
     paths = export_golden(loaded, g, out, controller=controller, steps=steps, stack=stack, scenario=scenario)

@@ -12,6 +12,8 @@ from jaxsync._errors import ConfigError
 from jaxsync.control.gains import Gains
 from jaxsync.control.names import DISTROS
 from jaxsync.control.ros2_admittance import MASS_IN_CONTROL_FRAME  # PR #1139: Rolling's mass in the control frame
+from jaxsync.physics import robot_names
+from jaxsync.physics.inertia import arm_joint_ids
 
 ARMS = ("right", "left")
 
@@ -74,9 +76,6 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
     that the controller's compliance is centred where jaxsync's is."""
     # imported here, not at the top: the export of yaml/json gains needs no MuJoCo
     import mujoco  # noqa: PLC0415
-
-    from jaxsync.physics import robot_names  # noqa: PLC0415
-    from jaxsync.physics.inertia import arm_joint_ids  # noqa: PLC0415
 
     if distro not in DISTROS:
         raise ConfigError(f"distro must be one of {list(DISTROS)}, got {distro!r}", inputs=("distro",))

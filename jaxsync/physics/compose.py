@@ -49,7 +49,7 @@ import numpy as np
 
 from jaxsync._errors import ConfigError, ModelFileError
 from jaxsync.physics import robot_names
-from jaxsync.physics.robot import ARM_NAMES, Robot
+from jaxsync.physics.robot import ARM_NAMES, Robot, is_robot_file, load_robot
 
 TASK_CENTRE_XY = (0.65, 0.0)  # jaxsync.sim.scenario.NOMINAL_XY
 STAND_TOP_Z = 0.8  # jaxsync.sim.scenario.STAND_TOP_Z
@@ -477,3 +477,16 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
 def model_file(robot: Robot) -> str:
     """Where a robot's composed scene is written next to the results (for MuJoCo's viewer)."""
     return os.path.splitext(os.path.basename(robot.path))[0] + "_scene.xml"
+
+
+def robot_delay(source, control_rate: float | None = None) -> int:
+    """The delay a robot file states (``delay: {periods, control_rate}``), in whole periods of
+    ``control_rate`` (None: the composed scene's physics rate); 0 for an MJCF file or no source."""
+    if source is None or not is_robot_file(source):
+        return 0
+    robot = load_robot(source)
+    if robot.delay is None:
+        return 0
+    periods, rate = robot.delay
+    rate_here = 1.0 / PHYSICS["timestep"] if control_rate is None else float(control_rate)
+    return int(round(periods * rate_here / rate))

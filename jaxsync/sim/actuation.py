@@ -61,7 +61,7 @@ class Stack:
     def __post_init__(self):
         check(self.actuation)
         check_distro(self.distro)
-        lo, hi = parse_delay(f"{self.delay[0]}:{self.delay[1]}")
+        lo, hi = check_delay(self.delay)
         if hi > 0 and self.actuation != "position":
             raise ConfigError(
                 f"delay applies to position-controlled arms (actuation='position'), got delay {hi} with "
@@ -70,11 +70,9 @@ class Stack:
             )
 
     @classmethod
-    def of(
-        cls, actuation: str = "torque", control_rate: float | None = None, delay="0", distro=DEFAULT_DISTRO
-    ) -> Stack:
-        """From what a user writes: ``delay`` "N" or "lo:hi"."""
-        return cls(actuation, control_rate, parse_delay(delay), distro)
+    def of(cls, actuation: str = "torque", control_rate: float | None = None, delay=0, distro=DEFAULT_DISTRO) -> Stack:
+        """``delay`` one number of control periods N, or a range (lo, hi)."""
+        return cls(actuation, control_rate, check_delay(delay), distro)
 
     def substeps(self, model) -> int:
         return substeps_for_rate(model, self.control_rate)
@@ -208,56 +206,33 @@ def substeps_for_rate(model, control_rate: float | None) -> int:
     return int(round(n))
 
 
-def robot_delay(source, control_rate: float | None = None) -> str:
-    """The delay a robot file states (``delay: {periods, control_rate}``), in periods of
-    ``control_rate`` (None: the physics rate), as ``--delay`` text; "0" for anything else."""
-    # the robot file is read here, not at the top: an MJCF model has none
-    from jaxsync.physics.robot import is_robot_file, load_robot
-
-    if source is None or not is_robot_file(source):
-        return "0"
-    robot = load_robot(source)
-    if robot.delay is None:
-        return "0"
-    periods, rate = robot.delay
-    if control_rate is None:  # the physics rate of a robot file's scene
-        from jaxsync.physics.compose import PHYSICS  # only here: the scene's one physics step
-
-        control_rate = 1.0 / PHYSICS["timestep"]
-    n = periods * float(control_rate) / rate
-    return str(int(round(n)))
-
-
-def parse_delay(text) -> tuple[int, int]:
-    """``"N"`` or ``"lo:hi"`` control periods -> (lo, hi), 0 <= lo <= hi <= MAX_DELAY."""
-    parts = str(text).split(":")
-    try:
-        lo, hi = (int(parts[0]), int(parts[-1])) if len(parts) in (1, 2) else (None, None)
-    except ValueError:
-        lo = hi = None
-    if lo is None or not 0 <= lo <= hi <= MAX_DELAY:
+def check_delay(delay) -> tuple[int, int]:
+    """``delay`` (whole control periods: N, or a range (lo, hi) that scenarios draw from) ->
+    (lo, hi), 0 <= lo <= hi <= MAX_DELAY; a ConfigError names anything else."""
+    pair = tuple(delay) if isinstance(delay, tuple | list) else (delay, delay)
+    ok = len(pair) == 2 and all(isinstance(x, int | np.integer) and not isinstance(x, bool) for x in pair)
+    if not ok or not 0 <= pair[0] <= pair[1] <= MAX_DELAY:
         raise ConfigError(
-            f"delay must be whole control periods N or a range lo:hi within 0..{MAX_DELAY}, got {text!r}",
+            f"delay must be whole control periods N or a range (lo, hi) within 0..{MAX_DELAY}, got {delay!r}",
             inputs=("delay",),
         )
-    return lo, hi
+    return int(pair[0]), int(pair[1])
 
 
-def parse_ft_filter(text, one: bool = False) -> tuple[float, float]:
-    """``"A"`` or ``"lo:hi"`` F/T filter coefficients -> (lo, hi), 0.001 <= lo <= hi <= 1;
-    ``one``: a single coefficient only (what one file or one scenario holds)."""
-    parts = str(text).split(":")
-    try:
-        lo, hi = (float(parts[0]), float(parts[-1])) if len(parts) in (1, 2) else (None, None)
-    except ValueError:
-        lo = hi = None
+def check_ft_filter(value, one: bool = False) -> tuple[float, float]:
+    """``value`` (the F/T filter coefficient A, or a range (lo, hi) drawn per scenario) -> (lo, hi),
+    0.001 <= lo <= hi <= 1; ``one``: a single coefficient only (what one file or one scenario holds)."""
+    pair = tuple(value) if isinstance(value, tuple | list) else (value, value)
+    numbers = len(pair) == 2 and all(isinstance(x, int | float | np.number) and not isinstance(x, bool) for x in pair)
+    lo, hi = (float(pair[0]), float(pair[1])) if numbers else (None, None)
     if lo is None or not 1e-3 <= lo <= hi <= 1.0:
         raise ConfigError(
-            f"ft_filter must be a filter coefficient A or a range lo:hi within 0.001..1 (1: unfiltered), got {text!r}",
+            f"ft_filter must be a filter coefficient A or a range (lo, hi) within 0.001..1 (1: unfiltered), "
+            f"got {value!r}",
             inputs=("ft_filter",),
         )
     if one and lo != hi:
-        raise ConfigError(f"ft_filter: one coefficient here, got the range {text!r}", inputs=("ft_filter",))
+        raise ConfigError(f"ft_filter: one coefficient here, got the range {value!r}", inputs=("ft_filter",))
     return lo, hi
 
 

@@ -132,7 +132,7 @@ class Data:
         d = self.delay
         if not (isinstance(d, tuple | list) and len(d) == 2):
             raise ConfigError(f"delay must be a range (lo, hi) of control periods, got {d!r}", inputs=("delay",))
-        _actuation.parse_delay(f"{d[0]}:{d[1]}")
+        _actuation.check_delay(tuple(d))
         f = self.ft_filter
         if not (isinstance(f, tuple | list) and len(f) == 2 and 1e-3 <= f[0] <= f[1] <= 1.0):
             raise ConfigError(
