@@ -202,6 +202,12 @@ class NativeReplay:
             if c in roots:
                 spec.body(mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_BODY, b)).gravcomp = 1.0
         m = spec.compile()
+        # the joints' actuator force range opened, as the position stack opens it
+        # (jaxsync.sim.actuation.model_updates): MuJoCo would clip the sum of the
+        # servo's actuators, their weight compensation and the feed-forward that
+        # the implicit damping cancels, and brake the joint above limit / damping
+        jids = np.asarray(m.dof_jntid)[pc.dof_adr]
+        m.jnt_actfrcrange[jids, 0], m.jnt_actfrcrange[jids, 1] = -_actuation.UNCLAMPED, _actuation.UNCLAMPED
         m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         m.opt.timestep = self.exact.m.opt.timestep
         m.opt.integrator = self.exact.m.opt.integrator

@@ -112,6 +112,7 @@ class PositionConsts(NamedTuple):
     qpos_adr: np.ndarray  # (2 n,)
     joint_damping: np.ndarray  # (2 n,) the model's own joint damping, N m s/rad
     actuator_ids: np.ndarray  # (2 n,) the joints' torque motors
+    joint_ids: np.ndarray  # (2 n,) the arm joints
 
 
 def position_consts(model) -> PositionConsts:
@@ -124,6 +125,7 @@ def position_consts(model) -> PositionConsts:
         qpos_adr=np.array([i for a in model.index.arms for i in a.qpos_adr]),
         joint_damping=np.asarray(model.mj_model.dof_damping)[dofs].copy(),
         actuator_ids=np.array([i for a in model.index.arms for i in a.actuator_ids]),
+        joint_ids=np.asarray(model.mj_model.dof_jntid)[dofs].copy(),
     )
 
 
@@ -133,12 +135,18 @@ UNCLAMPED = 1e9  # N m: the motors' control range while the servo clips its own 
 def model_updates(pc: PositionConsts, servo_scale) -> tuple:
     """(field, index, value) entries (``jaxsync.sim.scenario._model_updates``'s
     form, for either engine): the joint damping the servo adds, and the
-    motors' control range opened (the servo clips its torque itself, before
-    the part that cancels the implicit damping, :func:`servo_torque`)."""
+    motors' control range and the joints' actuator force range
+    (``actuatorfrcrange``) opened. The servo clips its own torque to the
+    joint's limit (:func:`servo_torque`); the motor then adds the part that
+    cancels the implicit damping, which a limit on the motor or on the joint's
+    actuator force would clip too: it would brake the joint above
+    ``limit / damping`` rad/s, which no servo does."""
     return (
         ("dof_damping", (pc.dof_adr,), pc.joint_damping + servo_scale * pc.damping),
         ("actuator_ctrlrange", (pc.actuator_ids, 0), -UNCLAMPED),
         ("actuator_ctrlrange", (pc.actuator_ids, 1), UNCLAMPED),
+        ("jnt_actfrcrange", (pc.joint_ids, 0), -UNCLAMPED),
+        ("jnt_actfrcrange", (pc.joint_ids, 1), UNCLAMPED),
     )
 
 

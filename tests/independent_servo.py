@@ -1,0 +1,124 @@
+"""Recordings jaxsync's model did not make: a robot's joint servo written here from its definition.
+
+Imports MuJoCo and NumPy only, nothing of jaxsync's servo, replay or
+calibrate code. The servo is what a position-controlled arm's joint
+controller computes, applied as a generalised force (``qfrc_applied``) on
+MuJoCo C at its own step and integrator:
+
+    tau = clip(k (q_cmd - q) + b (dq_cmd - dq) + c(q, dq), +-limit)
+
+with ``c`` the arm's bias forces (its weight compensation) and ``limit`` the
+joint's torque limit: the limit clips the torque the servo would apply and
+nothing else. A command stamped at t acts ``delay`` command periods later;
+its velocity is its difference with the one before over the period. The
+joint's own damping, friction loss and armature stay MuJoCo's.
+
+Also a test robot with joint torque limits and friction loss as published
+arm models carry them: Menagerie's Franka FR3 (``franka_fr3/fr3.xml``):
+actuatorfrcrange +-87 N m on joints 1-4 and +-12 N m on joints 5-7, friction
+loss 1.137 N m on joints 1-4 and 0.763, 0.44, 0.248 N m on joints 5-7,
+armature 0.195 and 0.074 kg m^2, and its servos' kp 4500, 4500, 3500, 3500,
+2000, 2000, 2000 N m/rad with kv a tenth of each, here on the iiwa-like
+test arm's kinematics (the figures only, no model file copied).
+"""
+
+from __future__ import annotations
+
+import copy
+import pathlib
+
+import mujoco
+import numpy as np
+import yaml
+
+ROBOTS = pathlib.Path(__file__).resolve().parent.parent / "mjcf" / "robots"
+FR3_LIMITS = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
+FR3_FRICTIONLOSS = (1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248)
+FR3_ARMATURE = (0.195, 0.195, 0.195, 0.195, 0.074, 0.074, 0.074)
+FR3_KP = (4500.0, 4500.0, 3500.0, 3500.0, 2000.0, 2000.0, 2000.0)
+FR3_KV = tuple(k / 10 for k in FR3_KP)
+
+
+def limited_robot(folder: pathlib.Path) -> pathlib.Path:
+    """A robot file (and its arm MJCF) in ``folder``: the iiwa-like arm twice with the FR3's joint torque
+    limits as ``actuatorfrcrange``, friction loss and armature, and its servo gains stated."""
+    spec = mujoco.MjSpec.from_file(str(ROBOTS / "iiwa14_like_arm.xml"))
+    for act in list(spec.actuators):
+        spec.delete(act)  # the servo is stated in the robot file
+    for k, lim in enumerate(FR3_LIMITS, start=1):
+        joint = spec.joint(f"joint{k}")
+        joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        joint.actfrcrange = [-lim, lim]
+        joint.frictionloss = FR3_FRICTIONLOSS[k - 1]
+        joint.armature = FR3_ARMATURE[k - 1]
+    (folder / "limited_arm.xml").write_text(spec.to_xml())
+    doc = yaml.safe_load((ROBOTS / "iiwa14_twice.yaml").read_text())
+    doc["name"] = "limited_pair"
+    for arm in doc["arms"].values():
+        arm["model"] = "limited_arm.xml"
+    doc["servo"] = {"stiffness": list(FR3_KP), "damping": list(FR3_KV)}
+    path = folder / "limited_pair.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def arm_joints(m: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """(qpos addresses, dof addresses) of the hinge joints in ``m`` (the arms'), in the model's order."""
+    hinges = [j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+    return np.array([m.jnt_qposadr[j] for j in hinges]), np.array([m.jnt_dofadr[j] for j in hinges])
+
+
+def commands(q0: np.ndarray, period: float, duration: float, speed: float, seed: int = 0):
+    """Position commands every ``period`` s around ``q0``: each joint a sum of two sines with a
+    joint speed up to about ``speed`` rad/s, ramped in over the first second. Returns (times, (T, n))."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, duration + 1e-12, period)
+    n = len(q0)
+    f = rng.uniform(0.3, 1.2, (2, n))
+    phase = rng.uniform(0, 2 * np.pi, (2, n))
+    amp = speed / (2 * np.pi * f.sum(axis=0))  # the two sines' speeds add up to ``speed`` at most
+    ramp = np.clip(t / 1.0, 0.0, 1.0)[:, None]
+    wave = sum(np.sin(2 * np.pi * f[i] * t[:, None] + phase[i]) - np.sin(phase[i]) for i in range(2))
+    return t, q0 + ramp * amp * wave
+
+
+def record(
+    m0: mujoco.MjModel,
+    q0_full: np.ndarray,
+    kp: np.ndarray,
+    kv: np.ndarray,
+    limit: np.ndarray,
+    command_times: np.ndarray,
+    cmds: np.ndarray,
+    delay: int,
+    *,
+    timestep: float = 2.5e-4,
+    integrator: str = "RK4",
+):
+    """The arms of ``m0`` (contacts off, its own actuators off) following ``cmds`` through the servo
+    above. ``kp``, ``kv``, ``limit``: (n,) in the order of :func:`arm_joints`. Returns (times, q, dq)
+    sampled at the command times (after the first)."""
+    m = copy.deepcopy(m0)
+    m.opt.timestep = timestep
+    m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT) | int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
+    qadr, dadr = arm_joints(m)
+    d = mujoco.MjData(m)
+    d.qpos[:] = q0_full
+    d.qpos[qadr] = cmds[0]
+    mujoco.mj_forward(m, d)
+    period = float(command_times[1] - command_times[0])
+    per = int(round(period / timestep))
+    out_q, out_dq = [], []
+    for i in range(1, len(command_times)):
+        k = max(0, i - 1 - delay)  # the command acting during (t_{i-1}, t_i]
+        cmd = cmds[k]
+        vel = (cmds[k] - cmds[max(0, k - 1)]) / period
+        for _ in range(per):
+            mujoco.mj_forward(m, d)  # the bias forces at this state
+            tau = kp * (cmd - d.qpos[qadr]) + kv * (vel - d.qvel[dadr]) + d.qfrc_bias[dadr]
+            d.qfrc_applied[dadr] = np.clip(tau, -limit, limit)
+            mujoco.mj_step(m, d)
+        out_q.append(d.qpos[qadr].copy())
+        out_dq.append(d.qvel[dadr].copy())
+    return command_times[1:], np.array(out_q), np.array(out_dq)

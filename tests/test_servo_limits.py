@@ -1,0 +1,86 @@
+"""A joint torque limit clips the torque the servo would apply, nothing else.
+
+The recordings come from ``independent_servo`` (MuJoCo C, the servo written
+from its definition, another step and integrator): on a robot with joint
+torque limits and friction loss as a published arm has them, the position
+stack's replay with the true parameters reproduces a recording at the
+excitation's speeds to a fraction of a milliradian.
+"""
+
+from __future__ import annotations
+
+import independent_servo as ind
+import numpy as np
+import pytest
+
+from jaxsync.calibrate import replay
+from jaxsync.calibrate.fit import _spec
+from jaxsync.physics.model import load_model
+from jaxsync.sim import actuation as _actuation
+
+PERIOD, DELAY, DURATION = 0.002, 2, 4.0
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"))), visual=False)
+
+
+@pytest.fixture(scope="module")
+def fast_recording(limited):
+    """Both arms moving at up to 0.5 rad/s (the excitation's speed cap), far above the FR3 wrist's
+    limit / damping = 12 / 200 = 0.06 rad/s, where a clipped feed-forward would brake."""
+    r = replay.Replay(limited)
+    qadr, _ = ind.arm_joints(limited.mj_model)
+    assert np.array_equal(qadr, r.pc.qpos_adr)
+    q0 = np.asarray(limited.keyframe_qpos("grasp"))
+    ct, cmds = ind.commands(q0[qadr], PERIOD, DURATION, speed=0.5)
+    truth = r.nominal()
+    lim = np.tile(ind.FR3_LIMITS, 2)
+    t, q, dq = ind.record(limited.mj_model, q0, truth.stiffness, truth.damping, lim, ct, cmds, DELAY)
+    return r, truth, ct, cmds, t, q, dq
+
+
+def test_the_limited_robot_is_what_it_says(limited):
+    m = limited.mj_model
+    _, dofs = ind.arm_joints(m)
+    jids = m.dof_jntid[dofs]
+    assert m.jnt_actfrclimited[jids].all()
+    assert np.allclose(np.abs(m.jnt_actfrcrange[jids]).max(axis=1), np.tile(ind.FR3_LIMITS, 2))
+    assert np.allclose(m.dof_frictionloss[dofs], np.tile(ind.FR3_FRICTIONLOSS, 2))
+    pc = _actuation.position_consts(limited)
+    assert np.allclose(pc.stiffness, np.tile(ind.FR3_KP, 2)) and np.allclose(pc.damping, np.tile(ind.FR3_KV, 2))
+
+
+def test_the_position_stack_opens_the_joints_force_range(limited):
+    """The entries both engines apply: the joints' actuator force range opened with the motors'
+    (the servo clips its own torque), for MuJoCo C and MJX alike."""
+    pc = _actuation.position_consts(limited)
+    updates = {(name, where[1]): (where[0], value) for name, where, value in _actuation.model_updates(pc, 1.0)[1:]}
+    ids, low = updates[("jnt_actfrcrange", 0)]
+    assert np.array_equal(ids, limited.mj_model.dof_jntid[pc.dof_adr]) and low <= -1e6
+    assert updates[("jnt_actfrcrange", 1)][1] >= 1e6
+
+
+def test_the_replay_reproduces_a_fast_recording_with_torque_limits(fast_recording):
+    r, truth, ct, cmds, t, q, dq = fast_recording
+    assert np.abs(dq).max() > 0.4  # the speeds where a clipped feed-forward brakes
+    state = r.state(cmds[0], np.zeros(q.shape[1]), 0.0)
+    _, qr, _ = r.run(truth, state, int(round(DURATION / r.timestep)), ct, cmds, DELAY, PERIOD)
+    every = int(round(PERIOD / r.timestep))
+    err = np.sqrt(((qr[every - 1 :: every][: len(q)] - q) ** 2).mean(axis=0))
+    # a false brake misses this recording by tens of milliradians; the step and integrator differ
+    assert err.max() < 1e-3, f"RMS per joint, mrad: {np.round(1e3 * err, 3)}"
+    tracking = np.sqrt(((q - cmds[1:]) ** 2).mean(axis=0))
+    assert tracking.max() > 5 * err.max()  # the replay explains the tracking, not just the commands
+
+
+def test_the_fits_native_replay_has_no_brake_either(limited, fast_recording):
+    r, truth, ct, cmds, t, q, dq = fast_recording
+    native = replay.NativeReplay(limited, _spec(limited))
+    state = native.exact.state(cmds[0], np.zeros(q.shape[1]), 0.0)
+    n = int(round(DURATION / native.timestep))
+    ((_, qn, _),) = native.run_many([(truth, state, ct, cmds)], n, DELAY, PERIOD)
+    every = int(round(PERIOD / native.timestep))
+    err = np.sqrt(((qn[every - 1 :: every][: len(q)] - q) ** 2).mean(axis=0))
+    assert err.max() < 1e-3, f"RMS per joint, mrad: {np.round(1e3 * err, 3)}"
