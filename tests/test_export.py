@@ -284,3 +284,32 @@ def test_ros2_export_is_refused_where_the_admittance_rule_runs_near_its_bound(tm
     iiwa = os.path.join(ROBOTS, "iiwa14_twice.yaml")
     with pytest.raises(ConfigError, match=r"pad axis z within its margin: dt D/M = 1\.63"):
         export_gains(None, "ros2-admittance", str(tmp_path / "i"), model=iiwa, visual=False)
+
+
+def test_one_arm_file_used_twice_exports_each_arm_by_its_own_names(tmp_path):
+    """ur5e_twice.yaml gives no ros_prefix: the files name the right arm's joints and links right_...,
+    the left's left_..., and the pad links hang from two different flange links; a note says so."""
+    ur5e = os.path.join(ROBOTS, "ur5e_twice.yaml")
+    r = export_gains(None, "ros2-admittance", str(tmp_path / "u"), model=ur5e, visual=False, actuation="position",
+                     compliance_at="pad")  # fmt: skip
+    assert r.same and any("prefixed right_ and left_" in n for n in r.notes), r.notes
+    names = {}
+    for arm in ("right", "left"):
+        doc = yaml.safe_load((tmp_path / "u" / f"admittance_{arm}.yaml").read_text())
+        p = doc[f"admittance_controller_{arm}"]["ros__parameters"]
+        names[arm] = {*p["joints"], p["kinematics"]["base"], p["kinematics"]["tip"]} - {"world"}
+        assert all(n.startswith(f"{arm}_") for n in names[arm]), names[arm]
+    assert not names["right"] & names["left"]
+    urdf = (tmp_path / "u" / "pad_links.urdf").read_text()
+    parents = [line.split('"')[1] for line in urdf.splitlines() if "<parent link=" in line]
+    assert parents == ["right_wrist_3_link", "left_wrist_3_link"], parents
+
+
+def test_prefixes_that_leave_the_arms_a_name_in_common_are_refused(tmp_path):
+    doc = yaml.safe_load(open(os.path.join(ROBOTS, "ur5e_twice.yaml")).read())
+    for arm in doc["arms"].values():
+        arm["model"] = os.path.abspath(os.path.join(ROBOTS, arm["model"]))
+        arm["ros_prefix"] = "arm_"
+    (tmp_path / "same.yaml").write_text(yaml.safe_dump(doc))
+    with pytest.raises(ConfigError, match=r"ros_prefix 'arm_' .* give the arms different prefixes"):
+        jaxsync.load_model(str(tmp_path / "same.yaml"), visual=False)

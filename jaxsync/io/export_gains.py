@@ -22,6 +22,7 @@ from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import COUPLING_FIELDS, Gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
+from jaxsync.physics import robot_names
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
 
@@ -155,8 +156,13 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g, rtol=0.0),
-        notes=warnings + coupling + (_distro_notes(distro) if fmt == "ros2-admittance" else []),
+        notes=warnings + coupling + (_distro_notes(distro) + _name_notes(loaded) if fmt == "ros2-admittance" else []),
     )
+
+
+def _name_notes(model) -> list[str]:
+    """The model's note that the arms' ROS names were prefixed for them (one arm file used twice)."""
+    return [n for n in getattr(getattr(model, "robot", None), "notes", ()) if robot_names.PREFIXED in n]
 
 
 def _phases(gains) -> list[tuple[str | None, Gains]]:

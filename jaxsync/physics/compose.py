@@ -469,7 +469,8 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
     for p in ("r", "l"):
         scene.add_pair(name=f"{p}_pad_object", geomname1="object", geomname2=f"{p}_pad", **PAD_PAIR)
     scene.add_pair(name="stand_object", geomname1="object", geomname2="stand", **STAND_PAIR)
-    robot_names.record(scene, {a: {"joints": list(arm.joints), "prefix": frames[a][1], "ros_prefix": arm.ros_prefix}
+    ros = robot_names.ros_prefixes(robot, links, notes)
+    robot_names.record(scene, {a: {"joints": list(arm.joints), "prefix": frames[a][1], "ros_prefix": ros[a]}
                                for a, arm in zip(ARM_NAMES, robot.arms, strict=True)})  # fmt: skip
     return Composed(scene, robot, joint_names, links, limits, servos, (R, t), notes)
 

@@ -14,13 +14,18 @@ in jaxsync's convention, the paper model) keeps its own names.
 from __future__ import annotations
 
 import json
+import os
 import re
 
 import mujoco
 
+from jaxsync._errors import ConfigError
+from jaxsync.physics.robot import ARM_NAMES, Robot
+
 TEXT = "jaxsync_robot_names"
 SIDES = {"r": "right", "l": "left"}
 _JOINT = re.compile(r"([rl])_joint(\d+)")
+PREFIXED = "their ROS names are prefixed right_ and left_"  # the model's note where ros_prefixes() chose them
 
 
 def record(spec: mujoco.MjSpec, arms: dict[str, dict]) -> None:
@@ -59,3 +64,32 @@ def ros_prefix(m: mujoco.MjModel, arm: str) -> str:
     """The prefix of ``arm``'s joint and link names in its ROS files ("" when none is given)."""
     names = read(m)
     return names[arm].get("ros_prefix", "") if names is not None else ""
+
+
+def ros_prefixes(robot: Robot, links: dict, notes: list | None = None) -> dict[str, str]:
+    """Each arm's prefix of its ROS joint and link names: the robot file's ``ros_prefix``; where both
+    arms give none and name the same joints or links (one arm file used twice), ``right_`` and
+    ``left_``, said in ``notes``: one ros2_control system cannot hold two joints of one name.
+
+    Raises:
+      ConfigError: prefixes the file gives that still leave both arms a name in common.
+    """
+    given = {a: arm.ros_prefix for a, arm in zip(ARM_NAMES, robot.arms, strict=True)}
+
+    def names(prefixes):
+        return [{prefixes[a] + n for n in (*arm.joints, *(v for v in links[a].values() if v != "world"))}
+                for a, arm in zip(ARM_NAMES, robot.arms, strict=True)]  # fmt: skip
+
+    right, left = names(given)
+    if not right & left:
+        return given
+    if not any(given.values()):
+        if notes is not None:
+            notes.append(f"both arms name the same joints and links ({', '.join(sorted(right & left)[:3])}, ...): "
+                         f"{PREFIXED} (arms.<side>.ros_prefix sets others)")  # fmt: skip
+        return {"right": "right_", "left": "left_"}
+    raise ConfigError(
+        f"{os.path.basename(robot.path)}: arms.right.ros_prefix {given['right']!r} and arms.left.ros_prefix "
+        f"{given['left']!r} leave both arms the names {sorted(right & left)[:3]}: give the arms different "
+        "prefixes (e.g. right_ and left_)"
+    )
