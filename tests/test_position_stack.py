@@ -47,6 +47,7 @@ def _one_joint_servo(stiffness, damping, limit, command, steps, dt=0.001, inerti
         qpos_adr=np.array([0]),
         joint_damping=np.zeros(1),
         actuator_ids=np.array([0]),
+        joint_ids=np.array([0]),
     )
     for name, where, value in _actuation.model_updates(pc, 1.0):
         getattr(m, name)[where] = value
@@ -91,7 +92,13 @@ def test_the_servo_clips_its_torque_and_stays_stable_at_any_damping():
 
 def test_motor_torque_is_the_servo_torque_plus_the_cancelled_damping():
     pc = _actuation.PositionConsts(
-        np.array([100.0, 50.0]), np.array([10.0, 4.0]), np.arange(2), np.arange(2), np.zeros(2), np.arange(2)
+        np.array([100.0, 50.0]),
+        np.array([10.0, 4.0]),
+        np.arange(2),
+        np.arange(2),
+        np.zeros(2),
+        np.arange(2),
+        np.arange(2),
     )
     qpos, qvel, bias = np.array([0.1, -0.2]), np.array([0.5, 1.0]), np.array([1.0, -2.0])
     cmd, cmd_vel, limit = np.array([0.2, -0.1]), np.array([0.0, 2.0]), np.array([1e3, 3.0])
@@ -139,7 +146,7 @@ def test_delay_reads_a_number_or_a_range(text, want):
 
 @pytest.mark.parametrize("bad", ["-1", "3:1", "a", "1:2:3", f"0:{MAX_DELAY + 1}", "1.5"])
 def test_delay_refuses_what_is_not_whole_periods_in_range(bad):
-    with pytest.raises(ConfigError, match=f"--delay must be .* within 0..{MAX_DELAY}, got '{bad}'"):
+    with pytest.raises(ConfigError, match=f"^delay must be .* lo:hi within 0..{MAX_DELAY}, got '{bad}'"):
         _stack.parse_delay(bad)
 
 
@@ -153,7 +160,7 @@ def test_the_library_takes_periods_not_text(bad):
 def test_ft_filter_reads_a_coefficient_or_a_range(text, want):
     assert _stack.parse_ft_filter(text) == want == _actuation.check_ft_filter(want)
     for bad in ("0:1", "a", "1:0.5", "2"):
-        with pytest.raises(ConfigError, match=f"--ft-filter must be .* within 0.001..1 .*, got '{bad}'"):
+        with pytest.raises(ConfigError, match=f"^ft_filter must be .* lo:hi within 0.001..1 .*, got '{bad}'"):
             _stack.parse_ft_filter(bad)
     with pytest.raises(ConfigError, match="one coefficient here"):
         _stack.parse_ft_filter("0.05:1", one=True)

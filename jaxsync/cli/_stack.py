@@ -64,15 +64,20 @@ def stack_of(args):
     return Stack.of(args.actuation, args.control_rate, delay_of(args), args.ros_distro)
 
 
-def _range(text, name: str, kind, allowed: str):
-    """``"A"`` or ``"lo:hi"`` -> (lo, hi) of ``kind``; a ConfigError names ``--name`` and what it takes."""
+def _range(text, name: str, kind, allowed: str, check):
+    """``"A"`` or ``"lo:hi"`` -> (lo, hi) of ``kind``, passed by the library's ``check``; a ConfigError
+    names ``name``, what it takes and the text as typed."""
     parts = str(text).split(":")
     try:
-        if len(parts) in (1, 2):
-            return kind(parts[0]), kind(parts[-1])
+        pair = (kind(parts[0]), kind(parts[-1])) if len(parts) in (1, 2) else None
     except ValueError:
-        pass
-    raise ConfigError(f"--{name.replace('_', '-')} must be {allowed}, got {text!r}", inputs=(name,))
+        pair = None
+    if pair is not None:
+        try:
+            return check(pair)
+        except ConfigError:
+            pass
+    raise ConfigError(f"{name} must be {allowed}, got {text!r}", inputs=(name,))
 
 
 def parse_delay(text) -> tuple[int, int]:
@@ -80,15 +85,19 @@ def parse_delay(text) -> tuple[int, int]:
     from jaxsync.sim.actuation import check_delay  # here, not at the top: `jaxsync --help` stays fast
     from jaxsync.sim.scenario import MAX_DELAY  # here, not at the top: `jaxsync --help` stays fast
 
-    return check_delay(_range(text, "delay", int, f"whole control periods N or a range lo:hi within 0..{MAX_DELAY}"))
+    allowed = f"whole control periods N or a range lo:hi within 0..{MAX_DELAY}"
+    return _range(text, "delay", int, allowed, check_delay)
 
 
 def parse_ft_filter(text, one: bool = False) -> tuple[float, float]:
     """--ft-filter ``"A"`` or ``"lo:hi"`` -> (lo, hi); ``one``: a single coefficient only."""
     from jaxsync.sim.actuation import check_ft_filter  # here, not at the top: `jaxsync --help` stays fast
 
-    allowed = "a filter coefficient A or a range lo:hi within 0.001..1 (1: unfiltered)"
-    return check_ft_filter(_range(text, "ft_filter", float, allowed), one=one)
+    lo, hi = _range(text, "ft_filter", float, "a filter coefficient A or a range lo:hi within 0.001..1 (1: "
+                    "unfiltered)", check_ft_filter)  # fmt: skip
+    if one and lo != hi:
+        raise ConfigError(f"ft_filter: one coefficient here, got the range {text!r}", inputs=("ft_filter",))
+    return lo, hi
 
 
 def delay_of(args, actuation: str | None = None) -> tuple[int, int]:
