@@ -73,7 +73,12 @@ def test_a_ros_prefix_per_arm_names_every_exported_joint_and_link(tmp_path):
                   right=f", torque_limits: {UR_LIMITS}, ros_prefix: right_",
                   left=f", torque_limits: {UR_LIMITS}, ros_prefix: left_")  # fmt: skip
     m, report = compose_robot(path)
-    _export.export(jaxsync.default_gains(), "ros2-admittance", str(tmp_path / "out"), _export.ros2_target(m, report))
+    _export.export(
+        jaxsync.default_gains(),
+        "ros2-admittance",
+        str(tmp_path / "out"),
+        _export.ros2_target(m, report, compliance_at="flange"),
+    )
     for arm in ("right", "left"):
         doc = yaml.safe_load(open(tmp_path / "out" / f"admittance_{arm}.yaml"))
         params = doc[f"admittance_controller_{arm}"]["ros__parameters"]

@@ -68,7 +68,9 @@ def test_every_format_round_trips(tmp_path, fmt, kind):
 
 def test_ros2_files_follow_the_admittance_controller_schema(tmp_path):
     g = _tuned_like()
-    _export.export(g, "ros2-admittance", str(tmp_path))
+    _export.export(
+        g, "ros2-admittance", str(tmp_path), _export.ros2_target(jaxsync.load_model().mj_model, compliance_at="flange")
+    )
     doc = yaml.safe_load((tmp_path / "admittance_left.yaml").read_text())
     params = doc["admittance_controller_left"]["ros__parameters"]
     adm = params["admittance"]
@@ -186,7 +188,7 @@ def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
     params = yaml.safe_load(text)["admittance_controller_right"]["ros__parameters"]
     assert params["admittance"]["joint_damping"] == 0.0 and "f_d" in text and "kinematics.base" in text
     tuned = _tuned_like()
-    target = _export.ros2_target(jaxsync.load_model().mj_model)
+    target = _export.ros2_target(jaxsync.load_model().mj_model, compliance_at="flange")
     right = target.arms[0]
     assert right.base_axes == (1, 2, 0, 4, 5, 3)  # base x, y, z carry the pad's y, z (normal), x
     paths = _export.export(tuned, "ros2-admittance", str(tmp_path / "e"), target)
@@ -203,7 +205,8 @@ def test_ros2_files_say_what_differs_from_jaxsync(tmp_path, capsys):
     assert main(["export", str(src), "--format", "ros2-admittance", "--out", str(tmp_path / "f")]) == 0
     out = capsys.readouterr().out
     notes = [line for line in out.splitlines() if line.startswith("note: ")]
-    assert [n for n in notes if "synchronisation.yaml's coupling" not in n] == [], notes  # within the margin
+    # within the margin: no stability WARNING; the coupling's and the tool's inertia are said
+    assert [n for n in notes if "synchronisation.yaml's coupling" not in n and "also its inertia" not in n] == []
     assert "the same gains, bit for bit" in out
     # a pad frame not aligned with the base: only a mass equal on a block's axes has a base-frame form
     tilted = dataclasses.replace(right, base_axes=None)
@@ -229,8 +232,9 @@ def test_export_job_says_what_it_wrote_and_refuses_what_ros2_cannot_run(tmp_path
     r = export_gains(str(src), "yaml", str(tmp_path / "y"))  # yaml carries any controller's gains
     assert r == Exported([str(tmp_path / "y" / "gains.yaml")], "constant gains", str(src), True, [])
     r = export_gains(_tuned_like(), "ros2-admittance", str(tmp_path / "t"))
-    assert r.same and r.origin == "the given gains" and len(r.paths) == 3
-    assert len(r.notes) == 1 and r.notes[0].startswith("WARNING: synchronisation.yaml's coupling")  # untuned k's
+    assert r.same and r.origin == "the given gains" and len(r.paths) == 4  # pad_links.urdf, 2 arms, the coupling
+    assert r.notes[0].startswith("WARNING: synchronisation.yaml's coupling")  # untuned k's
+    assert len(r.notes) == 2 and "also its inertia" in r.notes[1]  # what the controller does otherwise
     r = export_gains(None, "json", str(tmp_path / "d"))
     assert r.origin == "the default gains of the paper model" and r.same
     with pytest.raises(ConfigError, match="^command_interfaces must name position") as err:

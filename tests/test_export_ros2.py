@@ -117,7 +117,9 @@ def test_every_written_file_holds_against_the_parameter_definition(tmp_path, cap
     for arm in ("right", "left"):
         params = _check(str(out / f"admittance_{arm}.yaml"), distro, n)
     robot_doc = yaml.safe_load(open(path))
-    assert params["joints"] == robot_doc["arms"]["left"]["joints"]  # the robot's own names, not jaxsync's
+    # the robot's own names, not jaxsync's; one arm file used twice: each arm's prefixed (right_, left_)
+    prefix = "left_" if "model" in robot_doc["arms"]["left"] else ""
+    assert params["joints"] == [prefix + j for j in robot_doc["arms"]["left"]["joints"]]
     assert params["kinematics"]["tip"] != "l_ee" and params["control"]["frame"]["id"] == params["kinematics"]["tip"]
 
 
@@ -128,7 +130,7 @@ def test_the_pad_axes_travel_to_the_flange_links_axes_and_back(tmp_path):
     model = jaxsync.load_model(path)
     g = jaxsync.default_gains()
     g = g._replace(imp_mass=g.imp_mass.at[:, 2].set(7.0), imp_stiffness=g.imp_stiffness.at[:, 5].set(33.0))
-    target = _export.ros2_target(model.mj_model, model.robot)
+    target = _export.ros2_target(model.mj_model, model.robot, compliance_at="flange")
     assert target.arms[0].axes == (0, 2, 1, 3, 5, 4)
     _export.export(g, "ros2-admittance", str(tmp_path), target)
     adm = yaml.safe_load(open(tmp_path / "admittance_right.yaml"))["admittance_controller_right"]["ros__parameters"]
@@ -152,7 +154,7 @@ def test_the_paper_models_files_load_too_and_bad_options_are_named(tmp_path, cap
     params = None
     _export.export(jaxsync.default_gains(), "ros2-admittance", str(tmp_path))
     params = _check(str(tmp_path / "admittance_right.yaml"), "jazzy", 7)
-    assert params["kinematics"]["base"] == "torso" and params["kinematics"]["tip"] == "r_ee"
+    assert params["kinematics"]["base"] == "torso" and params["kinematics"]["tip"] == "right_jaxsync_pad"
     rc = main(["export", "--format", "ros2-admittance", "--out", str(tmp_path / "x"), "--command-interfaces", "effort"])
     err = capsys.readouterr().err
     assert (
@@ -275,3 +277,91 @@ def test_a_coupling_not_tuned_through_the_rule_is_exported_with_a_warning(tmp_pa
         assert head.startswith("# WARNING: synchronisation.yaml's coupling") is warned, head
         assert ("--controllers ros2_synchronous --gains " + str(tuned) in said) is warned
         assert yaml.safe_load((tmp_path / name / "synchronisation.yaml").read_text())  # still YAML
+
+
+ANGLE = np.deg2rad(25.0)
+
+
+@pytest.fixture(scope="module")
+def angled(tmp_path_factory):
+    """The iiwa-like arm twice, each base turned 25 deg about x toward the middle (a torso's angled mounts)."""
+    robots = os.path.join(os.path.dirname(jaxsync.default_model_path()), "robots")
+    doc = yaml.safe_load(open(os.path.join(robots, "iiwa14_twice.yaml")))
+    for side, sign in (("right", 1.0), ("left", -1.0)):
+        arm = doc["arms"][side]
+        arm["model"] = os.path.join(robots, arm["model"])
+        arm["base"]["quat"] = [float(np.cos(ANGLE / 2)), float(sign * np.sin(ANGLE / 2)), 0.0, 0.0]
+    path = tmp_path_factory.mktemp("angled") / "angled.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return jaxsync.load_model(str(path), visual=False)
+
+
+def _grasp_frames(model, side: str):
+    """(the arm's base link rotation, the pad rotation), world frame, at the grasp: from the model itself."""
+    import mujoco  # noqa: PLC0415 -- the model's own poses
+
+    m, d = model.mj_model, mujoco.MjData(model.mj_model)
+    mujoco.mj_resetDataKeyframe(m, d, mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "grasp"))
+    mujoco.mj_kinematics(m, d)
+    joint = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, f"{side}_joint1")
+    base = int(m.body_parentid[m.jnt_bodyid[joint]])
+    pad = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
+    return d.xmat[base].reshape(3, 3), d.site_xmat[pad].reshape(3, 3)
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "kilted", "rolling", "humble"])
+def test_arms_mounted_at_an_angle_export_for_every_release(angled, tmp_path, distro):
+    """The loop applies the rule's mass per world axis and gravity along the world's z: the files name a
+    world-aligned link fixed to each turned base link as kinematics.base and fixed_world_frame (Humble,
+    whose KDL plugin roots the chain at the URDF's root, names the root 'world' and says so); the mass
+    written on each base axis is the tuned mass of the pad axis along it; the gains read back."""
+    import xml.etree.ElementTree as ET  # noqa: PLC0415 -- this test alone reads URDF
+
+    from jaxsync.io.export_gains import export_gains  # noqa: PLC0415 -- the job under test
+
+    g = jaxsync.default_gains(angled, "position")
+    g = g._replace(imp_mass=jax.numpy.asarray(g.imp_mass).at[:, 0].set(5.0))  # one mass per axis, told apart
+    out = tmp_path / distro
+    r = export_gains(g, "ros2-admittance", str(out), model=angled, distro=distro)
+    assert r.same
+    urdf = {j.find("child").get("link"): j for j in ET.parse(out / "pad_links.urdf").getroot().iter("joint")}
+    for arm, (name, side) in enumerate((("right", "r"), ("left", "l"))):
+        p = yaml.safe_load(open(out / f"admittance_{name}.yaml"))[f"admittance_controller_{name}"]["ros__parameters"]
+        R_base, R_pad = _grasp_frames(angled, side)
+        assert not np.allclose(R_base, np.eye(3), atol=1e-3)  # the arm is turned
+        if distro == "humble":
+            assert p["fixed_world_frame"]["frame"]["id"] == "world"
+            assert any("Humble roots the chain at your URDF's root link" in n for n in r.notes), r.notes
+        else:
+            world = f"{name}_jaxsync_world"
+            assert p["kinematics"]["base"] == p["fixed_world_frame"]["frame"]["id"] == world
+            joint = urdf[world]
+            assert joint.find("parent").get("link") == f"{name}_link0"
+            origin = joint.find("origin")
+            np.testing.assert_allclose(np.array(origin.get("xyz").split(), dtype=float), 0.0, atol=1e-12)
+            rpy = np.array(origin.get("rpy").split(), dtype=float)
+            np.testing.assert_allclose(R_base @ _rpy_matrix(*rpy), np.eye(3), atol=1e-9)  # the world's axes
+        mass = np.asarray(p["admittance"]["mass"])
+        if distro == "rolling":  # the control frame's order: the pad's own
+            np.testing.assert_array_equal(mass, np.asarray(g.imp_mass)[arm])
+        else:  # per world axis: each holds the mass of the pad axis lying along it at the grasp
+            along = np.argmax(np.abs(R_pad), axis=1)  # world axis i lies along pad axis along[i]
+            np.testing.assert_array_equal(mass[:3], np.asarray(g.imp_mass)[arm][along])
+            assert mass.tolist().count(5.0) == 1
+
+
+def test_the_default_export_centres_the_compliance_where_it_was_simulated(tmp_path, capsys):
+    """Without --compliance-at the files name the pad link jaxsync simulated at; what the controller still
+    does otherwise (the tool's inertia) is a note with its size; --compliance-at flange says how far off."""
+    path = os.path.join(os.path.dirname(jaxsync.default_model_path()), "robots", "ur5e_twice.yaml")
+    argv = ["export", "--format", "ros2-admittance", "--robot", path, "--no-visual", "--actuation", "position"]
+    assert main([*argv, "--out", str(tmp_path / "d")]) == 0
+    said = capsys.readouterr().out
+    p = yaml.safe_load(open(tmp_path / "d" / "admittance_right.yaml"))["admittance_controller_right"]
+    assert p["ros__parameters"]["kinematics"]["tip"] == "right_jaxsync_pad"
+    # the end effector 0.3 kg; the carry a min-jerk of lift 0.112 m in 1.2 s: (10 / sqrt 3) 0.112 / 1.2^2 m/s^2
+    assert "jaxsync's wrist sensing also its inertia: 0.3 kg, 0.134 N" in said, said
+    assert "centred at the flange" not in said
+    assert main([*argv, "--compliance-at", "flange", "--out", str(tmp_path / "f")]) == 0
+    said = capsys.readouterr().out
+    assert "the compliance is centred at the flange link, 136 mm and 136 mm (right, left) from the pad" in said

@@ -96,3 +96,29 @@ def test_bad_requests_are_refused_before_anything_is_written(model, tmp_path, ca
     assert main(["export", "--format", "golden", "--steps", "3", "--out", str(tmp_path / "g")]) == 0
     said = capsys.readouterr().out
     assert "wrote synchronous's golden files (0 periods of delay)" in said and "gives the recorded outputs" in said
+
+
+def test_the_documents_equations_give_the_recorded_rows(recorded, tmp_path):
+    """tests/golden_numpy.py, written from docs/deploy.md's update and docs/golden.md's layout alone (NumPy,
+    no jaxsync import), recomputes every row's outputs from its inputs: the documents say what the files
+    hold. A wrong number in golden.json (its alpha) is seen."""
+    import json  # noqa: PLC0415 -- this test alone edits golden.json
+
+    import golden_numpy  # noqa: PLC0415 -- the tests' own reimplementation
+
+    folder = recorded["synchronous"]
+    inputs, outputs, meta = golden_numpy.read(folder)
+    assert set(meta["state_fields"]) == {"impedance.offset", "impedance.rate", "wrench_filter"}
+    worst = 0.0
+    for k in range(len(inputs["t"])):
+        row = golden_numpy.step(inputs, k, meta)
+        assert set(row) == {c for c in outputs if c != "t"}
+        worst = max(worst, max(abs(v - outputs[c][k]) for c, v in row.items()))
+    assert worst <= 1e-9, worst
+    meta["alpha"] *= 2.0
+    for name in ("inputs.csv", "outputs.csv"):
+        (tmp_path / name).write_bytes(open(os.path.join(folder, name), "rb").read())
+    (tmp_path / "golden.json").write_text(json.dumps(meta))
+    inputs, outputs, meta = golden_numpy.read(str(tmp_path))
+    k = len(inputs["t"]) - 1
+    assert max(abs(v - outputs[c][k]) for c, v in golden_numpy.step(inputs, k, meta).items()) > 1e-9

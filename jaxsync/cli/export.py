@@ -110,9 +110,9 @@ def add_parser(subparsers):
     p.add_argument(
         "--compliance-at",
         choices=list(COMPLIANCE_FRAMES),
-        default="flange",
-        help="ros2-admittance: the frame the controller's compliance is centred at: the flange link (default), "
-        "or a pad link the files name and pad_links.urdf fixes to the flange, where jaxsync centres it",
+        default="pad",
+        help="ros2-admittance: the frame the controller's compliance is centred at: a pad link the files name and "
+        "pad_links.urdf fixes to the flange, where jaxsync simulated it (default), or the flange link",
     )
     p.add_argument(
         "--ft-filter",

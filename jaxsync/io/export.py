@@ -223,6 +223,25 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
                 "# grasp (docs/export.md).",
             ]
         ),
+        *(
+            [
+                f"# kinematics.base and fixed_world_frame are '{t.base}': the world's axes (z up), fixed to the arm's",
+                f"# base link '{t.world_joint[0]}', which is turned from the world (pad_links.urdf): the controller",
+                "# applies its mass per axis of kinematics.base and its gravity compensation along fixed_world_frame's",
+                "# z, and jaxsync's loop runs both in the world.",
+            ]
+            if t.world_joint is not None
+            else []
+        ),
+        *(
+            [
+                f"# fixed_world_frame is '{t.fixed_world}': Humble's KDL plugin roots the chain at your URDF's root",
+                "# link (kinematics.base is not read) and the arm's base link is turned from the world: name that",
+                "# root here; the mass and the gravity compensation are right when its axes are the world's (z up).",
+            ]
+            if t.fixed_world is not None and t.world_joint is None
+            else []
+        ),
         "# joint_damping is 0: jaxsync's law has none (the default, 5, adds joint-space",
         "# damping the tuned gains did not see). ft_sensor.filter_coefficient is the F/T filter the gains were",
         f"# simulated with ({target.filter_coefficient!r}; 1.0: unfiltered; the controller's default is 0.05).",
@@ -253,7 +272,7 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
         f"        id: {t.tip}",
         "    fixed_world_frame:",
         "      frame:",
-        f"        id: {t.base}",
+        f"        id: {t.fixed_world or t.base}",
         "    gravity_compensation:",
         "      frame:",
         f"        id: {t.tip}",
@@ -323,24 +342,31 @@ def _numbers(v) -> str:
 
 
 def pad_links_urdf(target: Ros2Target) -> str:
-    """The pad links a compliance-at-pad export names, fixed to each flange link (URDF)."""
+    """The links the files name that the robot's description lacks (URDF): each pad link (compliance at the
+    pad) fixed to its flange link, and each world-aligned base link (an arm mounted at an angle) fixed to
+    the arm's base link."""
     lines = [
         '<?xml version="1.0"?>',
-        "<!-- jaxsync: the pad links the admittance files name as tip, control, sensor and gravity frames.",
-        "     Add them to your robot description (each fixed to its arm's flange link at jaxsync's pad: the",
-        "     face centre, z the pad normal). docs/export.md. -->",
+        "<!-- jaxsync: the links the admittance files name that your robot description lacks; add them to it.",
+        "     <arm>jaxsync_pad: the tip, control, sensor and gravity frame, fixed to the flange link at jaxsync's",
+        "     pad (the face centre, z the pad normal). <arm>jaxsync_world: kinematics.base and fixed_world_frame",
+        "     of an arm whose base link is turned from the world, fixed to that link with the world's axes",
+        "     (z up), where the controller applies its mass and its gravity compensation. docs/export.md. -->",
         '<robot name="jaxsync_pads">',
     ]
     for t in target.arms:
-        parent, (xyz, rpy) = t.pad_joint
-        lines += [
-            f'  <link name="{t.tip}"/>',
-            f'  <joint name="{t.tip}_joint" type="fixed">',
-            f'    <parent link="{parent}"/>',
-            f'    <child link="{t.tip}"/>',
-            f'    <origin xyz="{" ".join(repr(x) for x in xyz)}" rpy="{" ".join(repr(x) for x in rpy)}"/>',
-            "  </joint>",
-        ]
+        for child, joint in ((t.tip, t.pad_joint), (t.base, t.world_joint)):
+            if joint is None:
+                continue
+            parent, (xyz, rpy) = joint
+            lines += [
+                f'  <link name="{child}"/>',
+                f'  <joint name="{child}_joint" type="fixed">',
+                f'    <parent link="{parent}"/>',
+                f'    <child link="{child}"/>',
+                f'    <origin xyz="{" ".join(repr(x) for x in xyz)}" rpy="{" ".join(repr(x) for x in rpy)}"/>',
+                "  </joint>",
+            ]
     return "\n".join([*lines, "</robot>"]) + "\n"
 
 
@@ -348,7 +374,7 @@ def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
-    if target.arms[0].pad_joint is not None:
+    if any(t.pad_joint is not None or t.world_joint is not None for t in target.arms):
         paths.append(os.path.join(out, "pad_links.urdf"))
         _results.atomic_write_text(paths[-1], pad_links_urdf(target))
     for arm, name in enumerate(ARMS):

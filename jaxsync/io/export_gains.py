@@ -14,6 +14,9 @@ import dataclasses
 import os
 from typing import NamedTuple
 
+import jax
+import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
@@ -25,6 +28,8 @@ from jaxsync.io import gains_file
 from jaxsync.physics import robot_names
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
+from jaxsync.sim import scenario as _scenario
+from jaxsync.sim.scenario import default_scenario
 
 ROS2_CONTROLLERS = (
     "classical",
@@ -56,7 +61,7 @@ def export_gains(
     any_model: bool = False,
     actuation: str = "torque",
     force: bool = False,
-    compliance_at: str = "flange",
+    compliance_at: str = "pad",
     ft_filter: float = 1.0,
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
@@ -75,9 +80,12 @@ def export_gains(
     the admittance rule would run an axis of any phase unstable or within its
     margin at the exported update rate (:func:`deployed_stability`); with
     ``force`` it is written, each file and the notes saying so in a WARNING.
-    ``compliance_at="pad"``: the files name a pad link (``pad_links.urdf``
-    fixes it to the flange) as tip, control, sensor and gravity frame, so that
-    the compliance is centred at the pad as simulated. ``ft_filter``: the
+    ``compliance_at="pad"`` (the default): the files name a pad link
+    (``pad_links.urdf`` fixes it to the flange) as tip, control, sensor and
+    gravity frame, so that the compliance is centred at the pad as simulated;
+    "flange": at the flange link, a note giving the distance. What the
+    deployed controller still does otherwise than the loop simulated it is
+    in the notes, with its size. ``ft_filter``: the
     files' ``ft_sensor.filter_coefficient`` (the rule's F/T filter the gains
     were tuned with, ``Scenario.ft_filter``; 1: unfiltered).
     """
@@ -156,13 +164,67 @@ def export_gains(
         kind="a gain schedule" if not isinstance(g, Gains) else "constant gains",
         origin=origin,
         same=gains_file.same_gains(back, g, rtol=0.0),
-        notes=warnings + coupling + (_distro_notes(distro) + _name_notes(loaded) if fmt == "ros2-admittance" else []),
+        notes=warnings + coupling + (_ros2_notes(loaded, target, distro) if fmt == "ros2-admittance" else []),
     )
 
 
-def _name_notes(model) -> list[str]:
-    """The model's note that the arms' ROS names were prefixed for them (one arm file used twice)."""
-    return [n for n in getattr(getattr(model, "robot", None), "notes", ()) if robot_names.PREFIXED in n]
+def _ros2_notes(model, target, distro: str) -> list[str]:
+    """What a ros2-admittance user should know beyond the files: the release's gaps, names jaxsync chose,
+    and where the deployed controller differs from the loop jaxsync simulated, with the size."""
+    notes = _distro_notes(distro)
+    notes += [n for n in getattr(getattr(model, "robot", None), "notes", ()) if robot_names.PREFIXED in n]
+    notes += [_inertia_note(model, target)]
+    if target.arms[0].pad_joint is None:
+        notes.append(
+            "the compliance is centred at the flange link, "
+            + " and ".join(f"{d * 1000:.0f} mm" for d in _flange_to_pad(model))
+            + " (right, left) from the pad jaxsync simulated it at: a tangential force there also turns the "
+            "flange (the default, --compliance-at pad, centres it at the pad)"
+        )
+    if any(t.world_joint is not None for t in target.arms):
+        notes.append(
+            "an arm's base link is turned from the world: kinematics.base and fixed_world_frame name a world-aligned "
+            "link fixed to it (pad_links.urdf: add it to your robot description)"
+        )
+    if any(t.fixed_world is not None and t.world_joint is None for t in target.arms):
+        notes.append(
+            "Humble roots the chain at your URDF's root link: fixed_world_frame is written as 'world', which must "
+            "be that root with the world's axes (z up), or the mass and the gravity compensation turn with it"
+        )
+    return notes
+
+
+def _inertia_note(model, target) -> str:
+    """The end effector's inertia: jaxsync's wrist sensing removes it, the controller's gravity compensation
+    only its weight; sized by the task's planned acceleration."""
+    s = default_scenario(model)
+    zeros = jnp.zeros((2, 3))
+    times = jnp.linspace(0.0, float(s.t_close + s.t_squeeze + s.t_carry), 2001)
+    acc = jax.vmap(lambda t: _scenario.plan(s, t, zeros, zeros).obj_acc)(times)
+    peak = float(jnp.max(jnp.linalg.norm(acc, axis=1)))
+    mass = max(t.weight for t in target.arms) / 9.81
+    return (
+        f"the controller compensates the end effector's weight only (gravity_compensation), jaxsync's wrist sensing "
+        f"also its inertia: {mass:.3g} kg, {mass * peak:.3g} N at the task's peak planned acceleration "
+        f"{peak:.3g} m/s^2 (lifting and carrying; none while holding, where the settled peak is measured)"
+    )
+
+
+def _flange_to_pad(model) -> list[float]:
+    """Each arm's distance (m) from its flange link's origin to its pad, at the grasp."""
+    m = model.mj_model
+    d = mujoco.MjData(m)
+    key = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "grasp")
+    if key >= 0:
+        mujoco.mj_resetDataKeyframe(m, d, key)
+    mujoco.mj_kinematics(m, d)
+    out = []
+    for side in ("r", "l"):
+        ee = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{side}_ee")
+        flange = int(m.body_parentid[ee]) if getattr(model, "robot", None) is not None else ee
+        pad = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, f"{side}_pad")
+        out.append(float(np.linalg.norm(d.site_xpos[pad] - d.xpos[flange])))
+    return out
 
 
 def _phases(gains) -> list[tuple[str | None, Gains]]:

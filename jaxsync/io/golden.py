@@ -36,6 +36,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import controller as _controller
 from jaxsync.control.gains import Gains
+from jaxsync.control.joint_space import COMMAND_ALPHA
 from jaxsync.control.names import ALL_CONTROLLERS
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
@@ -59,6 +60,25 @@ STATE_PARTS = {
     "task_space": ("force_integral", "wrench_filter"),
     "ros2_admittance": ("ros2",),
     "ros2_synchronous": ("ros2",),
+}
+# each state part's columns (``state.<path>[arm][k]``, rows right then left): meaning, frame, unit
+STATE_FIELDS = {
+    "impedance.offset": "each arm's admittance offset e_i, world frame (the filter runs in the planned pad "
+    "frame, docs/deploy.md step 4), [m; rad] (rotation vector)",
+    "impedance.rate": "its rate de_i, world frame, [m/s; rad/s]",
+    "wrench_filter": "f_i - f_id through the F/T filter, world frame, [N; N m]",
+    "object.offset": "object_impedance's compliant object frame dx_o, object frame, [m; rad]",
+    "object.rate": "its rate, object frame, [m/s; rad/s]",
+    "force_integral": "task_space's integral of the internal wrench, world frame, [N s; N m s]",
+    "ros2.q_ref": "each arm's reference joints, rad: advanced one period by the CLIK toward the plan "
+    "(ros2_synchronous: toward the coupled target, from the rules' last offsets) before the rule runs on them "
+    "(docs/ros2-rule.md)",
+    "ros2.rule.joint_pos": "the rule's offset in joint space (the C++ AdmittanceState), rad",
+    "ros2.rule.joint_vel": "its rate, rad/s",
+    "ros2.rule.joint_acc": "its acceleration, rad/s^2",
+    "ros2.rule.admittance_velocity": "J joint_vel at the pad (the F/T frame), base frame (the world), [m/s; rad/s]",
+    "ros2.rule.admittance_acceleration": "J joint_acc at the pad, base frame (the world), [m/s^2; rad/s^2]",
+    "ros2.rule.wrench_world": "the rule's filtered wrench (measurement plus set-point), world frame, [N; N m]",
 }
 # what a controller's step reads of each arm: (field, meaning)
 ARM_FIELDS = (
@@ -176,6 +196,10 @@ def export_golden(
         "arm_fields": dict(ARM_FIELDS),
         "reference_fields": dict(REF_FIELDS),
         "state_parts": list(STATE_PARTS[controller]),
+        "state_fields": {
+            k: v for k, v in STATE_FIELDS.items() if any(k.split(".")[0] == p for p in STATE_PARTS[controller])
+        },
+        "alpha": COMMAND_ALPHA,  # the damped least squares' alpha: J# = (J^T J + alpha I)^-1 J^T
         "columns": {"inputs": list(inputs[0]), "outputs": list(outputs[0])},
         "replay": "each row alone: the controller's step on the row's inputs (state_in, command_in) gives the "
         "row's outputs; or from row 0 on, carrying state and command from row to row",

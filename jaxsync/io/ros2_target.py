@@ -41,6 +41,10 @@ class ArmTarget:
     # and the pad pose in the F/T sensor's frame (xyz, rpy) for the sensor's tool transform
     pad_joint: tuple | None = None
     sensor_to_pad: tuple | None = None
+    # an arm whose base link is turned from the world: the world-aligned link the files name as kinematics.base
+    # and fixed_world_frame, fixed to the base link (parent, xyz, rpy); fixed_world: fixed_world_frame's link
+    world_joint: tuple | None = None
+    fixed_world: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +69,7 @@ def _signed_permutation(R: np.ndarray, what: str) -> tuple[int, ...]:
 
 
 def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_interfaces=("position",),
-                ft_sensors=None, compliance_at: str = "flange") -> Ros2Target:  # fmt: skip
+                ft_sensors=None, compliance_at: str = "pad") -> Ros2Target:  # fmt: skip
     """The robot facts the admittance controller's parameters take, from a
     loaded model's MuJoCo C model ``m`` and its robot report (``None``: the
     paper model's MJCF names). A robot file's names are its own, each arm's
@@ -129,7 +133,18 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
             tip = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, ee)
             ros = ""
         base_body = int(m.body_parentid[m.jnt_bodyid[arm_joint_ids(m, side)[0]]])
-        in_base = d.xmat[base_body].reshape(3, 3).T @ d.site_xmat[pad].reshape(3, 3)
+        R_base = d.xmat[base_body].reshape(3, 3)
+        world_joint = fixed_world = None
+        if not np.allclose(R_base, np.eye(3), atol=1e-9):
+            # the controller applies its mass per axis of kinematics.base and its gravity compensation along
+            # fixed_world_frame's z; the loop runs both in the world (jaxsync.control.ros2_loop)
+            if distro == "humble":  # its KDL plugin roots the chain at the URDF's root link, whatever base says
+                fixed_world = "world"
+            else:
+                world_joint = (base, _pose(R_base, d.xpos[base_body], np.eye(3), d.xpos[base_body]))
+                base = fixed_world = f"{ros or name + '_'}jaxsync_world"
+            R_base = np.eye(3)
+        in_base = R_base.T @ d.site_xmat[pad].reshape(3, 3)
         idx = np.argmax(np.abs(in_base), axis=1)
         aligned = np.allclose(np.abs(in_base[np.arange(3), idx]), 1.0, atol=1e-6) and len(set(idx.tolist())) == 3
         base_axes = tuple(int(i) for i in idx) + tuple(3 + int(i) for i in idx) if aligned else None
@@ -147,6 +162,8 @@ def ros2_target(m, robot: dict | None = None, *, distro: str = "jazzy", command_
                 base_axes,
                 pad_joint,
                 sensor_to_pad,
+                world_joint,
+                fixed_world,
             )  # fmt: skip
         )
     return Ros2Target(tuple(arms), distro, tuple(command_interfaces), int(round(1.0 / m.opt.timestep)))
@@ -199,6 +216,6 @@ def mass_in_base(g: Gains, arm: int, t: ArmTarget, distro: str = "jazzy") -> np.
                 f"ros2-admittance: the {ARMS[arm]} arm's pad frame is not aligned with kinematics.base "
                 f"'{t.base}' at the grasp, where the admittance controller applies its mass per base axis: "
                 f"no diagonal mass there gives the tuned one on pad axes {names} ({values}); "
-                "tune with one mass per block (TuneSpec(isotropic=True))"
+                "tune with one mass per block (jaxsync tune --isotropic; TuneSpec(isotropic=True) in Python)"
             )
     return m
