@@ -5,11 +5,14 @@ calibrate code. The servo is what a position-controlled arm's joint
 controller computes, applied as a generalised force (``qfrc_applied``) on
 MuJoCo C at its own step and integrator:
 
-    tau = clip(k (q_cmd - q) + b (dq_cmd - dq) + c(q, dq), +-limit)
+    tau = clip(k (q_cmd - q) + b (f dq_cmd - dq) + w c(q, dq), +-limit)
 
-with ``c`` the arm's bias forces (its weight compensation) and ``limit`` the
-joint's torque limit: the limit clips the torque the servo would apply and
-nothing else. A command stamped at t acts ``delay`` command periods later;
+with ``c`` the arm's bias forces, ``limit`` the joint's torque limit: the
+limit clips the torque the servo would apply and nothing else. Three
+structures (``STRUCTURES``): ``as_written``, a MuJoCo ``<position>``
+actuator (w = 0, f = 0: no compensation, damping on the joint's velocity);
+``weight_compensated`` (w = 1, f = 0); ``feedforward`` (w = 1, f = 1: what
+jaxsync's position stack assumes by default). A command stamped at t acts ``delay`` command periods later;
 its velocity is its difference with the one before over the period. The
 joint's own damping, friction loss and armature stay MuJoCo's.
 
@@ -37,6 +40,8 @@ FR3_FRICTIONLOSS = (1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248)
 FR3_ARMATURE = (0.195, 0.195, 0.195, 0.195, 0.074, 0.074, 0.074)
 FR3_KP = (4500.0, 4500.0, 3500.0, 3500.0, 2000.0, 2000.0, 2000.0)
 FR3_KV = tuple(k / 10 for k in FR3_KP)
+# (w, f) of the servo law above
+STRUCTURES = {"as_written": (0.0, 0.0), "weight_compensated": (1.0, 0.0), "feedforward": (1.0, 1.0)}
 
 
 def limited_robot(folder: pathlib.Path) -> pathlib.Path:
@@ -94,10 +99,12 @@ def record(
     *,
     timestep: float = 2.5e-4,
     integrator: str = "RK4",
+    structure: str = "feedforward",
 ):
     """The arms of ``m0`` (contacts off, its own actuators off) following ``cmds`` through the servo
     above. ``kp``, ``kv``, ``limit``: (n,) in the order of :func:`arm_joints`. Returns (times, q, dq)
     sampled at the command times (after the first)."""
+    w, f = STRUCTURES[structure]
     m = copy.deepcopy(m0)
     m.opt.timestep = timestep
     m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
@@ -116,9 +123,15 @@ def record(
         vel = (cmds[k] - cmds[max(0, k - 1)]) / period
         for _ in range(per):
             mujoco.mj_forward(m, d)  # the bias forces at this state
-            tau = kp * (cmd - d.qpos[qadr]) + kv * (vel - d.qvel[dadr]) + d.qfrc_bias[dadr]
+            tau = kp * (cmd - d.qpos[qadr]) + kv * (f * vel - d.qvel[dadr]) + w * d.qfrc_bias[dadr]
             d.qfrc_applied[dadr] = np.clip(tau, -limit, limit)
             mujoco.mj_step(m, d)
         out_q.append(d.qpos[qadr].copy())
         out_dq.append(d.qvel[dadr].copy())
     return command_times[1:], np.array(out_q), np.array(out_dq)
+
+
+def noisy(q: np.ndarray, dq: np.ndarray, noise_q: float, noise_dq: float, seed: int = 0):
+    """The samples with white Gaussian noise of the given sizes (rad, rad/s)."""
+    rng = np.random.default_rng(seed)
+    return q + noise_q * rng.standard_normal(q.shape), dq + noise_dq * rng.standard_normal(dq.shape)
