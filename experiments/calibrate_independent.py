@@ -34,7 +34,17 @@ from jaxsync.io.bags import Recording  # noqa: E402
 from jaxsync.physics.model import load_model  # noqa: E402
 
 
-def case(model, structure: str, delay: int, duration: float, seed: int, noise_q: float, noise_dq: float):
+def case(
+    model,
+    structure: str,
+    delay: int,
+    duration: float,
+    seed: int,
+    noise_q: float,
+    noise_dq: float,
+    verbose: bool = False,
+    timestep: float | None = None,
+):
     nominal = Replay(model).nominal()
     rng = np.random.default_rng(seed)
     n = len(nominal.stiffness)
@@ -47,11 +57,21 @@ def case(model, structure: str, delay: int, duration: float, seed: int, noise_q:
     q, dq = ind.noisy(q, dq, noise_q, noise_dq, seed + 1)
     rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}")
     start = time.perf_counter()
-    cal = calibrate(model, rec)[0]
+    cal = calibrate(model, rec, timestep=timestep)[0]
     seconds = time.perf_counter() - start
     err_k = np.abs(cal.fitted.stiffness / kp - 1)
     err_b = np.abs(cal.fitted.damping / kv - 1)
     claimed_k = np.nanmax(cal.intervals.get("stiffness", np.full(n, np.nan)) / kp)
+    if verbose:
+        for name, a, b, c, d in zip(
+            cal.joints,
+            cal.fitted.stiffness / kp - 1,
+            cal.fitted.damping / kv - 1,
+            cal.intervals.get("stiffness", np.full(n, np.nan)) / kp,
+            cal.rms_after,
+            strict=False,
+        ):
+            print(f"  {name}: stiffness {a:+.3f} (claimed +-{c:.3f}), damping {b:+.3f}, rms {1e3 * d:.3f} mrad")
     return {
         "structure": structure,
         "delay": delay,
@@ -73,11 +93,23 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--noise-q", type=float, default=1e-4)
     p.add_argument("--noise-dq", type=float, default=5e-3)
+    p.add_argument("--verbose", action="store_true", help="every joint's errors")
+    p.add_argument("--timestep", type=float, default=None, help="the fit's replay step, s (default: calibrate's)")
     args = p.parse_args()
     model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()))), visual=False)
     for structure in args.structures.split(","):
         for delay in (int(d) for d in args.delays.split(",")):
-            r = case(model, structure, delay, args.duration, args.seed, args.noise_q, args.noise_dq)
+            r = case(
+                model,
+                structure,
+                delay,
+                args.duration,
+                args.seed,
+                args.noise_q,
+                args.noise_dq,
+                args.verbose,
+                args.timestep,
+            )
             print(" | ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()), flush=True)
 
 

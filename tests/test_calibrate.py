@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -124,6 +125,44 @@ def test_trajectory_commands_read_like_arrays(recording, tmp_path):
     path = bags.write_recording(tmp_path / "t", recording, command_type=bags.TRAJECTORY)
     back = bags.read_recording(path, recording.joints)
     assert np.allclose(back.commands, recording.commands, atol=0)
+
+
+@pytest.mark.parametrize("kind", ["multi_array", "trajectory"])
+def test_per_arm_command_topics_read_as_one(recording, tmp_path, kind, capsys):
+    """One position controller per arm (the usual dual-arm layout): each topic in its own arm's joint order,
+    the left's messages 40 us after the right's, read back as the one-topic recording; two topics at other
+    rates or a cycle apart are refused naming both."""
+    topics = ("/right_position_controller/commands", "/left_position_controller/commands")
+    command_type = bags.MULTI_ARRAY if kind == "multi_array" else bags.TRAJECTORY
+    path = bags.write_recording(tmp_path / "b", recording, command_topic=topics, command_type=command_type,
+                                left_lag=40e-6)  # fmt: skip
+    back = bags.read_recording(path, recording.joints, command_topic=topics)
+    assert np.array_equal(back.commands, recording.commands)
+    assert np.allclose(back.command_times, recording.command_times, rtol=0, atol=1e-6)
+    with pytest.raises(bags.RecordingError, match="no topic /forward_position_controller/commands"):
+        bags.read_recording(path, recording.joints)  # the one-topic default is not there
+    late = bags.write_recording(tmp_path / "late", recording, command_topic=topics, left_lag=0.0009)
+    with pytest.raises(bags.RecordingError, match=r"within a quarter period .*same control cycle"):
+        bags.read_recording(late, recording.joints, command_topic=topics)
+    slow = dataclasses.replace(recording, command_times=recording.command_times[::2], commands=recording.commands[::2])
+    store = bags._typestore()
+    half = len(recording.joints) // 2
+    msgs = [(bags.STATE_TOPIC, bags.JOINT_STATE, 1e9 + t,
+             bags.joint_state(1e9 + t, list(recording.joints), recording.q[i], recording.dq[i], store))
+            for i, t in enumerate(recording.state_times)]  # fmt: skip
+    msgs += [(topics[0], bags.MULTI_ARRAY, 1e9 + t, bags.multi_array(recording.commands[i, :half], store))
+             for i, t in enumerate(recording.command_times)]  # fmt: skip
+    msgs += [(topics[1], bags.MULTI_ARRAY, 1e9 + t, bags.multi_array(slow.commands[i, half:], store))
+             for i, t in enumerate(slow.command_times)]  # fmt: skip
+    msgs.sort(key=lambda m: m[2])
+    two_rates = bags.write_bag(tmp_path / "two", msgs, "mcap")
+    with pytest.raises(bags.RecordingError, match=r"run at 500 Hz and 250 Hz"):
+        bags.read_recording(two_rates, recording.joints, command_topic=topics)
+    out = tmp_path / "cli"
+    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(path), "--out", str(out),
+               "--command-topic", "/a,/b,/c", "--no-report"])  # fmt: skip
+    assert rc == 2 and "command_topic must be one topic or two, R,L" in capsys.readouterr().err
+    assert not out.exists()
 
 
 def _broken(recording, tmp_path, how):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from jaxsync._errors import ConfigError
 from jaxsync.cli._common import add_model_argument, model_options, model_source, positive
 
 
@@ -14,7 +15,6 @@ def _names(text):
 
 def run(args: argparse.Namespace) -> int:
     # the library is imported here, not at the top: `jaxsync --help` stays fast
-    from jaxsync._errors import ConfigError
     from jaxsync.calibrate.jobs import calibrate_job
     from jaxsync.physics.model import load_model
 
@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     fields = ("stiffness", "damping") + tuple(_names(args.fit) or ())
     model = load_model(model_source(args), **model_options(args))
     out = calibrate_job(
-        args.out, model, args.bag, state_topic=args.state_topic, command_topic=args.command_topic,
+        args.out, model, args.bag, state_topic=args.state_topic, command_topic=_topics(args.command_topic),
         joints=_names(args.joints), command_joints=_names(args.command_joints), min_samples=args.min_samples,
         report=not args.no_report, delays=delays, fields=fields, window=args.window, timestep=args.timestep,
         wrench_topics=tuple(_names(args.wrench_topics) or ()),
@@ -74,8 +74,9 @@ def add_parser(sub) -> None:
     p.add_argument("--bag", required=True, help="the recording: a rosbag2 folder (MCAP or SQLite) or its file")
     p.add_argument("--out", required=True, help="a new folder for the results")
     p.add_argument("--state-topic", default="/joint_states", help="sensor_msgs/JointState topic (/joint_states)")
-    p.add_argument("--command-topic", default="/forward_position_controller/commands",
-                   help="the commands: std_msgs/Float64MultiArray or trajectory_msgs/JointTrajectory")  # fmt: skip
+    p.add_argument("--command-topic", default="/forward_position_controller/commands", metavar="TOPIC|R,L",
+                   help="the commands: std_msgs/Float64MultiArray or trajectory_msgs/JointTrajectory; R,L: one "
+                   "controller per arm, the right arm's topic first, each in its own arm's joint order")  # fmt: skip
     p.add_argument(
         "--joints",
         default=None,
@@ -103,3 +104,14 @@ def add_parser(sub) -> None:
     p.add_argument("--min-samples", type=int, default=500, help="fewest messages per topic (500)")
     p.add_argument("--no-report", action="store_true", help="skip the toolbox's HTML report")
     p.set_defaults(func=run)
+
+
+def _topics(text: str):
+    """--command-topic: one topic, or "R,L" (right arm's, left arm's) as a pair."""
+    names = _names(text) or []
+    if len(names) == 2:
+        return tuple(names)
+    if len(names) != 1:
+        raise ConfigError(f"command_topic must be one topic or two, R,L (right arm's first), got {text!r}",
+                          inputs=("command_topic",))  # fmt: skip
+    return names[0]

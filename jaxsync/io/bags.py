@@ -157,16 +157,19 @@ def write_recording(
     path,
     rec: Recording,
     state_topic: str = STATE_TOPIC,
-    command_topic: str = COMMAND_TOPIC,
+    command_topic: str | tuple[str, str] = COMMAND_TOPIC,
     command_type: str = MULTI_ARRAY,
     state_order=None,
     storage: str = "mcap",
     start: float = 1.0e9,
     wrench_topics=(),
+    left_lag: float = 0.0,
 ) -> Path:
     """``rec`` as a bag: joint states (names in ``state_order``, default ``rec.joints``) and commands
     (Float64MultiArray in ``rec.joints``' order, or one-point JointTrajectories), and ``rec.wrenches``
-    on ``wrench_topics`` (one each). ``start``: the first message's time (s since the epoch)."""
+    on ``wrench_topics`` (one each). ``command_topic`` (right's, left's): one controller per arm, each
+    topic its arm's half of ``rec.joints``, the left's messages ``left_lag`` s after the right's.
+    ``start``: the first message's time (s since the epoch)."""
     store = _typestore()
     order = list(state_order or rec.joints)
     cols = [rec.joints.index(j) for j in order]
@@ -174,12 +177,19 @@ def write_recording(
     for i, t in enumerate(rec.state_times):
         dq = rec.dq[i, cols] if rec.dq is not None else None
         msgs.append((state_topic, JOINT_STATE, start + t, joint_state(start + t, order, rec.q[i, cols], dq, store)))
-    for i, t in enumerate(rec.command_times):
-        if command_type == MULTI_ARRAY:
-            msg = multi_array(rec.commands[i], store)
-        else:
-            msg = trajectory(start + t, rec.joints, rec.commands[i], store)
-        msgs.append((command_topic, command_type, start + t, msg))
+    half = len(rec.joints) // 2
+    if isinstance(command_topic, str):
+        streams = [(command_topic, slice(None), 0.0)]
+    else:
+        streams = [(command_topic[0], slice(0, half), 0.0), (command_topic[1], slice(half, None), left_lag)]
+    for topic, part, lag in streams:
+        for i, t in enumerate(rec.command_times):
+            t = start + t + lag
+            if command_type == MULTI_ARRAY:
+                msg = multi_array(rec.commands[i, part], store)
+            else:
+                msg = trajectory(t, rec.joints[part], rec.commands[i, part], store)
+            msgs.append((topic, command_type, t, msg))
     for topic, (times, values) in zip(wrench_topics, rec.wrenches if wrench_topics else (), strict=True):
         msgs.extend((topic, WRENCH, start + t, wrench(start + t, w, store)) for t, w in zip(times, values, strict=True))
     msgs.sort(key=lambda m: m[2])
@@ -211,7 +221,7 @@ def read_recording(
     path,
     joints,
     state_topic: str = STATE_TOPIC,
-    command_topic: str = COMMAND_TOPIC,
+    command_topic: str | tuple[str, str] = COMMAND_TOPIC,
     command_joints=None,
     min_samples: int = 500,
     wrench_topics=(),
@@ -219,14 +229,27 @@ def read_recording(
     """The joint states and commands of ``joints`` in the bag at ``path``, and the wrenches on
     ``wrench_topics`` (WrenchStamped, one topic per sensor).
 
+    ``command_topic``: one topic for both arms, or (right arm's, left arm's):
+    one position controller per arm, each message in its own arm's joint
+    order (``joints``: the right arm's half first). Both topics must run at
+    one rate, each right message with a left one within a quarter period
+    (controllers of one controller manager publish in the same cycle); the
+    commands are paired on the right topic's times.
     ``command_joints``: the joints a Float64MultiArray's entries are, in
     order (the command controller's ``joints`` parameter; default
-    ``joints``). Every problem is a one-line :class:`RecordingError`."""
+    ``joints``; per-arm topics: each arm's entries among them). Every
+    problem is a one-line :class:`RecordingError`."""
     # rosbags is imported here, not at the top: only the commands that read or write bags load it
     from rosbags.highlevel import AnyReader, AnyReaderError
 
     path = Path(path)
     joints = tuple(joints)
+    command_topics = (command_topic,) if isinstance(command_topic, str) else tuple(command_topic)
+    if len(command_topics) not in (1, 2) or len(set(command_topics)) != len(command_topics):
+        raise RecordingError(
+            f"command_topic: one topic, or two different ones (right arm's, left arm's), got {list(command_topics)}",
+            inputs=("command_topic",),
+        )
     if not path.exists():
         raise RecordingError(f"{path}: no such bag (a rosbag2 folder, or its .mcap or .db3 file)", inputs=("bag",))
     try:
@@ -238,7 +261,8 @@ def read_recording(
     try:
         kinds = {c.topic: c.msgtype for c in reader.connections}
         listed = ", ".join(f"{t} ({k})" for t, k in sorted(kinds.items())) or "none"
-        wanted = [(state_topic, (JOINT_STATE,), "state_topic"), (command_topic, COMMAND_TYPES, "command_topic")]
+        wanted = [(state_topic, (JOINT_STATE,), "state_topic")]
+        wanted += [(topic, COMMAND_TYPES, "command_topic") for topic in command_topics]
         wanted += [(topic, (WRENCH,), "wrench_topics") for topic in wrench_topics]
         for topic, allowed, flag in wanted:
             if topic not in kinds:
@@ -247,14 +271,15 @@ def read_recording(
                 raise RecordingError(
                     f"{path}: topic {topic} is {kinds[topic]}, expected {' or '.join(allowed)}", inputs=(flag,)
                 )
-        states, commands, wrenches = [], [], {topic: [] for topic in wrench_topics}
-        topics = (state_topic, command_topic, *wrench_topics)
+        states, wrenches = [], {topic: [] for topic in wrench_topics}
+        commands = {topic: [] for topic in command_topics}
+        topics = (state_topic, *command_topics, *wrench_topics)
         for conn, t_bag, raw in reader.messages(connections=[c for c in reader.connections if c.topic in topics]):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == state_topic:
                 states.append((t_bag, msg))
-            elif conn.topic == command_topic:
-                commands.append((t_bag, conn.msgtype, msg))
+            elif conn.topic in commands:
+                commands[conn.topic].append((t_bag, conn.msgtype, msg))
             else:
                 f, tq = msg.wrench.force, msg.wrench.torque
                 wrenches[conn.topic].append((_stamp_ns(msg.header, t_bag), (f.x, f.y, f.z, tq.x, tq.y, tq.z)))
@@ -263,11 +288,23 @@ def read_recording(
     if not states:
         raise RecordingError(f"{path}: topic {state_topic} holds no messages", inputs=("state_topic",))
     t_s, q, dq = _states(states, joints, state_topic)
-    t_c, cmd = _commands(commands, joints, tuple(command_joints or joints), command_topic)
-    t0 = min(t_s[0], t_c[0])  # integer nanoseconds until here: seconds since the epoch lose them in a double
+    if len(command_topics) == 1:
+        t_c, cmd = _commands(commands[command_topic], joints, tuple(command_joints or joints), command_topic)
+        t0 = min(t_s[0], t_c[0])  # integer nanoseconds until here: seconds since the epoch lose them in a double
+        _times_ok((t_c - t0) * 1e-9, command_topic, min_samples)
+    else:
+        half = len(joints) // 2
+        arms = []
+        for topic, arm_joints in zip(command_topics, (joints[:half], joints[half:]), strict=True):
+            own = tuple(j for j in command_joints if j in arm_joints) if command_joints else arm_joints
+            t_arm, cmd_arm = _commands(commands[topic], arm_joints, own, topic)
+            t0 = min(t_s[0], t_arm[0])
+            _times_ok((t_arm - t0) * 1e-9, topic, min_samples)
+            arms.append((t_arm, cmd_arm))
+        t_c, cmd = _paired(arms, command_topics)
+        t0 = min(t_s[0], t_c[0], arms[1][0][0])
     t_s, t_c = (t_s - t0) * 1e-9, (t_c - t0) * 1e-9
     _times_ok(t_s, state_topic, min_samples)
-    _times_ok(t_c, command_topic, min_samples)
     sensed = []
     for topic in wrench_topics:
         if not wrenches[topic]:
@@ -276,6 +313,32 @@ def read_recording(
         _times_ok(t_w, topic, min_samples)
         sensed.append((t_w, np.array([w for _, w in wrenches[topic]], float)))
     return Recording(joints, t_s, q, dq, t_c, cmd, str(path), tuple(sensed))
+
+
+def _paired(arms, topics):
+    """Two arms' command streams as one: each right command with the left one nearest in time, which must
+    lie within a quarter period; the streams at one rate. Returns (the right topic's times, (C, J) commands)."""
+    (t_r, c_r), (t_l, c_l) = arms
+    period_r, period_l = float(np.median(np.diff(t_r))), float(np.median(np.diff(t_l)))
+    if abs(period_r - period_l) > 0.01 * period_r:
+        raise RecordingError(
+            f"command topics {topics[0]} and {topics[1]} run at {1e9 / period_r:.4g} Hz and {1e9 / period_l:.4g} Hz: "
+            "the two arms' position controllers must run at one rate",
+            inputs=("command_topic",),
+        )
+    k = np.clip(np.searchsorted(t_l, t_r), 1, len(t_l) - 1)
+    k = np.where(np.abs(t_l[k - 1] - t_r) <= np.abs(t_l[k] - t_r), k - 1, k)
+    off = np.abs(t_l[k] - t_r)
+    inside = off <= 0.25 * period_r
+    if not inside[1:-1].all() or inside.sum() < 0.99 * min(len(t_r), len(t_l)):
+        worst = float(np.max(off[1:-1])) if len(off) > 2 else float(np.max(off))
+        raise RecordingError(
+            f"command topics {topics[0]} and {topics[1]}: {int((~inside).sum())} right commands have no left one "
+            f"within a quarter period ({0.25e-6 * period_r:.3g} ms; the farthest {worst * 1e-6:.3g} ms): the two "
+            "arms' controllers must publish in the same control cycle",
+            inputs=("command_topic",),
+        )
+    return t_r[inside], np.concatenate([c_r[inside], c_l[k[inside]]], axis=1)
 
 
 def _stamp_ns(header, t_bag: int) -> int:
