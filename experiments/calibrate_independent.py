@@ -44,6 +44,7 @@ def case(
     noise_dq: float,
     verbose: bool = False,
     timestep: float | None = None,
+    generator: str = "actuators",
 ):
     nominal = Replay(model).nominal()
     rng = np.random.default_rng(seed)
@@ -53,7 +54,11 @@ def case(
     ex = excite.excitation(model, duration=duration)
     q0 = np.asarray(model.keyframe_qpos("grasp"))
     lim = np.tile(ind.FR3_LIMITS, 2)
-    t, q, dq = ind.record(model.mj_model, q0, kp, kv, lim, ex.times, ex.commands, delay, structure=structure)
+    if generator == "actuators":
+        t, q, dq = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,
+                                        structure=structure)  # fmt: skip
+    else:
+        t, q, dq = ind.record(model.mj_model, q0, kp, kv, lim, ex.times, ex.commands, delay, structure=structure)
     q, dq = ind.noisy(q, dq, noise_q, noise_dq, seed + 1)
     rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}")
     start = time.perf_counter()
@@ -80,6 +85,7 @@ def case(
         "damping_err_max": float(err_b.max()),
         "claimed_k_halfwidth_max": float(claimed_k),
         "poor": len(cal.poor),
+        "refused": "; ".join(cal.problems) or "no",
         "rms_after_max_mrad": float(1e3 * cal.rms_after.max()),
         "seconds": seconds,
     }
@@ -95,6 +101,12 @@ def main() -> None:
     p.add_argument("--noise-dq", type=float, default=5e-3)
     p.add_argument("--verbose", action="store_true", help="every joint's errors")
     p.add_argument("--timestep", type=float, default=None, help="the fit's replay step, s (default: calibrate's)")
+    p.add_argument(
+        "--generator",
+        choices=["actuators", "applied"],
+        default="actuators",
+        help="the robot: MuJoCo's actuators under implicitfast, or the servo law as a force under RK4",
+    )
     args = p.parse_args()
     model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()))), visual=False)
     for structure in args.structures.split(","):

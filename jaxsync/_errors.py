@@ -36,3 +36,7 @@ class ConfigError(JaxsyncError):
 
 class DroppedObjectError(JaxsyncError):
     """Gains that drop the object wherever they are tried: nothing to measure or tune."""
+
+
+class UntrustedResultError(JaxsyncError):
+    """A result the inputs do not support (a calibration its recording does not determine): refused, not given."""

@@ -131,6 +131,69 @@ def record(
     return command_times[1:], np.array(out_q), np.array(out_dq)
 
 
+def record_actuators(
+    spec: mujoco.MjSpec,
+    q0_full: np.ndarray,
+    kp: np.ndarray,
+    kv: np.ndarray,
+    command_times: np.ndarray,
+    cmds: np.ndarray,
+    delay: int,
+    *,
+    timestep: float = 2.5e-4,
+    integrator: str = "implicitfast",
+    structure: str = "feedforward",
+):
+    """The same servo as MuJoCo's own actuators on the scene ``spec`` (its actuators replaced): per arm
+    joint a ``<position>`` actuator (kp, kv: the damping on the joint's velocity, integrated implicitly
+    under implicitfast), a motor carrying kv dq_cmd (feed-forward), and MuJoCo's gravity compensation
+    through the actuators (``gravcomp``, ``actuatorgravcomp``: gravity only, not Coriolis). The joints'
+    ``actuatorfrcrange`` clips the sum, which is the servo's torque. Returns (times, q, dq) as
+    :func:`record`, in the order of :func:`arm_joints`."""
+    w, f = STRUCTURES[structure]
+    spec = spec.copy()
+    for act in list(spec.actuators):
+        spec.delete(act)
+    m0 = spec.compile()
+    hinges = [j for j in range(m0.njnt) if m0.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE]
+    names = [mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_JOINT, j) for j in hinges]
+    for k, name in enumerate(names):
+        servo = spec.add_actuator(name=f"servo {name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        servo.set_to_position(kp=float(kp[k]), kv=float(kv[k]))
+        servo.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        ff = spec.add_actuator(name=f"ff {name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        ff.set_to_motor()
+        ff.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        spec.joint(name).actgravcomp = bool(w)
+    if w:
+        for body in spec.bodies:
+            if body.name not in ("world", "object"):
+                body.gravcomp = 1.0
+    m = spec.compile()
+    m.opt.timestep = timestep
+    m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+    qadr, dadr = arm_joints(m)
+    servo_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"servo {n}") for n in names])
+    ff_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff {n}") for n in names])
+    d = mujoco.MjData(m)
+    d.qpos[:] = q0_full
+    d.qpos[qadr] = cmds[0]
+    mujoco.mj_forward(m, d)
+    period = float(command_times[1] - command_times[0])
+    per = int(round(period / timestep))
+    out_q, out_dq = [], []
+    for i in range(1, len(command_times)):
+        k = max(0, i - 1 - delay)  # the command acting during (t_{i-1}, t_i]
+        d.ctrl[servo_ids] = cmds[k]
+        d.ctrl[ff_ids] = f * kv * (cmds[k] - cmds[max(0, k - 1)]) / period
+        for _ in range(per):
+            mujoco.mj_step(m, d)
+        out_q.append(d.qpos[qadr].copy())
+        out_dq.append(d.qvel[dadr].copy())
+    return command_times[1:], np.array(out_q), np.array(out_dq)
+
+
 def noisy(q: np.ndarray, dq: np.ndarray, noise_q: float, noise_dq: float, seed: int = 0):
     """The samples with white Gaussian noise of the given sizes (rad, rad/s)."""
     rng = np.random.default_rng(seed)

@@ -12,7 +12,8 @@ import pytest
 import yaml
 
 from jaxsync._errors import ConfigError
-from jaxsync.calibrate import excite, replay, sensor
+from jaxsync.calibrate import excite, fit, replay, sensor
+from jaxsync.calibrate.replay import Joints
 from jaxsync.cli import main
 from jaxsync.io import bags
 from jaxsync.physics.compose import robot_delay
@@ -401,12 +402,20 @@ def test_a_fit_that_explains_nothing_says_so(recording, bag, tmp_path, capsys):
     motion, and the command says so, naming the joints and the figure."""
     wrong = ",".join(reversed(recording.joints))
     out = tmp_path / "poor"
-    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--delays", "2",
-               "--timestep", "0.002", "--no-report", "--command-joints", wrong])  # fmt: skip
+    argv = ["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--delays", "2",
+            "--timestep", "0.002", "--no-report", "--command-joints", wrong]  # fmt: skip
+    rc = main(argv)
+    err = capsys.readouterr().err
+    # refused, nothing written: the residual is far over the recording's noise
+    assert rc == 2 and "no calibration written" in err and "times the recording's noise" in err, err
+    assert "--force" in err and not out.exists()
+    rc = main([*argv, "--force"])
     err = capsys.readouterr().err
     assert rc == 0 and "WARNING: the fitted model does not explain the motion of" in err and "calibration.png" in err
-    poor = json.loads((out / "calibration.json").read_text())["poor_fit"]
-    assert len(poor) >= len(recording.joints) // 2, poor
+    assert "times the recording's noise" in err and "(written as asked, --force)" in err
+    written = json.loads((out / "calibration.json").read_text())
+    assert len(written["poor_fit"]) >= len(recording.joints) // 2, written["poor_fit"]
+    assert written["problems"] and (out / "calibration.yaml").read_text().startswith("# WARNING: ")
 
 
 def test_arms_on_one_torso_keep_their_clearance():
@@ -414,3 +423,46 @@ def test_arms_on_one_torso_keep_their_clearance():
     ex = excite.excitation(load_model(None, visual=False), duration=10.0, amplitude=0.02)
     assert 0.05 < ex.clearance < 1.0
     assert len(ex.joints) == 14 and ex.joints[0] == "r_joint1" and ex.joints[7] == "l_joint1"
+
+
+def test_the_noise_floor_is_the_samples_own_noise():
+    """Third differences see the white noise, not the motion: a step-and-chirp-like motion sampled at 500 Hz."""
+    t = np.arange(0.0, 20.0, 0.002)
+    motion = 0.05 * np.sin(2 * np.pi * 0.7 * t)[:, None] + 0.02 * np.tanh(20 * np.sin(0.5 * t))[:, None]
+    rng = np.random.default_rng(3)
+    for sigma in (1e-5, 1e-4):
+        q = np.repeat(motion, 3, axis=1) + sigma * rng.standard_normal((len(t), 3))
+        np.testing.assert_allclose(fit.noise_floor(q), sigma, rtol=0.1)
+
+
+def _calibration(**kw):
+    n = 2
+    ones = np.ones(n)
+    joints = Joints(ones * 100, ones * 10, ones * 0, ones * 0, ones * 0.1)
+    base = dict(joints=("a", "b"), delay=2, period=0.002, fitted=joints, nominal=joints,
+                intervals={"stiffness": ones * 1.0, "damping": ones * 0.5}, rms_before=ones * 1e-3,
+                rms_after=ones * 1e-4, motion=ones * 1e-2, delay_costs={0: 300.0, 1: 200.0, 2: 100.0, 3: 150.0},
+                fields=("stiffness", "damping"), seconds=1.0, windows=4, noise=ones * 1e-4)  # fmt: skip
+    return fit.Calibration(**(base | kw))
+
+
+class _Param:
+    def __init__(self, v):
+        self.value = np.array([v])
+
+
+def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
+    pd = {"a stiffness": _Param(1.1), "a damping": _Param(0.9), "b stiffness": _Param(1.0), "b damping": _Param(1.2)}
+    assert fit.problems(_calibration(), [0, 1, 2, 3, 4], pd) == []
+    edge = fit.problems(_calibration(delay=4, delay_costs={2: 300.0, 3: 200.0, 4: 100.0}), [0, 1, 2, 3, 4], pd)
+    assert edge and "the last one scanned" in edge[0] and "--delays 0:8" in edge[0]
+    near = fit.problems(_calibration(delay_costs={1: 101.0, 2: 100.0, 3: 150.0}), [0, 1, 2, 3, 4], pd)
+    assert near == ["delays [1] explain the recording within 2% of delay 2's cost"]
+    bound = fit.problems(_calibration(), [0, 1, 2, 3, 4], pd | {"b damping": _Param(10.0)})
+    assert bound == ["b's damping sits on its bound (10 times the robot file's)"]
+    noisy = fit.problems(_calibration(rms_after=np.array([1e-4, 5e-4])), [0, 1, 2, 3, 4], pd)
+    assert len(noisy) == 1 and "worst b: 0.5 mrad RMS against 0.1 mrad of noise" in noisy[0]
+    loose = _calibration(intervals={"stiffness": np.array([1.0, 12.0]), "damping": np.array([0.5, np.nan])})
+    said = fit.problems(loose, [0, 1, 2, 3, 4], pd)
+    assert said == ["the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
+                    "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)"]  # fmt: skip

@@ -41,6 +41,14 @@ ABSOLUTE_BOUNDS = {"joint_damping": (0.0, 100.0), "frictionloss": (0.0, 20.0), "
 FACTORS = ("stiffness", "damping")
 SCAN_ITERS = 2  # per joint and delay on the model's step: enough to tell the delays apart
 POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the model does not explain it
+# what calibrate stands behind (Calibration.problems): a residual within this many times the recording's own
+# noise, no other delay within this share of the best's cost, gains off their bounds by this share, and 95 %
+# half-widths within these shares of the fitted value
+NOISE_MULTIPLE = 2.0
+DELAY_MARGIN = 0.02
+BOUND_MARGIN = 0.01
+DETERMINED = {"stiffness": 0.10, "damping": 0.20}
+FD_STEP = 1e-3  # the finite-difference step on the gain factors (~1): above the friction loss's roughness
 
 
 @dataclasses.dataclass
@@ -60,6 +68,8 @@ class Calibration:
     fields: tuple[str, ...]
     seconds: float
     windows: int
+    noise: np.ndarray  # rad, each joint's position noise in the recording (noise_floor)
+    problems: tuple[str, ...] = ()  # why the result cannot be trusted (none: it can)
 
     @property
     def poor(self) -> list[str]:
@@ -243,7 +253,7 @@ class Problem:
         if work.size == 0:
             return work, None
         opt, result = self.sysid.optimize(work, self.residual_fn, optimizer="mujoco", verbose=False,
-                                          max_iters=max_iters, eps=1e-6, output=io.StringIO())  # fmt: skip
+                                          max_iters=max_iters, eps=FD_STEP, output=io.StringIO())  # fmt: skip
         for key in opt.keys():
             opt[key].frozen = False
         return opt, result
@@ -304,9 +314,55 @@ def calibrate(
         joints=prob.names, delay=best, period=prob.period, fitted=prob.joints_of(pd), nominal=nominal,
         intervals=prob.intervals_of(pd, np.asarray(half)), rms_before=before, rms_after=after, motion=motion,
         delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
-        windows=len(prob.sequences.sequence_name),
+        windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q),
     )  # fmt: skip
+    cal.problems = tuple(problems(cal, list(delays), pd))
     return cal, prob, pd0, pd, result
+
+
+def noise_floor(q: np.ndarray) -> np.ndarray:
+    """(J,) each joint's white position noise, rad, from its samples' third differences (whose variance is
+    20 sigma^2; a smooth motion's share is (h^3 dddq)^2, far below at a few hundred Hz), median-based so
+    that the steps of the motion do not count."""
+    d3 = np.diff(np.asarray(q, float), 3, axis=0)
+    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0)
+    return 1.4826 * mad / np.sqrt(20.0)
+
+
+def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
+    """Why ``cal`` cannot be trusted, one phrase each (none: it can): a delay at the end of the scan or
+    another delay explaining the recording nearly as well, a gain on its bound, a residual over
+    ``NOISE_MULTIPLE`` times the recording's noise, a gain the recording does not determine."""
+    out = []
+    if len(delays) > 1 and cal.delay == max(delays) and max(cal.delay_costs) == cal.delay:
+        out.append(f"the delay found, {cal.delay} periods, is the last one scanned: the arm may lag more "
+                   f"(scan further: --delays 0:{cal.delay + 4})")  # fmt: skip
+    best = cal.delay_costs[cal.delay]
+    near = [d for d, c in cal.delay_costs.items() if d != cal.delay and c <= (1 + DELAY_MARGIN) * best]
+    if near:
+        out.append(f"delays {near} explain the recording within {DELAY_MARGIN:.0%} of delay {cal.delay}'s cost")
+    lo, hi = FACTOR_BOUNDS
+    for key in pd.keys():
+        v = float(pd[key].value[0])
+        name, field = key.rsplit(" ", 1)
+        if field in FACTORS and (v <= lo * (1 + BOUND_MARGIN) or v >= hi * (1 - BOUND_MARGIN)):
+            out.append(f"{name}'s {field} sits on its bound ({v:.3g} times the robot file's)")
+    worse = [(j, e, n) for j, e, n in zip(cal.joints, cal.rms_after, cal.noise, strict=True)
+             if e > NOISE_MULTIPLE * max(n, 1e-9)]  # fmt: skip
+    if worse:
+        j, e, n = max(worse, key=lambda w: w[1] / max(w[2], 1e-9))
+        out.append(f"the fitted servo leaves {len(worse)} joint(s) over {NOISE_MULTIPLE:g} times the recording's "
+                   f"noise (worst {j}: {e * 1e3:.3g} mrad RMS against {n * 1e3:.2g} mrad of noise): the servo law "
+                   "or the delay does not describe this arm")  # fmt: skip
+    for field, share in DETERMINED.items():
+        rel = cal.intervals.get(field, np.zeros(len(cal.joints))) / getattr(cal.fitted, field)
+        loose = [(j, r) for j, r in zip(cal.joints, rel, strict=True) if not np.isfinite(r) or r > share]
+        if loose:
+            j, r = max(loose, key=lambda w: w[1] if np.isfinite(w[1]) else np.inf)
+            width = f"+-{r:.0%}" if np.isfinite(r) else "no interval"
+            out.append(f"the recording does not determine the {field} of {len(loose)} joint(s) to {share:.0%} "
+                       f"(worst {j}: {width})")  # fmt: skip
+    return out
 
 
 def replay_step(model, wh: float = 0.1) -> float:

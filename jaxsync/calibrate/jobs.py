@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from jaxsync._errors import ConfigError
+from jaxsync._errors import ConfigError, UntrustedResultError
 from jaxsync.calibrate import excite as _excite
 from jaxsync.calibrate import sensor as _sensor
 from jaxsync.calibrate.fit import calibrate
@@ -137,11 +137,16 @@ def calibrate_job(
     report: bool = True,
     progress=None,
     wrench_topics=(),
+    force: bool = False,
     **fit_kw,
 ) -> dict:
     """Read ``bag``, fit, and write ``out``: calibration.yaml (the robot-file lines), calibration.json
     (every figure), calibration.png (recorded against simulated) and report/report.html (the toolbox's).
-    ``wrench_topics`` (right arm's sensor, then left's): their noise while still, for ``sensor:``."""
+    ``wrench_topics`` (right arm's sensor, then left's): their noise while still, for ``sensor:``.
+
+    Raises:
+      UntrustedResultError: a calibration the recording does not support (``Calibration.problems``),
+        nothing written; ``force``: written, each problem a WARNING in calibration.yaml."""
 
     names = tuple(joints) if joints else _excite.bag_joint_names(model)
     if len(names) != len(_excite.bag_joint_names(model)):
@@ -155,8 +160,14 @@ def calibrate_job(
     noise = _sensor.estimate(rec, rec.wrenches) if wrench_topics else None  # before the fit: fail fast
     with _new_folder(out) as tmp:
         cal, prob, pd0, pd, result = calibrate(model, rec, progress=progress, **fit_kw)
+        if cal.problems and not force:
+            raise UntrustedResultError(
+                f"{bag}: no calibration written, the recording does not support one: " + "; ".join(cal.problems)
+                + f" (fitted delay {cal.delay}; --force writes it with these as WARNINGs; docs/calibrate.md)"
+            )  # fmt: skip
         model_name = model.robot.name if getattr(model, "robot", None) else os.path.basename(model.path)
-        (tmp / "calibration.yaml").write_text(fragment(cal, str(bag), model_name, noise))
+        warnings = "".join(f"# WARNING: {p}\n" for p in cal.problems)
+        (tmp / "calibration.yaml").write_text(warnings + fragment(cal, str(bag), model_name, noise))
         summary = {
             "bag": str(bag),
             "duration_s": rec.duration,
@@ -181,6 +192,8 @@ def calibrate_job(
                 for k, name in enumerate(cal.joints)
             },
             "poor_fit": cal.poor,
+            "noise_rad": {name: float(v) for name, v in zip(cal.joints, cal.noise, strict=True)},
+            "problems": list(cal.problems),
         }
         if noise is not None:
             summary["sensor"] = {"topics": list(wrench_topics), **noise.to_dict()}

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
         args.out, model, args.bag, state_topic=args.state_topic, command_topic=_topics(args.command_topic),
         joints=_names(args.joints), command_joints=_names(args.command_joints), min_samples=args.min_samples,
         report=not args.no_report, delays=delays, fields=fields, window=args.window, timestep=args.timestep,
-        wrench_topics=tuple(_names(args.wrench_topics) or ()),
+        wrench_topics=tuple(_names(args.wrench_topics) or ()), force=args.force,
         progress=lambda text: print(f"  {text}", file=sys.stderr, flush=True),
     )  # fmt: skip
     cal = out["calibration"]
@@ -53,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {args.out}/calibration.yaml (the robot-file lines), calibration.json, calibration.png"
         + ("" if args.no_report else ", report/report.html")
     )
+    for problem in cal.problems:
+        print(f"WARNING: {problem} (written as asked, --force)", file=sys.stderr)
     if cal.poor:
         print(
             f"WARNING: the fitted model does not explain the motion of {', '.join(cal.poor)} (RMS error over "
@@ -73,6 +75,9 @@ def add_parser(sub) -> None:
     add_model_argument(p)
     p.add_argument("--bag", required=True, help="the recording: a rosbag2 folder (MCAP or SQLite) or its file")
     p.add_argument("--out", required=True, help="a new folder for the results")
+    p.add_argument("--force", action="store_true",
+                   help="write a calibration the recording does not support, each reason a WARNING (default: "
+                   "refuse, exit 2, nothing written)")  # fmt: skip
     p.add_argument("--state-topic", default="/joint_states", help="sensor_msgs/JointState topic (/joint_states)")
     p.add_argument("--command-topic", default="/forward_position_controller/commands", metavar="TOPIC|R,L",
                    help="the commands: std_msgs/Float64MultiArray or trajectory_msgs/JointTrajectory; R,L: one "
