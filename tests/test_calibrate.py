@@ -403,13 +403,8 @@ def test_a_fit_that_explains_nothing_says_so(recording, bag, tmp_path, capsys):
     wrong = ",".join(reversed(recording.joints))
     out = tmp_path / "poor"
     argv = ["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--delays", "2",
-            "--timestep", "0.002", "--no-report", "--command-joints", wrong]  # fmt: skip
+            "--timestep", "0.002", "--no-report", "--command-joints", wrong, "--force"]  # fmt: skip
     rc = main(argv)
-    err = capsys.readouterr().err
-    # refused, nothing written: the residual is far over the recording's noise
-    assert rc == 2 and "no calibration written" in err and "times the recording's noise" in err, err
-    assert "--force" in err and not out.exists()
-    rc = main([*argv, "--force"])
     err = capsys.readouterr().err
     assert rc == 0 and "WARNING: the fitted model does not explain the motion of" in err and "calibration.png" in err
     assert "times the recording's noise" in err and "(written as asked, --force)" in err
@@ -423,6 +418,24 @@ def test_arms_on_one_torso_keep_their_clearance():
     ex = excite.excitation(load_model(None, visual=False), duration=10.0, amplitude=0.02)
     assert 0.05 < ex.clearance < 1.0
     assert len(ex.joints) == 14 and ex.joints[0] == "r_joint1" and ex.joints[7] == "l_joint1"
+
+
+def test_a_calibration_with_problems_is_refused_and_nothing_written(bag, tmp_path, capsys, monkeypatch):
+    """The job refuses what ``problems`` names: exit 2, the reasons and --force in one line, no folder."""
+    from jaxsync.calibrate import jobs  # noqa: PLC0415 -- the job whose fit is stood in for
+
+    def fitted(model, rec, **kw):
+        cal = _calibration(joints=tuple(rec.joints), fitted=replay.Replay(model).nominal())
+        cal.problems = ("the fitted servo leaves 3 joint(s) over 2 times the recording's noise",)
+        return cal, None, None, None, None
+
+    monkeypatch.setattr(jobs, "calibrate", fitted)
+    out = tmp_path / "refused"
+    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out), "--no-report"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no calibration written, the recording does not support one" in err, err
+    assert "times the recording's noise" in err and "--force writes it with these as WARNINGs" in err
+    assert not out.exists() and not list(tmp_path.glob(".refused*"))
 
 
 def test_the_noise_floor_is_the_samples_own_noise():
@@ -464,5 +477,7 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
     assert len(noisy) == 1 and "worst b: 0.5 mrad RMS against 0.1 mrad of noise" in noisy[0]
     loose = _calibration(intervals={"stiffness": np.array([1.0, 12.0]), "damping": np.array([0.5, np.nan])})
     said = fit.problems(loose, [0, 1, 2, 3, 4], pd)
-    assert said == ["the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
-                    "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)"]  # fmt: skip
+    assert said == [
+        "the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
+        "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)",
+    ]
