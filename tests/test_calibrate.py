@@ -472,7 +472,7 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
     near = fit.problems(_calibration(delay_costs={1: 101.0, 2: 100.0, 3: 150.0}), [0, 1, 2, 3, 4], pd)
     assert near == ["delays [1] explain the recording within 2% of delay 2's cost"]
     bound = fit.problems(_calibration(), [0, 1, 2, 3, 4], pd | {"b damping": _Param(10.0)})
-    assert bound == ["b's damping sits on its bound (10 times the robot file's)"]
+    assert bound == ["1 gain(s) sit on their bounds: b's damping (10 times the robot file's)"]
     noisy = fit.problems(_calibration(rms_after=np.array([1e-4, 5e-4])), [0, 1, 2, 3, 4], pd)
     assert len(noisy) == 1 and "worst b: 0.5 mrad RMS against 0.1 mrad of noise" in noisy[0]
     loose = _calibration(intervals={"stiffness": np.array([1.0, 12.0]), "damping": np.array([0.5, np.nan])})

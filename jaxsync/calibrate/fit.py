@@ -342,11 +342,15 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     if near:
         out.append(f"delays {near} explain the recording within {DELAY_MARGIN:.0%} of delay {cal.delay}'s cost")
     lo, hi = FACTOR_BOUNDS
+    bound = []
     for key in pd.keys():
         v = float(pd[key].value[0])
         name, field = key.rsplit(" ", 1)
         if field in FACTORS and (v <= lo * (1 + BOUND_MARGIN) or v >= hi * (1 - BOUND_MARGIN)):
-            out.append(f"{name}'s {field} sits on its bound ({v:.3g} times the robot file's)")
+            bound.append(f"{name}'s {field} ({v:.3g} times the robot file's)")
+    if bound:
+        more = f" and {len(bound) - 2} more" if len(bound) > 2 else ""
+        out.append(f"{len(bound)} gain(s) sit on their bounds: {', '.join(bound[:2])}{more}")
     worse = [(j, e, n) for j, e, n in zip(cal.joints, cal.rms_after, cal.noise, strict=True)
              if e > NOISE_MULTIPLE * max(n, 1e-9)]  # fmt: skip
     if worse:
