@@ -106,29 +106,15 @@ def record(
     sampled at the command times (after the first)."""
     w, f = STRUCTURES[structure]
     m = copy.deepcopy(m0)
-    m.opt.timestep = timestep
-    m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
-    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT) | int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
+    m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
     qadr, dadr = arm_joints(m)
-    d = mujoco.MjData(m)
-    d.qpos[:] = q0_full
-    d.qpos[qadr] = cmds[0]
-    mujoco.mj_forward(m, d)
-    period = float(command_times[1] - command_times[0])
-    per = int(round(period / timestep))
-    out_q, out_dq = [], []
-    for i in range(1, len(command_times)):
-        k = max(0, i - 1 - delay)  # the command acting during (t_{i-1}, t_i]
-        cmd = cmds[k]
-        vel = (cmds[k] - cmds[max(0, k - 1)]) / period
-        for _ in range(per):
-            mujoco.mj_forward(m, d)  # the bias forces at this state
-            tau = kp * (cmd - d.qpos[qadr]) + kv * (f * vel - d.qvel[dadr]) + w * d.qfrc_bias[dadr]
-            d.qfrc_applied[dadr] = np.clip(tau, -limit, limit)
-            mujoco.mj_step(m, d)
-        out_q.append(d.qpos[qadr].copy())
-        out_dq.append(d.qvel[dadr].copy())
-    return command_times[1:], np.array(out_q), np.array(out_dq)
+
+    def servo(d, cmd, vel):
+        mujoco.mj_forward(m, d)  # the bias forces at this state
+        tau = kp * (cmd - d.qpos[qadr]) + kv * (f * vel - d.qvel[dadr]) + w * d.qfrc_bias[dadr]
+        d.qfrc_applied[dadr] = np.clip(tau, -limit, limit)
+
+    return _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=True)
 
 
 def record_actuators(
@@ -170,12 +156,24 @@ def record_actuators(
             if body.name not in ("world", "object"):
                 body.gravcomp = 1.0
     m = spec.compile()
+    servo_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"servo {n}") for n in names])
+    ff_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff {n}") for n in names])
+
+    def servo(d, cmd, vel):
+        d.ctrl[servo_ids] = cmd
+        d.ctrl[ff_ids] = f * kv * vel
+
+    return _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=False)
+
+
+def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step: bool):
+    """``m`` (contacts off) from ``q0_full`` with the arms at the first command, each command acting
+    ``delay`` periods after its stamp; ``servo(d, command, its velocity)`` before every physics step
+    (``per_step``) or once per command period. Returns (times, q, dq) at the command times after the first."""
     m.opt.timestep = timestep
     m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
     qadr, dadr = arm_joints(m)
-    servo_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"servo {n}") for n in names])
-    ff_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff {n}") for n in names])
     d = mujoco.MjData(m)
     d.qpos[:] = q0_full
     d.qpos[qadr] = cmds[0]
@@ -185,9 +183,10 @@ def record_actuators(
     out_q, out_dq = [], []
     for i in range(1, len(command_times)):
         k = max(0, i - 1 - delay)  # the command acting during (t_{i-1}, t_i]
-        d.ctrl[servo_ids] = cmds[k]
-        d.ctrl[ff_ids] = f * kv * (cmds[k] - cmds[max(0, k - 1)]) / period
-        for _ in range(per):
+        vel = (cmds[k] - cmds[max(0, k - 1)]) / period
+        for step in range(per):
+            if per_step or step == 0:
+                servo(d, cmds[k], vel)
             mujoco.mj_step(m, d)
         out_q.append(d.qpos[qadr].copy())
         out_dq.append(d.qvel[dadr].copy())
