@@ -24,6 +24,7 @@ with a warning that names it, and jaxsync runs on XLA's default.
 from __future__ import annotations
 
 import functools
+import importlib.util
 import mmap
 import os
 import pathlib
@@ -45,8 +46,6 @@ _XLA_LIBRARY_BYTES = 5_000_000
 
 def xla_libraries() -> list[pathlib.Path]:
     """The shared libraries that hold XLA for this process: jaxlib's and installed PJRT plugins'."""
-    import importlib.util  # noqa: PLC0415 -- the standard library, only on this call
-
     dirs = []
     for package in ("jaxlib", "jax_plugins"):
         spec = importlib.util.find_spec(package)
