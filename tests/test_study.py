@@ -259,7 +259,7 @@ def test_a_ratio_says_when_runs_ended_outside_the_bound():
     (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
     assert q["within_bounds"] == {"classical": [1, 1], "synchronous": [0, 1]}
     (line,) = [x for x in report_mod.table(report) if "(bound x1)" in x]
-    assert line.endswith("runs within the bound: classical 1/1, synchronous 0/1"), line
+    assert "runs within the bound: classical 1/1, synchronous 0/1;" in line, line
     (line,) = [x for x in report_mod.table(report) if "(default gains)" in x]
     assert "within" not in line
 
@@ -289,9 +289,38 @@ def test_the_table_shows_chattering_runs_beside_dropped_ones():
     report = report_mod.build(cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, {})
     lines = report_mod.table(report)
     head = lines[1].split()
-    assert head[-4:] == ["dropped", "chattering", "in", "bounds"]
+    assert head[-5:] == ["dropped", "chattering", "in", "bounds", "converged"]
     (row,) = [x for x in lines if x.startswith("synchronous")]
-    assert row.split()[-3:] == ["0/3", "2/3", "-"]
+    assert row.split()[-4:] == ["0/3", "2/3", "-", "-"]
+
+
+def _converged_run(peaks, converged):
+    after = dict(_evaluation(peaks), within_bounds=True)
+    return {"heldout_after": after, "convergence": {"converged": converged, "iterations": 40}}
+
+
+@pytest.mark.parametrize(
+    "classical_converged, verdict", [(True, "lower"), (False, "none: runs not converged (classical 0/2)")]
+)
+def test_a_verdict_is_drawn_from_converged_runs_only(classical_converged, verdict):
+    """The classical runs score far below the synchronous ones: the ratio's
+    interval excludes 1, and the verdict says so only when every run on both
+    sides converged; a bound with an unconverged run gets no verdict and says
+    which runs are short."""
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0, 1), bootstrap=200)
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": _evaluation([0.01, 0.012, 0.009])}
+    runs = {("synchronous", 1.0, s): _converged_run([0.03, 0.031, 0.029], True) for s in (0, 1)}
+    runs.update({("classical", 1.0, s): _converged_run([0.01, 0.011, 0.009], classical_converged) for s in (0, 1)})
+    report = report_mod.build(
+        cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, runs
+    )
+    (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
+    assert q["ci95"][1] < 1 and q["verdict"] == verdict
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    assert rows[("classical", 1.0)]["converged"] == (2 if classical_converged else 0)
+    assert rows[("classical", 1.0)]["iterations"] == [40, 40]
+    (line,) = [x for x in report_mod.table(report) if "(bound x1)" in x]
+    assert line.endswith(f"verdict: {verdict}"), line
 
 
 def test_the_reference_gains_count_as_within_their_own_bound():

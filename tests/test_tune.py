@@ -34,7 +34,7 @@ from jaxsync.optimize.tuning.methods import LBFGS, Oracle
 from jaxsync.optimize.tuning.params import FORCE, OBJECT, ZETA_MAX, ZETA_MIN, TuneSpec, check_tuned, damping_ratio
 from jaxsync.optimize.tuning.scenarios import sample_scenarios, training_base, training_batch
 from jaxsync.optimize.tuning.tune import TuneConfig, TuneResult, tune
-from jaxsync.optimize.tuning.tune_report import change_text, mujoco_text, summary_lines
+from jaxsync.optimize.tuning.tune_report import change_text, convergence_text, mujoco_text, summary_lines
 from jaxsync.optimize.tuning.tune_state import select_iterate
 from jaxsync.physics import step as _physics
 from jaxsync.sim import actuation as _actuation
@@ -1100,6 +1100,57 @@ def test_a_run_whose_iterates_drop_everything_stops_and_stays_stopped(model, mon
     calls.clear()  # lost at the last validation only (30): the run goes to its end
     r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "b"), progress=False, validate=validation(30))
     assert len(r.history) == 30 and r.validation[-1]["dropped"] == 4
+
+
+def test_a_run_stops_converged_when_its_validation_figure_stops_moving(model, monkeypatch, tmp_path):
+    """Adam on a stand-in cost; the validation figure falls, then stays within
+    1 % (0.004 N, 0.00401 N, ...): with the plateau at 2 % over 4 validations
+    the run stops at the first validation whose figure moved less than that
+    since four validations before (iteration 30), says it converged and what
+    it cost, and takes no step when resumed. With a tolerance of 0 it runs to
+    its cap and says it did not converge; a tighter tolerance (0.1 %) does
+    not hold on the same figures either."""
+
+    def fake_traced(loss, model, base, cfg, args, log):
+        def value_and_grad(theta, scenarios):
+            ones = jax.tree_util.tree_map(jax.numpy.ones_like, theta)
+            return (jax.numpy.asarray(1.0), {"grip": jax.numpy.asarray(1.0)}), ones
+
+        return value_and_grad
+
+    peaks = [0.01, 0.005, 0.004, 0.00401, 0.00399, 0.00402, 0.004, 0.00398, 0.00401, 0.004, 0.004]
+
+    def validate(g):
+        calls.append(1)
+        return {"settled_peak_resultant_N": peaks[len(calls) - 1], "grip_force_error_rel": 0.01, "dropped": 0,
+                "nonfinite": 0}  # fmt: skip
+
+    monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
+    monkeypatch.setattr(tune_mod, "make_loss", lambda *a, **k: None)  # no rollout is compiled
+    cfg = TuneConfig(iterations=50, batch=3, validate_every=5, task="short", method="adam", schedule="constant")
+    calls = []
+    r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "a"), progress=False, validate=validate)
+    c = r.convergence
+    assert len(r.history) == 30 and [v["iteration"] for v in r.validation] == [0, 5, 10, 15, 20, 25, 30]
+    assert (c["converged"], c["reason"], c["iterations"]) == (True, "plateau", 30)
+    assert (c["gradient_calls"], c["training_rollouts"], c["validation_rollouts"]) == (30, 90, 7 * 16)
+    assert c["criterion"] == {"plateau_tol": 0.02, "plateau_validations": 4, "validate_every": 5, "iterations_cap": 50}
+    assert convergence_text(c).startswith("converged (the selected validation figure moved by less than")
+    again = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "a"), resume=True, progress=False,
+                 validate=validate)  # fmt: skip
+    assert len(again.history) == 30 and again.convergence["reason"] == "plateau"
+    for tol in (0.0, 0.001):
+        calls.clear()
+        r = tune(model, _gains.default_gains(), cfg.replace(plateau_tol=tol), out=str(tmp_path / f"b{tol}"),
+                 progress=False, validate=validate)  # fmt: skip
+        assert len(r.history) == 50 and (r.convergence["converged"], r.convergence["reason"]) == (False, "cap")
+        assert convergence_text(r.convergence).startswith("WARNING: not converged (the iteration cap was reached")
+
+
+@pytest.mark.parametrize("tol", [-0.1, 1.0, float("nan")])
+def test_the_plateau_tolerance_is_a_share(tol):
+    with pytest.raises(jaxsync.ConfigError, match="plateau_tol must be a relative change"):
+        TuneConfig(plateau_tol=tol).validate()
 
 
 def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, monkeypatch):

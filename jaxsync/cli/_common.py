@@ -97,6 +97,25 @@ def model_options(args) -> dict:
     return {"visual": not getattr(args, "no_visual", False)}
 
 
+def add_convergence_arguments(p: argparse.ArgumentParser) -> None:
+    """When a tuning run has converged (``Loop.plateau_tol``, ``plateau_validations``; docs/tuning.md)."""
+    p.add_argument(
+        "--plateau-tol",
+        type=float,
+        default=0.02,
+        metavar="REL",
+        help="converged, and stopped before the cap, when the selected validation figure moved by at most this "
+        "share over the last --plateau-validations validations (0.02; 0: run to the cap)",
+    )
+    p.add_argument(
+        "--plateau-validations",
+        type=positive(int),
+        default=4,
+        metavar="N",
+        help="the validations the plateau spans (4: 20 iterations at --validate-every 5)",
+    )
+
+
 def add_distributed_arguments(p: argparse.ArgumentParser) -> None:
     """The flags of a multi-process run (jaxsync.runtime.distributed, docs/scaling.md)."""
     g = p.add_argument_group(

@@ -7,6 +7,7 @@ import argparse
 from jaxsync.cli._common import (
     ALL_CONTROLLERS,
     CONTROLLER_NAMES,
+    add_convergence_arguments,
     add_model_argument,
     controller_list,
     model_options,
@@ -48,6 +49,8 @@ def run(args) -> int:
         heldout_batch=args.heldout,
         validation_batch=args.validation_batch,
         validate_every=args.validate_every,
+        plateau_tol=args.plateau_tol,
+        plateau_validations=args.plateau_validations,
         bootstrap=args.bootstrap,
         grip_spread=args.grip_spread,
         actuation=args.actuation,
@@ -100,7 +103,8 @@ def add_parser(subparsers):
         help="compliance bounds as factors of the default classical controller's (0.7,1,1.5)",
     )
     p.add_argument("--seeds", type=_numbers(int), default=(0, 1, 2), help="training seeds (0,1,2)")
-    p.add_argument("--iterations", type=positive(int), default=10, help="iterations per tuning run (10)")
+    p.add_argument("--iterations", type=positive(int), default=10, help="the cap on iterations per tuning run (10)")
+    add_convergence_arguments(p)
     p.add_argument("--batch", type=positive(int), default=2, help="training scenarios per iteration (2)")
     p.add_argument("--method", default="lbfgs", help="tuning method, as jaxsync tune's --method (lbfgs)")
     p.add_argument("--task", default="full", choices=["full", "short"], help="training task (full)")

@@ -6,6 +6,7 @@ import functools
 
 from jaxsync.cli._common import (
     add_controller_argument,
+    add_convergence_arguments,
     add_distributed_arguments,
     add_gains_argument,
     add_model_argument,
@@ -31,7 +32,8 @@ def config_from_args(args):
                     isotropic=args.isotropic, schedule=args.per_phase)  # fmt: skip
     problem = Problem(args.controller, spec, parse_weights(args.weight), args.max_impact, args.max_stiffness)
     settings = ("iterations", "batch", "schedule", "seed", "heldout_seed", "heldout_batch", "checkpoint_every",
-                "validate_every", "validation_seed", "validation_batch", "task", "popsize", "sampling")  # fmt: skip
+                "validate_every", "validation_seed", "validation_batch", "task", "popsize", "sampling",
+                "plateau_tol", "plateau_validations")  # fmt: skip
     return TuneConfig(
         problem=problem,
         method=args.method,
@@ -83,7 +85,8 @@ def add_parser(sub) -> None:
     bound = "bound the mean first-impact peak pad force, N", "bound the apparent stiffness along the pad normal, N/m"
     p.add_argument("--max-impact", type=positive(float), metavar="N", help=f"{bound[0]} (docs/metrics.md)")
     p.add_argument("--max-stiffness", type=positive(float), metavar="N_PER_M", help=f"{bound[1]} (docs/metrics.md)")
-    p.add_argument("--iterations", type=int, default=60, help="optimisation steps (60)")
+    p.add_argument("--iterations", type=int, default=60, help="the cap on optimisation steps (60)")
+    add_convergence_arguments(p)
     p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4; per process)")
     starts = "K tuning runs on training seeds --seed, --seed+1, ..., in OUT/seed_<s>, the best validated kept (1)"
     p.add_argument("--starts", type=positive(int), default=1, metavar="K", help=starts)

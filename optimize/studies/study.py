@@ -335,7 +335,8 @@ def run_study(
             after = runs[(controller, factor, seed)]["heldout_after"]
             log(
                 f"{label}: {took[-1]:.0f} s, held-out settled peak {_num(after['settled_peak_resultant_N'])} N, "
-                f"within bounds: {_report.run_within_bounds(runs[(controller, factor, seed)])}"
+                f"within bounds: {_report.run_within_bounds(runs[(controller, factor, seed)])}, "
+                f"converged: {_report.run_converged(runs[(controller, factor, seed)])}"
             )
         report = _report.build(cfg, reference, defaults, runs)
         report["wall_time_s"] = time.perf_counter() - t_start

@@ -52,6 +52,31 @@ def run_within_bounds(run: dict) -> bool:
     return bool(run["heldout_after"].get("within_bounds", True))
 
 
+def run_converged(run: dict) -> bool:
+    """Whether a tuning run (its ``summary.json``) converged by the tuner's
+    criterion (``optimize.tuning.tune_state.convergence_record``); a run that
+    does not say, did not."""
+    return bool((run.get("convergence") or {}).get("converged", False))
+
+
+def run_iterations(run: dict) -> int:
+    """The iterations a tuning run took."""
+    return int((run.get("convergence") or {}).get("iterations", run.get("iterations", 0)))
+
+
+def verdict(ratio: dict, converged: dict) -> str:
+    """What a ratio's interval says, drawn only from converged runs:
+    'lower' or 'higher' (the interval excludes 1), 'no difference', or why
+    there is none ('not converged: ...', 'n/a')."""
+    short = {name: kn for name, kn in converged.items() if kn[0] < kn[1]}
+    if short:
+        return "none: runs not converged (" + ", ".join(f"{n} {k}/{m}" for n, (k, m) in short.items()) + ")"
+    lo, hi = ratio["ci95"]
+    if ratio["ratio"] is None or lo is None:
+        return "n/a"
+    return "lower" if hi < 1 else "higher" if lo > 1 else "no difference"
+
+
 def reference_controller(controllers) -> str:
     """What the ratios divide by: the synchronous controller when in the study, else the first."""
     return "synchronous" if "synchronous" in controllers else controllers[0]
@@ -143,6 +168,8 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
             done = [runs[(c, b, s)] for s in cfg.seeds]
             evals = [r["heldout_after"] for r in done]
             row = {"controller": c, "bound": b, **summarise(evals, [run_within_bounds(r) for r in done])}
+            row["converged"] = int(sum(run_converged(r) for r in done))
+            row["iterations"] = [run_iterations(r) for r in done]
             row["bounds"] = done[0].get("bounds")
             report["rows"].append(row)
             peaks[(c, b)] = _arrays(evals)["settled_peak_resultant_N"]
@@ -156,6 +183,8 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
             if b is not None:  # how many of each side's runs ended within the bound
                 rows = {x["controller"]: x for x in report["rows"] if x["bound"] == b}
                 entry["within_bounds"] = {n: [rows[n]["within_bounds"], rows[n]["runs"]] for n in (c, ref)}
+                entry["converged"] = {n: [rows[n]["converged"], rows[n]["runs"]] for n in (c, ref)}
+                entry["verdict"] = verdict(entry, entry["converged"])
             report["ratios"].append(entry)
     return report
 
@@ -173,11 +202,12 @@ def table(report: dict) -> list[str]:
         "controller's first-impact peak and apparent normal stiffness ('default': untuned); " + BOUND_RULE
     ]
     head = f"{'controller':<18}{'bound':>8}{'settled peak, N':>30}{'internal err, N':>28}{'impact, N':>26}"
-    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'chattering':>12}{'in bounds':>11}"
+    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'chattering':>12}{'in bounds':>11}{'converged':>11}"
     lines.append(head)
     for r in report["rows"]:
         bound = "default" if r["bound"] is None else f"x{r['bound']:g}"
         inb = f"{r['within_bounds']}/{r['runs']}" if "runs" in r else "-"
+        conv = f"{r['converged']}/{r['runs']}" if "converged" in r else "-"
         stiff = r["apparent_stiffness_normal_N_per_m"]["median"]
         stiff = f"{stiff:.4g}" if stiff is not None else "n/a"
         dropped = f"{r['dropped']}/{r['scenarios']}"
@@ -185,7 +215,7 @@ def table(report: dict) -> list[str]:
         lines.append(
             f"{r['controller']:<18}{bound:>8}{_fmt(r['settled_peak_resultant_N']):>30}"
             f"{_fmt(r['internal_force_error_rms_N']):>28}{_fmt(r['first_impact_peak_N']):>26}"
-            f"{stiff:>16}{dropped:>10}{chattering:>12}{inb:>11}"
+            f"{stiff:>16}{dropped:>10}{chattering:>12}{inb:>11}{conv:>11}"
         )
     for q in report["ratios"]:
         bound = "default gains" if q["bound"] is None else f"bound x{q['bound']:g}"
@@ -198,6 +228,8 @@ def table(report: dict) -> list[str]:
         within = q.get("within_bounds")
         if within and any(k < n for k, n in within.values()):
             note = "; runs within the bound: " + ", ".join(f"{name} {k}/{n}" for name, (k, n) in within.items())
+        if "verdict" in q:
+            note += f"; verdict: {q['verdict']}"
         lines.append(f"settled peak {q['controller']} / {q['over']} ({bound}): {q['ratio']:.3g} (95 % CI {ci}){note}")
     return lines
 
@@ -215,6 +247,7 @@ def write(out: str, report: dict) -> None:
         for k in ("dropped", "chattering", "scenarios"):
             cols.setdefault(k, []).append(r[k])
         cols.setdefault("within_bounds", []).append(r.get("within_bounds"))
+        cols.setdefault("converged", []).append(r.get("converged"))
     _results.write_csv(os.path.join(out, "study.csv"), cols)
     pareto_plot(report, os.path.join(out, "pareto.png"))
 

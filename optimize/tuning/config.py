@@ -205,15 +205,24 @@ class Method:
 class Loop:
     """The loop: its length, checkpoints and validation."""
 
-    iterations: int = 60
+    iterations: int = 60  # the cap: a run stops earlier when it has converged
     checkpoint_every: int = 5
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     max_bad_steps: int = 3  # non-finite steps in a row that stop the run
+    # converged: the selected validation figure moved by less than plateau_tol
+    # (relative) over the last plateau_validations validations (0: never; run to the cap)
+    plateau_tol: float = 0.02
+    plateau_validations: int = 4
 
     def validate(self) -> None:
-        for name in ("iterations", "checkpoint_every", "max_bad_steps"):
+        for name in ("iterations", "checkpoint_every", "max_bad_steps", "plateau_validations"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"{name} must be a positive integer, got {getattr(self, name)}", inputs=(name,))
+        if not 0 <= self.plateau_tol < 1:
+            raise ConfigError(
+                f"plateau_tol must be a relative change in [0, 1) (0: run to the cap), got {self.plateau_tol}",
+                inputs=("plateau_tol",),
+            )
         if self.validate_every < 0:
             raise ConfigError(
                 f"validate_every must be 0 (off) or a positive integer, got {self.validate_every}",

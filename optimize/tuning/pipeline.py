@@ -149,6 +149,7 @@ class TuneSummary:
     mujoco_check: dict | None
     stack: dict  # the arms' stack the job ran (jaxsync.sim.actuation.Stack.to_dict, with the servo)
     starts: list = dataclasses.field(default_factory=list)  # a multi-start run's starts (optimize.tuning.starts)
+    convergence: dict | None = None  # converged or not, why, at what cost (tune_state.convergence_record)
 
     @property
     def peak_before(self) -> float | None:
@@ -398,17 +399,22 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
         start_moved_into_bands=moved,
         mujoco_check=check,
         stack=stack.to_dict(model),
+        convergence=result.convergence,
     )
     _results.write_json(os.path.join(out, "summary.json"), summary.to_dict())
     _distributed.barrier("tune: results written")
     return summary
 
 
+_EXTENDABLE = ("iterations", "plateau_tol", "plateau_validations")
+"""The settings a resumed run may change: how long it runs, not what it computes."""
+
+
 def _fingerprint(model, base, cfg, given: dict | None) -> dict:
     """What a resumed run must share with the checkpoint it continues: every
     setting but the run's length, the starting gains and the model (an edited
     robot file is another robot), with the caller's ``given``."""
-    settings = {k: v for k, v in cfg.settings().items() if k != "iterations"}
+    settings = {k: v for k, v in cfg.settings().items() if k not in _EXTENDABLE}
     own = {**settings, "gains_start": _schedule.to_file_dict(base), "model": _identity_text(model)}
     return json.loads(json.dumps({**own, **(given or {})}))
 

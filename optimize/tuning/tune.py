@@ -38,7 +38,9 @@ from jaxsync.optimize.tuning.tune_state import (
     CHECKPOINT,
     TuneResult,
     TuneState,
+    convergence_record,
     fresh_state,
+    plateaued,
     prepare_out,
     resumed_state,
     save_state,
@@ -260,6 +262,13 @@ def tune(
             value_and_grad = traced_value_and_grad(loss, model, base, cfg, (state.theta, scen), say)
         return value_and_grad
 
+    t_start = time.perf_counter()
+    loop = cfg.loop
+
+    def plateau() -> bool:
+        return bool(every) and plateaued(list(state.validation), loop.plateau_tol, loop.plateau_validations)
+
+    reason = "cap"
     try:
         start = state.iteration
         if every and not state.validation:
@@ -271,9 +280,13 @@ def tune(
         oracle = _MethodOracle(forward, get_value_and_grad, state.theta, fresh(0), cfg, n_total, fresh)
         converged = getattr(method, "converged", lambda s: False)(state.opt_state)
         if converged:
+            reason = "method"
             say(f"{cfg.method.name} had converged on its batch after {start} iterations: nothing to continue")
+        elif plateau():
+            converged, reason = True, "plateau"
+            say(f"the run had converged after {start} iterations (its validation figure): nothing to continue")
         elif lost_everywhere(state.validation):
-            converged = True
+            converged, reason = True, "lost"
             say(f"the run had stopped after {start} iterations, its iterates dropping everything: nothing to continue")
         for i in range(start, start if converged else iterations):
             if fresh_batches:  # a first-order method: a fresh batch every iteration
@@ -286,16 +299,29 @@ def tune(
             bar.set_postfix(cost=f"{row['cost']:.4g}", grad=f"{row['grad_norm']:.3g}")
             if on_iteration is not None:
                 on_iteration(i, state.theta, row)
+            if converged:
+                reason = "method"
             last = converged or i + 1 == iterations
-            lost = False
+            lost = flat = False
             if every and ((i + 1) % every == 0 or last):
                 state = validated(state, validate, spec, base, say)
                 lost = not last and lost_everywhere(state.validation)
-            if (i + 1) % cfg.loop.checkpoint_every == 0 or last or lost:
+                flat = not last and not lost and plateau()
+                if lost:
+                    reason = "lost"
+                elif plateau() and not converged:
+                    reason = "plateau"
+            if (i + 1) % cfg.loop.checkpoint_every == 0 or last or lost or flat:
                 save_state(write_ckpt, state, fingerprint, method, decay)
             _interrupt.check()  # a safe point: a Ctrl-C recorded during the iteration stops here
             if converged:
                 say(f"{cfg.method.name} converged on its batch after {i + 1} iterations: stopped early")
+                break
+            if flat:
+                say(
+                    f"converged after {i + 1} iterations: the selected validation figure moved by less than "
+                    f"{100 * loop.plateau_tol:g} % over the last {loop.plateau_validations} validations"
+                )
                 break
             if lost:
                 say(
@@ -316,4 +342,11 @@ def tune(
     last = spec.to_gains(state.theta, base)
     selected = select_iterate(list(state.validation))
     gains = spec.to_gains(state.kept[selected["iteration"]], base) if selected is not None else last
-    return TuneResult(gains, list(state.history), list(state.validation), selected, last, state)
+    record = convergence_record(reason, state, cfg, time.perf_counter() - t_start)
+    if reason == "cap" and every:
+        say(
+            f"not converged: the selected validation figure still moved by more than {100 * loop.plateau_tol:g} % "
+            f"over the last {loop.plateau_validations} validations at the cap of {iterations} iterations "
+            "(more --iterations continue it with --resume)"
+        )
+    return TuneResult(gains, list(state.history), list(state.validation), selected, last, state, record)

@@ -53,6 +53,9 @@ def summary_lines(summary, out: str) -> list[str]:
         f"held-out grip-force error: {_num(summary.grip_error_before, '.4f')} -> "
         f"{_num(summary.grip_error_after, '.4f')}",
     ]
+    c = getattr(summary, "convergence", None)
+    if c is not None:
+        lines.append(convergence_text(c))
     if summary.kept_worse_than_start:
         lines.append(worse_text(summary))
     if summary.mujoco_check is not None:
@@ -63,6 +66,23 @@ def summary_lines(summary, out: str) -> list[str]:
                      f"settled peak; every start in {out}/seed_*)")  # fmt: skip
     lines.append(f"results in {out}: gains.json (selected), gains_last.json, history.csv, loss.png, summary.json")
     return lines
+
+
+def convergence_text(c: dict) -> str:
+    """Whether the run converged (``tune_state.convergence_record``), why, and what it cost."""
+    cost = (
+        f"{c['iterations']} iterations, {c['gradient_calls']} gradients, {c['value_calls']} forward-only costs, "
+        f"{c['training_rollouts']} training and {c['validation_rollouts']} validation rollouts, "
+        f"{c['seconds']:.0f} s"
+    )
+    k = c["criterion"]
+    if c["converged"]:
+        return f"converged ({c['why']}) after {cost}"
+    return (
+        f"WARNING: not converged ({c['why']}; criterion: the selected validation figure moving by at most "
+        f"{100 * k['plateau_tol']:g} % over {k['plateau_validations']} validations) after {cost}; "
+        "a longer run may still lower it (--resume with more --iterations)"
+    )
 
 
 def worse_text(summary) -> str:

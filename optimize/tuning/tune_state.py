@@ -48,6 +48,66 @@ def select_iterate(validation: list[dict]) -> dict | None:
     return min(ok, key=lambda v: (v.get("bound_excess", 0.0), v["settled_peak_resultant_N"]))
 
 
+STOP_REASONS = {
+    "method": "the method converged on its training batches (no step lowered the cost)",
+    "plateau": "the selected validation figure moved by less than the tolerance over the last validations",
+    "lost": "the iterates dropped the object in every validation scenario",
+    "cap": "the iteration cap was reached before either criterion held",
+}
+"""Why a run stopped; the first two are convergence."""
+
+
+def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
+    """What ``summary.json`` says of a run's convergence: whether and why it
+    stopped (:data:`STOP_REASONS`), the criterion, and the cost: iterations,
+    gradients, forward-only costs, training and validation rollouts, seconds
+    (this call's, a resumed run's not counting the earlier part's)."""
+    h = list(state.history)
+    b = cfg.training.batch
+    gradients = int(sum(r.get("gradient_calls", 0) for r in h))
+    values = int(sum(r.get("value_calls", 0) for r in h))
+    population = int(sum(r.get("population_rollouts", 0) for r in h))
+    return {
+        "converged": reason in ("method", "plateau"),
+        "reason": reason,
+        "why": STOP_REASONS[reason],
+        "criterion": {
+            "plateau_tol": cfg.loop.plateau_tol,
+            "plateau_validations": cfg.loop.plateau_validations,
+            "validate_every": cfg.loop.validate_every,
+            "iterations_cap": cfg.loop.iterations,
+        },
+        "iterations": state.iteration,
+        "gradient_calls": gradients,
+        "value_calls": values,
+        "training_rollouts": b * (gradients + values) + population,
+        "validation_rollouts": len(state.validation) * cfg.data.validation_batch,
+        "seconds": float(seconds),
+    }
+
+
+def plateaued(validation: list[dict], tol: float, over: int) -> bool:
+    """Whether the selected validation figure (:func:`select_iterate`'s settled
+    peak) moved by at most ``tol``, relative, over the last ``over``
+    validations: the run's converged criterion (``Loop.plateau_tol`` and
+    ``plateau_validations``; ``tol`` 0 never holds). A selection that changed
+    its bounds' verdict, or lost everything, has moved.
+
+    Example:
+      >>> v = [{"iteration": i, "settled_peak_resultant_N": p, "grip_force_error_rel": 0.0,
+      ...       "dropped": 0, "nonfinite": 0} for i, p in enumerate([1.0, 0.5, 0.499, 0.498])]
+      >>> plateaued(v, 0.02, 2), plateaued(v, 0.02, 3)
+      (True, False)
+    """
+    if tol <= 0 or len(validation) <= over:
+        return False
+    now, then = select_iterate(validation), select_iterate(validation[:-over])
+    a, b = now["settled_peak_resultant_N"], then["settled_peak_resultant_N"]
+    if a is None or b is None or now.get("within_bounds", True) != then.get("within_bounds", True):
+        return False
+    return abs(b - a) <= tol * abs(a)
+
+
 class TuneState(NamedTuple):
     """Everything the loop carries from one iteration to the next (and checkpoints)."""
 
@@ -67,6 +127,7 @@ class TuneResult(NamedTuple):
     selected: dict | None  # the selected evaluation (None without validation)
     last_gains: _gains.Gains
     state: TuneState
+    convergence: dict | None = None  # convergence_record: converged or not, why, and what it cost
 
 
 def fresh_state(spec: TuneSpec, base, method, seed: int = 0) -> TuneState:

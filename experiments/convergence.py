@@ -1,0 +1,121 @@
+"""Does the converged criterion predict a longer run, and is a converged tune reproducible?
+
+One start per process (two processes use the two cores):
+
+  python experiments/convergence.py run --start default   --out results/convergence
+  python experiments/convergence.py run --start perturbed --out results/convergence
+  python experiments/convergence.py report --out results/convergence
+
+``run`` tunes ``jaxsync tune``'s default job (paper model, synchronous,
+L-BFGS) to its converged criterion or its cap (``--iterations``), from the
+default gains (``default``) or from every gain x (1 + ``--perturb``)
+(``perturbed``); then continues a copy of that run past its stop with the
+criterion off for ``--extend`` more iterations (the longer run), and writes
+both summaries. ``report`` says, for each start, how far the longer run moved
+the validation and held-out figures past the stop, and how far the two starts
+ended apart (held-out settled peak), at the stop and after the longer run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+
+import jax
+
+import jaxsync
+from jaxsync.control.gains import default_gains
+from jaxsync.optimize.tuning import pipeline
+from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.runtime.cache import enable_compilation_cache
+from jaxsync.runtime.xla import set_xla_flags
+
+
+def _summary(path: str) -> dict:
+    with open(os.path.join(path, "summary.json")) as f:
+        return json.load(f)
+
+
+def run(args) -> None:
+    set_xla_flags()
+    jax.config.update("jax_enable_x64", True)
+    enable_compilation_cache()
+    model = jaxsync.load_model()
+    base = default_gains()
+    if args.start == "perturbed":
+        base = jax.tree_util.tree_map(lambda x: x * (1 + args.perturb), base)
+    cfg = TuneConfig(iterations=args.iterations)
+    first = os.path.join(args.out, args.start)
+    if not os.path.exists(os.path.join(first, "summary.json")):
+        pipeline.tune_and_evaluate(model, base, cfg, out=first, restart=True, mujoco_check=False)
+    stopped = _summary(first)
+    longer = first + "_longer"
+    if not os.path.exists(os.path.join(longer, "summary.json")):
+        shutil.rmtree(longer, ignore_errors=True)
+        shutil.copytree(first, longer, ignore=shutil.ignore_patterns(".jaxsync.lock", "summary.json"))
+        n = stopped["convergence"]["iterations"] + args.extend
+        pipeline.tune_and_evaluate(
+            model, base, cfg.replace(iterations=n, plateau_tol=0.0), out=longer, resume=True, mujoco_check=False
+        )
+
+
+def _row(s: dict) -> dict:
+    sel = next(v for v in s["validation"] if v["iteration"] == s["selected_iteration"])
+    c = s["convergence"]
+    return {
+        "iterations": c["iterations"],
+        "reason": c["reason"],
+        "converged": c["converged"],
+        "selected_iteration": s["selected_iteration"],
+        "validation_N": sel["settled_peak_resultant_N"],
+        "heldout_N": s["heldout_settled_peak_resultant_N_after"],
+        "heldout_before_N": s["heldout_settled_peak_resultant_N_before"],
+        "seconds": c["seconds"],
+    }
+
+
+def report(args) -> None:
+    rows = {}
+    for start in ("default", "perturbed"):
+        for kind in ("", "_longer"):
+            p = os.path.join(args.out, start + kind)
+            if os.path.exists(os.path.join(p, "summary.json")):
+                rows[start + kind] = _row(_summary(p))
+    out = {"rows": rows}
+    for start in ("default", "perturbed"):
+        a, b = rows.get(start), rows.get(start + "_longer")
+        if a and b:
+            out[f"{start}: longer / stopped"] = {
+                "validation": b["validation_N"] / a["validation_N"],
+                "heldout": b["heldout_N"] / a["heldout_N"],
+            }
+    for kind in ("", "_longer"):
+        a, b = rows.get("default" + kind), rows.get("perturbed" + kind)
+        if a and b:
+            out[f"perturbed / default{kind or ' (at the stop)'}"] = b["heldout_N"] / a["heldout_N"]
+    print(json.dumps(out, indent=1))
+    with open(os.path.join(args.out, "report.json"), "w") as f:
+        json.dump(out, f, indent=1)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="what", required=True)
+    r = sub.add_parser("run")
+    r.add_argument("--start", choices=["default", "perturbed"], required=True)
+    r.add_argument("--perturb", type=float, default=1e-6, help="relative change of every starting gain (1e-6)")
+    r.add_argument("--iterations", type=int, default=200, help="the cap of the first run (200)")
+    r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")
+    r.add_argument("--out", default="results/convergence")
+    q = sub.add_parser("report")
+    q.add_argument("--out", default="results/convergence")
+    args = p.parse_args(argv)
+    (run if args.what == "run" else report)(args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
