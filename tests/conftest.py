@@ -14,6 +14,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 import types
 
 import jax
@@ -108,10 +109,11 @@ def _free_compiled_programs():
 # second process runs those of the selected modules, in the order the tests
 # come, and writes them to the persistent compilation cache; when a test comes
 # to one, it reads it back instead of compiling. The first module's are left
-# out (its tests would be compiling them at the same time), and so is any module
-# the tests have reached: when a module starts while the process is still on it
-# or an earlier one, the process is stopped and started again on the modules
-# after it (compiling what the tests compile anyway gains nothing). Nothing
+# out (its tests would be compiling them at the same time). When a module starts
+# while the process is still on it, its tests wait for the process to finish it
+# (they would compile the same programs from the start); while the process is
+# on an earlier one, it is stopped and started again on the modules after it
+# (compiling what the tests compile anyway gains nothing). Nothing
 # depends on it: a program not in the cache yet is compiled by the test as
 # before; the process runs at a lower priority, so that a busy machine runs the
 # tests first. Measured cold, the default run on 2 cores: 9 min 15 s without,
@@ -122,11 +124,11 @@ import os, sys, time, traceback
 os.nice(10)
 import conftest  # the tests' settings: XLA flags, float64, the compilation cache
 for name in sys.argv[1:]:
-    print(f"start {name}", flush=True)
+    print(f"start {name} {time.time():.1f}", flush=True)  # the wall clock: when, beside the tests
     t = time.perf_counter()
     try:
         __import__(name).compile_ahead()
-        print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
+        print(f"{name}: {time.perf_counter() - t:.1f} s, ended {time.time():.1f}", flush=True)
     except Exception:
         traceback.print_exc()
 """
@@ -165,10 +167,18 @@ class _AheadProcess:
         return started[-1] if started else self.running[0]
 
     def reached(self, name: str) -> None:
-        """The tests start module ``name``: restart past it if the process is on it or behind."""
+        """The tests start module ``name``: wait while the process compiles that module's programs (the
+        tests would compile the same from the start), restart past it if the process is behind."""
         if name not in self.names:
             return
         at = self.current()
+        if at == name:
+            t = time.perf_counter()
+            while self.current() == name and time.perf_counter() - t < WAIT_FOR_AHEAD_S:
+                time.sleep(0.1)
+            with open(self.log_path, "a") as log:
+                log.write(f"the tests waited {time.perf_counter() - t:.1f} s for {name}'s programs\n")
+            at = self.current()
         if at is None or self.names.index(at) > self.names.index(name):
             return
         self.stop()
@@ -184,6 +194,7 @@ class _AheadProcess:
 
 
 _AHEAD: _AheadProcess | None = None
+WAIT_FOR_AHEAD_S = 180.0  # at most, for the module the tests reached (the longest compiles for about 120 s)
 
 
 @pytest.fixture(scope="session", autouse=True)

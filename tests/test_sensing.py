@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from conftest import make_forward_sense, paper_model
 from mujoco import mjx
 
 import jaxsync
@@ -65,14 +66,27 @@ def _random_states(model, n, seed=0):
             yield d
 
 
-@pytest.fixture(scope="module")
-def random_pairs(model, forward_sense):
-    """(C data, MJX sensed) at random configurations, velocities and torques."""
+def _random_pairs(model, forward_sense):
     out = []
     for d in _random_states(model, N_CONFIGS):
         dx, sensed = forward_sense(model.mjx_model, mjx.put_data(model.mj_model, d, impl="jax"))
         out.append((d, dx, sensed))
     return out
+
+
+def compile_ahead():
+    """The programs of this module's tests that compile most (tests/conftest.py: compiled ahead in a second
+    process): the stages against MJX's (eager operations and the Jacobians) and the passive trajectory."""
+    model = paper_model()
+    forward_sense = make_forward_sense(model)
+    test_position_and_velocity_stages_equal_mjx(model, forward_sense, _random_pairs(model, forward_sense))
+    test_passive_trajectory_mjx_matches_c(model)
+
+
+@pytest.fixture(scope="module")
+def random_pairs(model, forward_sense):
+    """(C data, MJX sensed) at random configurations, velocities and torques."""
+    return _random_pairs(model, forward_sense)
 
 
 def test_static_contact_order_matches_mjx(model, random_pairs):

@@ -36,26 +36,33 @@ print(ok, os.environ.get("XLA_FLAGS", ""), hashlib.sha1(text.encode()).hexdigest
 """
 
 
-def _probe(call: str, xla_flags: str | None) -> tuple[str, str, str]:
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    if xla_flags is not None:
-        env["XLA_FLAGS"] = xla_flags
-    env["JAX_PLATFORMS"] = "cpu"
-    out = subprocess.run(
-        [sys.executable, "-c", _PROBE, call], env=env, capture_output=True, text=True, timeout=300, check=False
-    )
-    assert out.returncode == 0, out.stderr[-2000:]  # XLA aborts on a flag it does not know
-    ok, flags, digest, said = out.stdout.strip().splitlines()[-1].split("|")
-    return ok, flags, digest, said
+def _probes(*calls: tuple[str, str | None]) -> list[tuple[str, str, str, str]]:
+    """Each ``(call, $XLA_FLAGS)`` in its own process, all at once (each mostly imports JAX)."""
+    procs = []
+    for call, xla_flags in calls:
+        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        if xla_flags is not None:
+            env["XLA_FLAGS"] = xla_flags
+        env["JAX_PLATFORMS"] = "cpu"
+        cmd = [sys.executable, "-c", _PROBE, call]
+        procs.append(subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+    out = []
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=300)
+        assert p.returncode == 0, stderr[-2000:]  # XLA aborts on a flag it does not know
+        ok, flags, digest, said = stdout.strip().splitlines()[-1].split("|")
+        out.append((ok, flags, digest, said))
+    return out
 
 
 def test_flags_reach_xla_a_flag_this_jaxlib_lacks_is_left_out_and_a_users_own_setting_wins():
-    _, _, plain, _ = _probe("no", None)  # XLA's defaults
-    ok, flags, ours, said = _probe("lacking", None)
+    defaults, lacking, users = _probes(("no", None), ("lacking", None), ("set", "--xla_cpu_use_fusion_emitters=true"))
+    plain = defaults[2]  # XLA's defaults
+    ok, flags, ours, said = lacking
     assert ok == "False" and "--xla_cpu_no_such_flag_in_any_release" in said and "does not know" in said
     assert flags.split() == [f"--{k}={v}" for k, v in _xla.FLAGS.items()]  # the known ones, not the made-up one
     assert ours != plain, "the flags did not change what XLA compiled"
-    ok, flags, theirs, _ = _probe("set", "--xla_cpu_use_fusion_emitters=true")
+    ok, flags, theirs, _ = users
     assert ok == "True" and flags == "--xla_cpu_use_fusion_emitters=true"
     assert theirs == plain
 
