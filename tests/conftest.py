@@ -440,9 +440,19 @@ def fake_study_parts(monkeypatch):
         after["metrics"]["settled_peak_resultant_N"] = [0.5 * x for x in before["metrics"]["settled_peak_resultant_N"]]
         after["within_bounds"] = True
         summary = {"heldout_before": before, "heldout_after": after, "controller": cfg.problem.controller, "bounds": {}}
+        # converged unless a test sets ``unconverged``: then stopped at its cap
+        stopped = seen.get("unconverged", False)
+        summary["iterations"] = cfg.loop.iterations
+        summary["convergence"] = {
+            "converged": not stopped,
+            "reason": "cap" if stopped else "plateau",
+            "iterations": cfg.loop.iterations,
+            "criterion": {"plateau_tol": cfg.loop.plateau_tol, "plateau_validations": cfg.loop.plateau_validations},
+        }
         os.makedirs(out, exist_ok=True)
         with open(os.path.join(out, "summary.json"), "w") as f:
             json.dump(summary, f)
+        open(os.path.join(out, "checkpoint.npz"), "wb").close()  # a finished run's, which a continued run resumes
         return types.SimpleNamespace(to_dict=lambda: summary)
 
     seen = {}

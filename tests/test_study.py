@@ -86,8 +86,8 @@ def test_an_interrupted_study_resumes_where_it_stopped(model, tmp_path, fake_stu
     assert {r["bound"] for r in partial["rows"]} == {None} and len(calls) == 3  # the defaults only; nothing tuned
     with pytest.raises(Exception, match="resume to continue it"):
         study_mod.run_study(model, cfg, out, log=lambda m: None)
-    other = study_mod.StudyConfig(**{**cfg.__dict__, "iterations": 3})
-    with pytest.raises(Exception, match="iterations"):
+    other = study_mod.StudyConfig(**{**cfg.__dict__, "batch": 3})
+    with pytest.raises(Exception, match="batch differ"):
         study_mod.run_study(model, other, out, resume=True, log=lambda m: None)
     interrupt.clear()
     report = study_mod.run_study(model, cfg, out, resume=True, log=lambda m: None)
@@ -179,6 +179,33 @@ def test_a_resumed_study_adds_bounds_seeds_and_controllers_and_tunes_only_those(
     with pytest.raises(Exception, match="bounds differ"):
         study_mod.run_study(model, fewer, out, resume=True, log=lambda m: None)
     assert len(calls) == 12
+
+
+def test_a_resumed_study_with_a_higher_cap_continues_the_unconverged_runs(model, tmp_path, fake_study):
+    """Runs that stopped at their cap unconverged go on from their checkpoints when the study is resumed
+    with more iterations (a setting a resumed study may change); converged runs are not tuned again, and
+    the same cap continues nothing."""
+    calls, seen = fake_study
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0, 1),
+                                heldout_batch=4, bootstrap=100, iterations=10)  # fmt: skip
+    out = str(tmp_path / "study")
+    seen["unconverged"] = True
+    report = study_mod.run_study(model, cfg, out, log=lambda m: None)
+    assert len(calls) == 4 and all(r["converged"] == 0 for r in report["rows"] if r["bound"] is not None)
+    (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
+    assert q["verdict"].startswith("none: runs not converged")
+    study_mod.run_study(model, cfg, out, resume=True, log=lambda m: None)
+    assert len(calls) == 4  # the same cap: nothing to continue
+    seen["unconverged"] = False
+    said = []
+    report = study_mod.run_study(model, cfg.replace(iterations=30), out, resume=True, log=said.append)
+    assert len(calls) == 8 and all(c[3] for c in calls[4:])  # each run resumed from its checkpoint
+    assert sum("not converged in 10 iterations: continued" in m for m in said) == 4
+    assert all(r["converged"] == 2 for r in report["rows"] if r["bound"] is not None)
+    (q,) = [q for q in report["ratios"] if q["bound"] == 1.0]
+    assert q["verdict"] in ("lower", "higher", "no difference")
+    study_mod.run_study(model, cfg.replace(iterations=60), out, resume=True, log=lambda m: None)
+    assert len(calls) == 8  # converged: a higher cap continues nothing
 
 
 def test_study_cli_rejects_bad_input(tmp_path, capsys):

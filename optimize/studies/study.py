@@ -182,6 +182,24 @@ def model_label(model) -> str:
 # on its own (the held-out, validation and reference scenarios do not depend
 # on them), and the report is drawn from every run on disk
 EXTENSIBLE = ("controllers", "bounds", "seeds")
+LONGER = ("iterations", "plateau_tol", "plateau_validations")
+"""Settings a resumed study may change: how long its runs go, not what they compute. A finished run that
+did not converge continues under them (:func:`continues`)."""
+
+
+def continues(run: dict, tcfg: TuneConfig) -> bool:
+    """Whether a finished tuning run (its ``summary.json``) goes on under ``tcfg``: it stopped at its cap
+    unconverged, and the cap is now higher or the convergence criterion other (a resumed run checks the
+    criterion before its first step)."""
+    c = run.get("convergence") or {}
+    if c.get("converged") or c.get("reason") == "lost":
+        return False
+    k = c.get("criterion") or {}
+    other = (k.get("plateau_tol"), k.get("plateau_validations")) != (
+        tcfg.loop.plateau_tol,
+        tcfg.loop.plateau_validations,
+    )
+    return tcfg.loop.iterations > int(c.get("iterations", run.get("iterations", 0))) or (bool(c) and other)
 
 
 def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
@@ -200,7 +218,7 @@ def _differences(saved: dict, cfg: StudyConfig, model_name: str) -> list[str]:
             return set(held[k]) <= set(v)
         return held.get(k) == v
 
-    diff = [k for k, v in cfg.describe().items() if not same(k, v)]
+    diff = [k for k, v in cfg.describe().items() if k not in LONGER and not same(k, v)]
     return diff + ([f"model: {saved.get('model')} then, {model_name} now"] if saved.get("model") != model_name else [])
 
 
@@ -309,15 +327,18 @@ def run_study(
             where = run_dir(out, controller, factor, seed)
             label = f"[{k + 1}/{len(jobs)}] {controller}, bound x{factor:g}, seed {seed}"
             summary_path = os.path.join(where, "summary.json")
+            tcfg = cfg.tune_config(controller, seed, bounds_for(reference, factor))
             if os.path.exists(summary_path):
                 with open(summary_path) as f:
-                    runs[(controller, factor, seed)] = json.load(f)
-                log(f"{label}: done earlier")
-                continue
+                    done = json.load(f)
+                if not continues(done, tcfg):
+                    runs[(controller, factor, seed)] = done
+                    log(f"{label}: done earlier")
+                    continue
+                log(f"{label}: not converged in {_report.run_iterations(done)} iterations: continued")
             eta = f", about {np.median(took) * (len(jobs) - k) / 60:.0f} min left" if took else ""
             log(f"{label}: tuning{eta}")
             t0 = time.perf_counter()
-            tcfg = cfg.tune_config(controller, seed, bounds_for(reference, factor))
             resuming = os.path.exists(os.path.join(where, CHECKPOINT))
             runs[(controller, factor, seed)] = _pipeline.tune_and_evaluate(
                 model,
