@@ -4,6 +4,7 @@ One start per process (two processes use the two cores):
 
   python experiments/convergence.py run --start default   --out results/convergence
   python experiments/convergence.py run --start perturbed --out results/convergence
+  python experiments/convergence.py extend --start default --to 300   # each start, a run of 300 iterations
   python experiments/convergence.py report --out results/convergence
 
 ``run`` tunes ``jaxsync tune``'s default job (paper model, synchronous,
@@ -11,7 +12,8 @@ L-BFGS) to its converged criterion or its cap (``--iterations``), from the
 default gains (``default``) or from every gain x (1 + ``--perturb``)
 (``perturbed``); then continues a copy of that run past its stop with the
 criterion off for ``--extend`` more iterations (the longer run), and writes
-both summaries. ``report`` says, for each start, how far the longer run moved
+both summaries; ``extend`` continues a copy of the longer run to ``--to``
+iterations. ``report`` says, for each start, how far the longer run moved
 the validation and held-out figures past the stop, and how far the two starts
 ended apart (held-out settled peak), at the stop and after the longer run.
 """
@@ -62,6 +64,23 @@ def run(args) -> None:
         )
 
 
+def extend(args) -> None:
+    """A copy of the longer run continued to ``--to`` iterations (the criterion off)."""
+    set_xla_flags()
+    jax.config.update("jax_enable_x64", True)
+    enable_compilation_cache()
+    model = jaxsync.load_model()
+    base = default_gains()
+    if args.start == "perturbed":
+        base = jax.tree_util.tree_map(lambda x: x * (1 + args.perturb), base)
+    src, dst = os.path.join(args.out, args.start + "_longer"), os.path.join(args.out, f"{args.start}_{args.to}")
+    if not os.path.exists(os.path.join(dst, "summary.json")):
+        shutil.rmtree(dst, ignore_errors=True)
+        shutil.copytree(src, dst, ignore=shutil.ignore_patterns(".jaxsync.lock", "summary.json"))
+        cfg = TuneConfig(iterations=args.to, plateau_tol=0.0)
+        pipeline.tune_and_evaluate(model, base, cfg, out=dst, resume=True, mujoco_check=False)
+
+
 def _row(s: dict) -> dict:
     sel = next(v for v in s["validation"] if v["iteration"] == s["selected_iteration"])
     c = s["convergence"]
@@ -80,7 +99,9 @@ def _row(s: dict) -> dict:
 def report(args) -> None:
     rows = {}
     for start in ("default", "perturbed"):
-        for kind in ("", "_longer"):
+        kinds = ["", "_longer"] + sorted(d[len(start) :] for d in os.listdir(args.out) if d.startswith(start + "_")
+                                         and d[len(start) + 1 :].isdigit())  # fmt: skip
+        for kind in kinds:
             p = os.path.join(args.out, start + kind)
             if os.path.exists(os.path.join(p, "summary.json")):
                 rows[start + kind] = _row(_summary(p))
@@ -92,7 +113,7 @@ def report(args) -> None:
                 "validation": b["validation_N"] / a["validation_N"],
                 "heldout": b["heldout_N"] / a["heldout_N"],
             }
-    for kind in ("", "_longer"):
+    for kind in sorted({k[len("default") :] for k in rows if k.startswith("default")}):
         a, b = rows.get("default" + kind), rows.get("perturbed" + kind)
         if a and b:
             out[f"perturbed / default{kind or ' (at the stop)'}"] = b["heldout_N"] / a["heldout_N"]
@@ -110,10 +131,15 @@ def main(argv=None) -> int:
     r.add_argument("--iterations", type=int, default=200, help="the cap of the first run (200)")
     r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")
     r.add_argument("--out", default="results/convergence")
+    e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
+    e.add_argument("--start", choices=["default", "perturbed"], required=True)
+    e.add_argument("--perturb", type=float, default=1e-6)
+    e.add_argument("--to", type=int, required=True)
+    e.add_argument("--out", default="results/convergence")
     q = sub.add_parser("report")
     q.add_argument("--out", default="results/convergence")
     args = p.parse_args(argv)
-    (run if args.what == "run" else report)(args)
+    {"run": run, "extend": extend, "report": report}[args.what](args)
     return 0
 
 

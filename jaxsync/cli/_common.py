@@ -104,7 +104,7 @@ def add_convergence_arguments(p: argparse.ArgumentParser) -> None:
         type=float,
         default=0.02,
         metavar="REL",
-        help="converged, and stopped before the cap, when the selected validation figure moved by at most this "
+        help="converged, and stopped before the cap, when the validation figure moved by at most this "
         "share over the last --plateau-validations validations (0.02; 0: run to the cap)",
     )
     p.add_argument(

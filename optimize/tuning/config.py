@@ -209,7 +209,7 @@ class Loop:
     checkpoint_every: int = 5
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     max_bad_steps: int = 3  # non-finite steps in a row that stop the run
-    # converged: the selected validation figure moved by less than plateau_tol
+    # converged: the validation figure moved by less than plateau_tol
     # (relative) over the last plateau_validations validations (0: never; run to the cap)
     plateau_tol: float = 0.02
     plateau_validations: int = 4

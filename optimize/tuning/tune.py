@@ -319,7 +319,7 @@ def tune(
                 break
             if flat:
                 say(
-                    f"converged after {i + 1} iterations: the selected validation figure moved by less than "
+                    f"converged after {i + 1} iterations: the validation figure moved by less than "
                     f"{100 * loop.plateau_tol:g} % over the last {loop.plateau_validations} validations"
                 )
                 break
@@ -345,7 +345,7 @@ def tune(
     record = convergence_record(reason, state, cfg, time.perf_counter() - t_start)
     if reason == "cap" and every:
         say(
-            f"not converged: the selected validation figure still moved by more than {100 * loop.plateau_tol:g} % "
+            f"not converged: the validation figure still moved by more than {100 * loop.plateau_tol:g} % "
             f"over the last {loop.plateau_validations} validations at the cap of {iterations} iterations "
             "(more --iterations continue it with --resume)"
         )

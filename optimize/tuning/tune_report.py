@@ -79,7 +79,7 @@ def convergence_text(c: dict) -> str:
     if c["converged"]:
         return f"converged ({c['why']}) after {cost}"
     return (
-        f"WARNING: not converged ({c['why']}; criterion: the selected validation figure moving by at most "
+        f"WARNING: not converged ({c['why']}; criterion: the validation figure moving by at most "
         f"{100 * k['plateau_tol']:g} % over {k['plateau_validations']} validations) after {cost}; "
         "a longer run may still lower it (--resume with more --iterations)"
     )

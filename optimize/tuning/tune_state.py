@@ -50,7 +50,7 @@ def select_iterate(validation: list[dict]) -> dict | None:
 
 STOP_REASONS = {
     "method": "the method converged on its training batches (no step lowered the cost)",
-    "plateau": "the selected validation figure moved by less than the tolerance over the last validations",
+    "plateau": "the validation figure moved by less than the tolerance over the last validations",
     "lost": "the iterates dropped the object in every validation scenario",
     "cap": "the iteration cap was reached before either criterion held",
 }
@@ -87,11 +87,13 @@ def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
 
 
 def plateaued(validation: list[dict], tol: float, over: int) -> bool:
-    """Whether the selected validation figure (:func:`select_iterate`'s settled
-    peak) moved by at most ``tol``, relative, over the last ``over``
-    validations: the run's converged criterion (``Loop.plateau_tol`` and
-    ``plateau_validations``; ``tol`` 0 never holds). A selection that changed
-    its bounds' verdict, or lost everything, has moved.
+    """Whether the validation figure (each validation's mean settled peak)
+    moved by at most ``tol``, relative, over the last ``over`` validations:
+    the last ``over`` + 1 figures lie within ``tol`` of their lowest. The
+    run's converged criterion (``Loop.plateau_tol`` and
+    ``plateau_validations``; ``tol`` 0 never holds). A stretch in which a
+    validation dropped or diverged anywhere, or crossed the compliance
+    bounds, has moved.
 
     Example:
       >>> v = [{"iteration": i, "settled_peak_resultant_N": p, "grip_force_error_rel": 0.0,
@@ -101,11 +103,13 @@ def plateaued(validation: list[dict], tol: float, over: int) -> bool:
     """
     if tol <= 0 or len(validation) <= over:
         return False
-    now, then = select_iterate(validation), select_iterate(validation[:-over])
-    a, b = now["settled_peak_resultant_N"], then["settled_peak_resultant_N"]
-    if a is None or b is None or now.get("within_bounds", True) != then.get("within_bounds", True):
+    last = list(validation)[-(over + 1) :]
+    peaks = [v["settled_peak_resultant_N"] for v in last]
+    if any(p is None for p in peaks) or any(v.get("dropped") or v.get("nonfinite") for v in last):
         return False
-    return abs(b - a) <= tol * abs(a)
+    if len({bool(v.get("within_bounds", True)) for v in last}) > 1:
+        return False
+    return max(peaks) - min(peaks) <= tol * min(peaks)
 
 
 class TuneState(NamedTuple):
