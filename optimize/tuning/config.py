@@ -205,7 +205,7 @@ class Method:
 class Loop:
     """The loop: its length, checkpoints and validation."""
 
-    iterations: int = 60  # the cap: a run stops earlier when it has converged
+    iterations: int = 150  # the cap: a run stops earlier when it has converged
     checkpoint_every: int = 5
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     max_bad_steps: int = 3  # non-finite steps in a row that stop the run
