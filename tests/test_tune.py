@@ -1127,7 +1127,8 @@ def test_a_run_stops_converged_when_its_validation_figure_stops_moving(model, mo
 
     monkeypatch.setattr(tune_mod, "traced_value_and_grad", fake_traced)
     monkeypatch.setattr(tune_mod, "make_loss", lambda *a, **k: None)  # no rollout is compiled
-    cfg = TuneConfig(iterations=50, batch=3, validate_every=5, task="short", method="adam", schedule="constant")
+    cfg = TuneConfig(iterations=50, batch=3, validate_every=5, task="short", method="adam", schedule="constant",
+                     plateau_tol=0.02)  # fmt: skip
     calls = []
     r = tune(model, _gains.default_gains(), cfg, out=str(tmp_path / "a"), progress=False, validate=validate)
     c = r.convergence

@@ -102,10 +102,11 @@ def add_convergence_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--plateau-tol",
         type=float,
-        default=0.02,
+        default=0.0,
         metavar="REL",
-        help="converged, and stopped before the cap, when the validation figure moved by at most this "
-        "share over the last --plateau-validations validations (0.02; 0: run to the cap)",
+        help="also converged, and stopped before the cap, when the validation figure moved by at most this "
+        "share over the last --plateau-validations validations (0, off: L-BFGS's own convergence only; "
+        "docs/convergence.md)",
     )
     p.add_argument(
         "--plateau-validations",

@@ -85,7 +85,7 @@ def add_parser(sub) -> None:
     bound = "bound the mean first-impact peak pad force, N", "bound the apparent stiffness along the pad normal, N/m"
     p.add_argument("--max-impact", type=positive(float), metavar="N", help=f"{bound[0]} (docs/metrics.md)")
     p.add_argument("--max-stiffness", type=positive(float), metavar="N_PER_M", help=f"{bound[1]} (docs/metrics.md)")
-    p.add_argument("--iterations", type=int, default=150, help="the cap on optimisation steps (150)")
+    p.add_argument("--iterations", type=int, default=300, help="the cap on optimisation steps (300)")
     add_convergence_arguments(p)
     p.add_argument("--batch", type=int, default=4, help="randomised scenarios per step (4; per process)")
     starts = "K tuning runs on training seeds --seed, --seed+1, ..., in OUT/seed_<s>, the best validated kept (1)"

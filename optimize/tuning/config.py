@@ -205,13 +205,13 @@ class Method:
 class Loop:
     """The loop: its length, checkpoints and validation."""
 
-    iterations: int = 150  # the cap: a run stops earlier when it has converged
+    iterations: int = 300  # the cap: a run stops earlier when it has converged
     checkpoint_every: int = 5
     validate_every: int = 5  # iterations between validation evaluations (0: none, keep the last iterate)
     max_bad_steps: int = 3  # non-finite steps in a row that stop the run
-    # converged: the validation figure moved by less than plateau_tol
-    # (relative) over the last plateau_validations validations (0: never; run to the cap)
-    plateau_tol: float = 0.02
+    # also converged: the validation figure moved by less than plateau_tol (relative) over the
+    # last plateau_validations validations (0, the default: off; docs/convergence.md says why)
+    plateau_tol: float = 0.0
     plateau_validations: int = 4
 
     def validate(self) -> None:

@@ -39,6 +39,7 @@ from jaxsync.optimize.tuning.tune_state import (
     TuneResult,
     TuneState,
     convergence_record,
+    criterion_text,
     fresh_state,
     plateaued,
     prepare_out,
@@ -343,10 +344,7 @@ def tune(
     selected = select_iterate(list(state.validation))
     gains = spec.to_gains(state.kept[selected["iteration"]], base) if selected is not None else last
     record = convergence_record(reason, state, cfg, time.perf_counter() - t_start)
-    if reason == "cap" and every:
-        say(
-            f"not converged: the validation figure still moved by more than {100 * loop.plateau_tol:g} % "
-            f"over the last {loop.plateau_validations} validations at the cap of {iterations} iterations "
-            "(more --iterations continue it with --resume)"
-        )
+    if reason == "cap":
+        say(f"not converged at the cap of {iterations} iterations: {criterion_text(cfg)} (more --iterations "
+            "continue it with --resume)")  # fmt: skip
     return TuneResult(gains, list(state.history), list(state.validation), selected, last, state, record)

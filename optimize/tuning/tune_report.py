@@ -75,13 +75,11 @@ def convergence_text(c: dict) -> str:
         f"{c['training_rollouts']} training and {c['validation_rollouts']} validation rollouts, "
         f"{c['seconds']:.0f} s"
     )
-    k = c["criterion"]
     if c["converged"]:
         return f"converged ({c['why']}) after {cost}"
     return (
-        f"WARNING: not converged ({c['why']}; criterion: the validation figure moving by at most "
-        f"{100 * k['plateau_tol']:g} % over {k['plateau_validations']} validations) after {cost}; "
-        "a longer run may still lower it (--resume with more --iterations)"
+        f"WARNING: not converged ({c['why']}) after {cost}; a longer run may still lower it (--resume with more "
+        "--iterations)"
     )
 
 

@@ -70,7 +70,7 @@ def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
     return {
         "converged": reason in ("method", "plateau"),
         "reason": reason,
-        "why": STOP_REASONS[reason],
+        "why": STOP_REASONS[reason] + (f" ({criterion_text(cfg)})" if reason == "cap" else ""),
         "criterion": {
             "plateau_tol": cfg.loop.plateau_tol,
             "plateau_validations": cfg.loop.plateau_validations,
@@ -84,6 +84,22 @@ def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
         "validation_rollouts": len(state.validation) * cfg.data.validation_batch,
         "seconds": float(seconds),
     }
+
+
+def criterion_text(cfg) -> str:
+    """What converging would have taken, in words: the method's own criterion, and the plateau where on."""
+    loop = cfg.loop
+    own = "L-BFGS finding no lower cost on its batches" if cfg.method.name in ("lbfgs", "cmaes-lbfgs") else ""
+    plateau = (
+        f"the validation figure moving by at most {100 * loop.plateau_tol:g} % over "
+        f"{loop.plateau_validations} validations"
+        if loop.plateau_tol > 0 and loop.validate_every
+        else ""
+    )
+    said = " or ".join(x for x in (own, plateau) if x)
+    return (
+        f"neither held: {said}" if said else f"{cfg.method.name} has no convergence criterion (--plateau-tol sets one)"
+    )
 
 
 def plateaued(validation: list[dict], tol: float, over: int) -> bool:
