@@ -41,14 +41,19 @@ def _summary(path: str) -> dict:
         return json.load(f)
 
 
-def run(args) -> None:
+def _start(args):
+    """jaxsync's settings, the paper model and the start's gains (moved by ``--perturb`` for "perturbed")."""
     set_xla_flags()
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
-    model = jaxsync.load_model()
     base = default_gains()
     if args.start == "perturbed":
         base = jax.tree_util.tree_map(lambda x: x * (1 + args.perturb), base)
+    return jaxsync.load_model(), base
+
+
+def run(args) -> None:
+    model, base = _start(args)
     cfg = TuneConfig(iterations=args.iterations)
     first = os.path.join(args.out, args.start)
     if not os.path.exists(os.path.join(first, "summary.json")):
@@ -66,13 +71,7 @@ def run(args) -> None:
 
 def extend(args) -> None:
     """A copy of the longer run continued to ``--to`` iterations (the criterion off)."""
-    set_xla_flags()
-    jax.config.update("jax_enable_x64", True)
-    enable_compilation_cache()
-    model = jaxsync.load_model()
-    base = default_gains()
-    if args.start == "perturbed":
-        base = jax.tree_util.tree_map(lambda x: x * (1 + args.perturb), base)
+    model, base = _start(args)
     src, dst = os.path.join(args.out, args.start + "_longer"), os.path.join(args.out, f"{args.start}_{args.to}")
     if not os.path.exists(os.path.join(dst, "summary.json")):
         shutil.rmtree(dst, ignore_errors=True)
