@@ -8,7 +8,8 @@ One start per process (two processes use the two cores):
   python experiments/convergence.py report --out results/convergence
 
 ``run`` tunes ``jaxsync tune``'s default job (paper model, synchronous,
-L-BFGS) to its converged criterion or its cap (``--iterations``), from the
+L-BFGS) until it converges, with the validation plateau ``--plateau-tol``
+on, or to its cap (``--iterations``), from the
 default gains (``default``) or from every gain x (1 + ``--perturb``)
 (``perturbed``); then continues a copy of that run past its stop with the
 criterion off for ``--extend`` more iterations (the longer run), and writes
@@ -54,7 +55,7 @@ def _start(args):
 
 def run(args) -> None:
     model, base = _start(args)
-    cfg = TuneConfig(iterations=args.iterations)
+    cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol)
     first = os.path.join(args.out, args.start)
     if not os.path.exists(os.path.join(first, "summary.json")):
         pipeline.tune_and_evaluate(model, base, cfg, out=first, restart=True, mujoco_check=False)
@@ -128,6 +129,7 @@ def main(argv=None) -> int:
     r.add_argument("--start", choices=["default", "perturbed"], required=True)
     r.add_argument("--perturb", type=float, default=1e-6, help="relative change of every starting gain (1e-6)")
     r.add_argument("--iterations", type=int, default=200, help="the cap of the first run (200)")
+    r.add_argument("--plateau-tol", type=float, default=0.02, help="the first run's plateau (0.02; 0: L-BFGS's own)")
     r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")
     r.add_argument("--out", default="results/convergence")
     e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
