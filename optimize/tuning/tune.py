@@ -345,6 +345,6 @@ def tune(
     gains = spec.to_gains(state.kept[selected["iteration"]], base) if selected is not None else last
     record = convergence_record(reason, state, cfg, time.perf_counter() - t_start)
     if reason == "cap":
-        say(f"not converged at the cap of {iterations} iterations: {criterion_text(cfg)} (more --iterations "
-            "continue it with --resume)")  # fmt: skip
+        say(f"not converged: the cap of {iterations} iterations came before {criterion_text(cfg)} (more "
+            "--iterations continue it with --resume)")  # fmt: skip
     return TuneResult(gains, list(state.history), list(state.validation), selected, last, state, record)

@@ -52,7 +52,7 @@ STOP_REASONS = {
     "method": "the method converged on its training batches (no step lowered the cost)",
     "plateau": "the validation figure moved by less than the tolerance over the last validations",
     "lost": "the iterates dropped the object in every validation scenario",
-    "cap": "the iteration cap was reached before either criterion held",
+    "cap": "the iteration cap came first",
 }
 """Why a run stopped; the first two are convergence."""
 
@@ -70,7 +70,7 @@ def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
     return {
         "converged": reason in ("method", "plateau"),
         "reason": reason,
-        "why": STOP_REASONS[reason] + (f" ({criterion_text(cfg)})" if reason == "cap" else ""),
+        "why": f"the cap came before {criterion_text(cfg)}" if reason == "cap" else STOP_REASONS[reason],
         "criterion": {
             "plateau_tol": cfg.loop.plateau_tol,
             "plateau_validations": cfg.loop.plateau_validations,
@@ -87,9 +87,9 @@ def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
 
 
 def criterion_text(cfg) -> str:
-    """What converging would have taken, in words: the method's own criterion, and the plateau where on."""
+    """What converging takes, in words: the method's own criterion, and the plateau where on."""
     loop = cfg.loop
-    own = "L-BFGS finding no lower cost on its batches" if cfg.method.name in ("lbfgs", "cmaes-lbfgs") else ""
+    own = "L-BFGS converging on its batches" if cfg.method.name in ("lbfgs", "cmaes-lbfgs") else ""
     plateau = (
         f"the validation figure moving by at most {100 * loop.plateau_tol:g} % over "
         f"{loop.plateau_validations} validations"
@@ -97,9 +97,7 @@ def criterion_text(cfg) -> str:
         else ""
     )
     said = " or ".join(x for x in (own, plateau) if x)
-    return (
-        f"neither held: {said}" if said else f"{cfg.method.name} has no convergence criterion (--plateau-tol sets one)"
-    )
+    return said or f"a criterion ({cfg.method.name} has none of its own: --plateau-tol sets one)"
 
 
 def plateaued(validation: list[dict], tol: float, over: int) -> bool:
