@@ -307,10 +307,11 @@ def tune(
             if every and ((i + 1) % every == 0 or last):
                 state = validated(state, validate, spec, base, say)
                 lost = not last and lost_everywhere(state.validation)
-                flat = not last and not lost and plateau()
+                held = not lost and not converged and plateau()
+                flat = held and not last
                 if lost:
                     reason = "lost"
-                elif plateau() and not converged:
+                elif held:
                     reason = "plateau"
             if (i + 1) % cfg.loop.checkpoint_every == 0 or last or lost or flat:
                 save_state(write_ckpt, state, fingerprint, method, decay)
