@@ -52,9 +52,8 @@ STOP_REASONS = {
     "method": "the method converged on its training batches (no step lowered the cost)",
     "plateau": "the validation figure moved by less than the tolerance over the last validations",
     "lost": "the iterates dropped the object in every validation scenario",
-    "cap": "the iteration cap came first",
 }
-"""Why a run stopped; the first two are convergence."""
+"""Why a run stopped before its cap; the first two are convergence (at the cap: :func:`criterion_text`)."""
 
 
 def convergence_record(reason: str, state, cfg, seconds: float) -> dict:
