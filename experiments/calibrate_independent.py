@@ -9,7 +9,8 @@ one of three structures: as written, weight-compensated, with velocity
 feed-forward) with a delay of whole command periods and sensor noise; then
 ``calibrate`` fits it. Prints per case the delay found, the worst stiffness
 and damping errors, the claimed 95 % half-width beside the actual error,
-the fit's warnings and the seconds.
+the fit's warnings and the seconds, and the servo structure it chose
+with its margin on held-out windows.
 
     python experiments/calibrate_independent.py --structures feedforward --delays 0,2 --duration 20
 """
@@ -81,6 +82,8 @@ def case(
         "structure": structure,
         "delay": delay,
         "found": cal.delay,
+        "found_structure": cal.structure,
+        "structure_margin": float(cal.structure_margin) if cal.structure_margin is not None else float("nan"),
         "stiffness_err_max": float(err_k.max()),
         "damping_err_max": float(err_b.max()),
         "claimed_k_halfwidth_max": float(claimed_k),
@@ -121,6 +124,7 @@ def main() -> None:
                 args.noise_dq,
                 args.verbose,
                 args.timestep,
+                args.generator,
             )
             print(" | ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()), flush=True)
 

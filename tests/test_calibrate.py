@@ -254,6 +254,10 @@ def test_calibrate_finds_the_delay_and_the_servo(ur5e, truth, bag, tmp_path, cap
     assert rc == 0, capsys.readouterr().err
     res = json.loads((out / "calibration.json").read_text())
     assert res["delay_periods"] == TRUE_DELAY
+    # the recording's servo structure (the robot file's: weight-compensated, velocity fed forward) chosen
+    # on held-out windows, the others far behind
+    assert res["structure"] == "feedforward" and res["structure_margin"] > 1.0, res["structure_held_out_costs"]
+    assert set(res["structure_held_out_costs"]) == {"as_written", "weight_compensated", "feedforward"}
     # the wrist sensors' noise from the still parts, through a load that moves with the arm
     sensed = res["sensor"]
     assert sensed["force_noise_N"] == pytest.approx(FORCE_NOISE, rel=0.1), sensed
@@ -279,6 +283,7 @@ def test_calibrate_finds_the_delay_and_the_servo(ur5e, truth, bag, tmp_path, cap
     calibrated = load_model(str(tmp_path / "cal.yaml"), visual=False)
     servo = servo_of(calibrated)
     assert np.allclose(servo.stiffness.reshape(-1), fitted, rtol=1e-5)
+    assert servo.weight_compensation and servo.velocity_feedforward
     task = default_scenario(calibrated)  # the task (and every scenario drawn around it) takes the sensors' noise
     assert float(task.force_noise) == pytest.approx(sensed["force_noise_N"], rel=1e-5)
     assert float(task.torque_noise) == pytest.approx(sensed["torque_noise_Nm"], rel=1e-5)
@@ -335,7 +340,8 @@ def test_fitted_joint_dynamics_reach_the_model(ur5e, tmp_path):
     fitted = nom.replace(joint_damping=np.linspace(0.5, 1.6, n), frictionloss=np.linspace(0.1, 1.2, n),
                          armature=np.linspace(0.01, 0.12, n))  # fmt: skip
     cal = SimpleNamespace(joints=tuple(f"j{k}" for k in range(n)), fitted=fitted, delay=1, period=0.002,
-                          fields=("stiffness", "damping", "joint_damping", "frictionloss", "armature"))  # fmt: skip
+                          fields=("stiffness", "damping", "joint_damping", "frictionloss", "armature"),
+                          structure="weight_compensated", structure_margin=0.5)  # fmt: skip
     doc = yaml.safe_load(Path(UR5E).read_text())
     doc.update(yaml.safe_load(fragment(cal, "test", "ur5e")))
     shutil.copy(ROBOTS / doc["arms"]["right"]["model"], tmp_path)
@@ -344,6 +350,8 @@ def test_fitted_joint_dynamics_reach_the_model(ur5e, tmp_path):
     dofs = replay.Replay(model).pc.dof_adr
     m = model.mj_model
     assert np.allclose(m.dof_damping[dofs], fitted.joint_damping)
+    # the structure the fit chose reaches the model's servo
+    assert replay.Replay(model).servo.structure == "weight_compensated"
     assert np.allclose(m.dof_frictionloss[dofs], fitted.frictionloss)
     assert np.allclose(m.dof_armature[dofs], fitted.armature)
     assert np.allclose(np.asarray(model.mjx_model.dof_armature)[dofs], fitted.armature)
@@ -481,3 +489,12 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
         "the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
         "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)",
     ]
+
+
+def test_unknown_servo_structures_are_one_line(bag, tmp_path, capsys):
+    out = tmp_path / "cal"
+    rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out),
+               "--structures", "as_written,geared", "--no-report"])  # fmt: skip
+    err = capsys.readouterr().err
+    assert rc == 2 and "structures must be one or more of ['as_written', 'weight_compensated', 'feedforward']" in err
+    assert "Traceback" not in err and not out.exists()

@@ -37,18 +37,29 @@ ONE_JOINT = """
 """
 
 
+def _consts(stiffness, damping, weight=1.0, feedforward=1.0, lo=-np.inf, hi=np.inf):
+    """PositionConsts of joints 0..n-1 in order, one structure for all."""
+    k = np.atleast_1d(np.asarray(stiffness, float))
+    idx, ones = np.arange(len(k)), np.ones(len(k))
+    return _actuation.PositionConsts(
+        stiffness=k,
+        damping=np.atleast_1d(np.asarray(damping, float)),
+        dof_adr=idx,
+        qpos_adr=idx,
+        joint_damping=np.zeros(len(k)),
+        actuator_ids=idx,
+        joint_ids=idx,
+        weight=weight * ones,
+        feedforward=feedforward * ones,
+        command_lo=lo * ones,
+        command_hi=hi * ones,
+    )
+
+
 def _one_joint_servo(stiffness, damping, limit, command, steps, dt=0.001, inertia=0.5):
     """MuJoCo C, one free hinge: the servo's two parts as a rollout applies them."""
     m = mujoco.MjModel.from_xml_string(ONE_JOINT.format(dt=dt, inertia=inertia))
-    pc = _actuation.PositionConsts(
-        stiffness=np.array([stiffness]),
-        damping=np.array([damping]),
-        dof_adr=np.array([0]),
-        qpos_adr=np.array([0]),
-        joint_damping=np.zeros(1),
-        actuator_ids=np.array([0]),
-        joint_ids=np.array([0]),
-    )
+    pc = _consts(stiffness, damping)
     for name, where, value in _actuation.model_updates(pc, 1.0):
         getattr(m, name)[where] = value
     d = mujoco.MjData(m)
@@ -91,15 +102,7 @@ def test_the_servo_clips_its_torque_and_stays_stable_at_any_damping():
 
 
 def test_motor_torque_is_the_servo_torque_plus_the_cancelled_damping():
-    pc = _actuation.PositionConsts(
-        np.array([100.0, 50.0]),
-        np.array([10.0, 4.0]),
-        np.arange(2),
-        np.arange(2),
-        np.zeros(2),
-        np.arange(2),
-        np.arange(2),
-    )
+    pc = _consts([100.0, 50.0], [10.0, 4.0])
     qpos, qvel, bias = np.array([0.1, -0.2]), np.array([0.5, 1.0]), np.array([1.0, -2.0])
     cmd, cmd_vel, limit = np.array([0.2, -0.1]), np.array([0.0, 2.0]), np.array([1e3, 3.0])
     tau, motor = _actuation.servo_torque(pc, qpos, qvel, bias, cmd, cmd_vel, 1.3, limit, np)
@@ -107,6 +110,75 @@ def test_motor_torque_is_the_servo_torque_plus_the_cancelled_damping():
     np.testing.assert_allclose(tau, np.clip(want, -limit, limit))
     assert tau[1] == 3.0  # clipped
     np.testing.assert_allclose(motor - tau, 1.3 * pc.damping * qvel)
+
+
+def test_the_servo_structure_and_command_range():
+    """As written (w = 0, f = 0): no bias compensation, the damping on the joint's velocity;
+    a command outside the actuator's control range acts at its end."""
+    qpos, qvel, bias = np.array([0.1, -0.2]), np.array([0.5, 1.0]), np.array([1.0, -2.0])
+    cmd, cmd_vel, limit = np.array([0.2, -0.5]), np.array([0.3, 2.0]), np.array([1e3, 1e3])
+    k, b = np.array([100.0, 50.0]), np.array([10.0, 4.0])
+    for w, f in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        tau, _ = _actuation.servo_torque(_consts(k, b, w, f), qpos, qvel, bias, cmd, cmd_vel, 1.0, limit, np)
+        np.testing.assert_allclose(tau, k * (cmd - qpos) + b * (f * cmd_vel - qvel) + w * bias, rtol=1e-15)
+    pc = _consts(k, b, 0, 0, lo=-0.3, hi=0.15)
+    tau, _ = _actuation.servo_torque(pc, qpos, qvel, bias, cmd, cmd_vel, 1.0, limit, np)
+    np.testing.assert_allclose(tau, k * (np.array([0.15, -0.3]) - qpos) - b * qvel, rtol=1e-15)
+
+
+PENDULUM = """
+<mujoco>
+  <option timestep="{dt}" integrator="{integrator}"/>
+  <worldbody>
+    <body>
+      <joint name="j" type="hinge" axis="0 1 0" damping="0.05"/>
+      <geom type="capsule" fromto="0 0 0 0.4 0 0" size="0.03" mass="2" contype="0" conaffinity="0"/>
+    </body>
+  </worldbody>
+  <actuator>{actuator}</actuator>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("forcerange", [None, 4.0])
+def test_as_written_is_mujocos_own_position_actuator(forcerange):
+    """A pendulum under MuJoCo's <position kp kv forcerange ctrlrange> (implicitfast, 0.25 ms)
+    and under the position stack's servo as written (Euler, 1 ms: a motor plus the joint damping):
+    the same sag under gravity, the same saturated swing, within the integrators' difference."""
+    kp, kv = 60.0, 3.0
+    # held, a step, one beyond the control range's 1.0, then a sine (a command with a velocity)
+    steps = [(lambda t, c=c: c, lambda t: 0.0) for c in (0.0, 0.8, 1.5)]
+    steps.append((lambda t: 0.5 * np.sin(2 * np.pi * t), lambda t: np.pi * np.cos(2 * np.pi * t)))
+    limit = forcerange or 1e6
+    fr = f' forcelimited="true" forcerange="-{forcerange} {forcerange}"' if forcerange else ""
+    ref = mujoco.MjModel.from_xml_string(PENDULUM.format(
+        dt=0.00025, integrator="implicitfast",
+        actuator=f'<position joint="j" kp="{kp}" kv="{kv}" ctrlrange="-1 1"{fr}/>'))  # fmt: skip
+    m = mujoco.MjModel.from_xml_string(PENDULUM.format(dt=0.001, integrator="Euler", actuator='<motor joint="j"/>'))
+    pc = _consts(kp, kv, 0.0, 0.0, lo=-1.0, hi=1.0)._replace(joint_damping=np.array([0.05]))
+    for name, where, value in _actuation.model_updates(pc, 1.0):
+        getattr(m, name)[where] = value
+    dr, d = mujoco.MjData(ref), mujoco.MjData(m)
+    q_ref, q = [], []
+    for command, velocity in steps:
+        for i in range(1000):  # 1 s per command
+            c, v = command(i * 0.001), velocity(i * 0.001)
+            dr.ctrl[0] = c
+            for _ in range(4):
+                mujoco.mj_step(ref, dr)
+            mujoco.mj_step1(m, d)
+            _, motor = _actuation.servo_torque(
+                pc, d.qpos, d.qvel, d.qfrc_bias, np.array([c]), np.array([v]), 1.0, np.array([limit]), np
+            )
+            d.ctrl[:] = motor
+            mujoco.mj_step2(m, d)
+            q_ref.append(dr.qpos[0])
+            q.append(d.qpos[0])
+    q_ref, q = np.array(q_ref), np.array(q)
+    sag = 2 * 9.81 * 0.2 / kp  # the weight's torque over the stiffness, at the horizontal
+    assert abs(q_ref[999]) > 0.5 * sag  # no compensation: it sags
+    assert abs(q_ref[2999] - 1.0) < 0.2  # the command held at the control range's end
+    assert np.max(np.abs(q - q_ref)) < 0.02 * np.ptp(q_ref), np.max(np.abs(q - q_ref))
 
 
 def test_a_command_acts_delay_periods_later_with_its_velocity():
@@ -233,24 +305,47 @@ def test_a_robot_servo_comes_from_its_mjcf_or_its_file(tmp_path):
     np.testing.assert_array_equal(s.stiffness, np.full((2, 7), 2000.0))
     np.testing.assert_array_equal(s.damping, np.full((2, 7), 50.0))
     text = open(os.path.join(ROBOTS, "ur5e_twice.yaml")).read()
-    assert "servo: {bandwidth: 25" in text
+    assert s.structure == "as_written" and "as written" in s.source  # the MJCF's actuators compensate nothing
+    assert SERVO_LINE in text
     (tmp_path / "ur5e_like_arm.xml").write_text(open(os.path.join(ROBOTS, "ur5e_like_arm.xml")).read())
-    stated = text.replace(
-        "servo: {bandwidth: 25, damping_ratio: 1.0}",
-        "servo: {stiffness: [1, 2, 3, 4, 5, 6], damping: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}",
-    )
+    assert _servo.servo_of(jaxsync.load_model(os.path.join(ROBOTS, "ur5e_twice.yaml"))).structure == "feedforward"
+    stated = text.replace(SERVO_LINE, "servo: {stiffness: [1, 2, 3, 4, 5, 6], damping: [0.1, 0.2, 0.3, 0.4, 0.5, 0.6]}")
     (tmp_path / "stated.yaml").write_text(stated)
     s = _servo.servo_of(jaxsync.load_model(str(tmp_path / "stated.yaml")))
     np.testing.assert_array_equal(s.stiffness, [[1, 2, 3, 4, 5, 6]] * 2)
     np.testing.assert_array_equal(s.damping, [[0.1, 0.2, 0.3, 0.4, 0.5, 0.6]] * 2)
-    (tmp_path / "none.yaml").write_text(text.replace("servo: {bandwidth: 25, damping_ratio: 1.0}", ""))
+    assert s.structure == "as_written"  # unstated: false
+    (tmp_path / "none.yaml").write_text(text.replace(SERVO_LINE, ""))
     with pytest.raises(ConfigError, match="no joint servo known .* servo: {stiffness"):
         _servo.servo_of(jaxsync.load_model(str(tmp_path / "none.yaml")))
+
+
+SERVO_LINE = "servo: {bandwidth: 25, damping_ratio: 1.0, weight_compensation: true, velocity_feedforward: true}"
+
+
+def test_a_robot_file_states_the_servo_structure_alone_or_with_gains(tmp_path):
+    """servo: {weight_compensation: true} alone keeps the MJCF actuators' gains and command ranges."""
+    import shutil
+
+    for f in ("iiwa14_twice.yaml", "iiwa14_like_arm.xml"):
+        shutil.copy(os.path.join(ROBOTS, f), tmp_path / f)
+    text = (tmp_path / "iiwa14_twice.yaml").read_text()
+    (tmp_path / "wc.yaml").write_text(text + "\nservo: {weight_compensation: true}\n")
+    s = _servo.servo_of(jaxsync.load_model(str(tmp_path / "wc.yaml"), visual=False))
+    assert s.structure == "weight_compensated" and "structure stated" in s.source
+    np.testing.assert_array_equal(s.stiffness, np.full((2, 7), 2000.0))
+    written = s.to_dict()
+    assert written["weight_compensation"] is True and written["velocity_feedforward"] is False
+    pc = _actuation.position_consts(jaxsync.load_model(str(tmp_path / "wc.yaml"), visual=False))
+    assert pc.weight.all() and not pc.feedforward.any()
 
 
 @pytest.mark.parametrize(
     ("servo", "match"),
     [
+        ("{weight_compensation: 1}", "servo.weight_compensation must be true or false"),
+        ("{}", "servo is empty"),
+        ("{bandwidth: 20, velocity_feedforward: yes please}", "servo.velocity_feedforward must be true or false"),
         ("{stiffness: [1, 2, 3, 4, 5, 6]}", "missing 'damping'"),
         ("{stiffness: [1, 2, 3], damping: [1, 2, 3]}", "servo.stiffness must be 6 numbers"),
         ("{stiffness: [1, 2, 3, 4, 5, -6], damping: [1, 1, 1, 1, 1, 1]}", "stiffness must be > 0"),
@@ -263,7 +358,7 @@ def test_a_robot_servo_comes_from_its_mjcf_or_its_file(tmp_path):
 def test_a_robot_file_servo_is_checked(tmp_path, servo, match):
     text = open(os.path.join(ROBOTS, "ur5e_twice.yaml")).read()
     (tmp_path / "ur5e_like_arm.xml").write_text(open(os.path.join(ROBOTS, "ur5e_like_arm.xml")).read())
-    (tmp_path / "r.yaml").write_text(text.replace("{bandwidth: 25, damping_ratio: 1.0}", servo))
+    (tmp_path / "r.yaml").write_text(text.replace(SERVO_LINE, "servo: " + servo))
     with pytest.raises(ConfigError, match=match):
         load_robot(str(tmp_path / "r.yaml"))
 

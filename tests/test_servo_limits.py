@@ -16,6 +16,7 @@ import pytest
 from jaxsync.calibrate import replay
 from jaxsync.calibrate.fit import _spec
 from jaxsync.physics.model import load_model
+from jaxsync.physics.servo import STRUCTURES
 from jaxsync.sim import actuation as _actuation
 
 PERIOD, DELAY, DURATION = 0.002, 2, 4.0
@@ -26,19 +27,23 @@ def limited(tmp_path_factory):
     return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"))), visual=False)
 
 
-@pytest.fixture(scope="module")
-def fast_recording(limited):
+@pytest.fixture(scope="module", params=sorted(STRUCTURES))
+def fast_recording(limited, request):
     """Both arms moving at up to 0.5 rad/s (the excitation's speed cap), far above the FR3 wrist's
-    limit / damping = 12 / 200 = 0.06 rad/s, where a clipped feed-forward would brake."""
-    r = replay.Replay(limited)
+    limit / damping = 12 / 200 = 0.06 rad/s, where a clipped feed-forward would brake; recorded
+    in each servo structure and replayed in the same."""
+    structure = request.param
+    r = replay.Replay(limited, structure=STRUCTURES[structure])
     qadr, _ = ind.arm_joints(limited.mj_model)
     assert np.array_equal(qadr, r.pc.qpos_adr)
     q0 = np.asarray(limited.keyframe_qpos("grasp"))
     ct, cmds = ind.commands(q0[qadr], PERIOD, DURATION, speed=0.5)
     truth = r.nominal()
     lim = np.tile(ind.FR3_LIMITS, 2)
-    t, q, dq = ind.record(limited.mj_model, q0, truth.stiffness, truth.damping, lim, ct, cmds, DELAY)
-    return r, truth, ct, cmds, t, q, dq
+    t, q, dq = ind.record(
+        limited.mj_model, q0, truth.stiffness, truth.damping, lim, ct, cmds, DELAY, structure=structure
+    )
+    return r, truth, ct, cmds, t, q, dq, structure
 
 
 def test_the_limited_robot_is_what_it_says(limited):
@@ -63,7 +68,7 @@ def test_the_position_stack_opens_the_joints_force_range(limited):
 
 
 def test_the_replay_reproduces_a_fast_recording_with_torque_limits(fast_recording):
-    r, truth, ct, cmds, t, q, dq = fast_recording
+    r, truth, ct, cmds, t, q, dq, _ = fast_recording
     assert np.abs(dq).max() > 0.4  # the speeds where a clipped feed-forward brakes
     state = r.state(cmds[0], np.zeros(q.shape[1]), 0.0)
     _, qr, _ = r.run(truth, state, int(round(DURATION / r.timestep)), ct, cmds, DELAY, PERIOD)
@@ -76,11 +81,29 @@ def test_the_replay_reproduces_a_fast_recording_with_torque_limits(fast_recordin
 
 
 def test_the_fits_native_replay_has_no_brake_either(limited, fast_recording):
-    r, truth, ct, cmds, t, q, dq = fast_recording
-    native = replay.NativeReplay(limited, _spec(limited))
+    r, truth, ct, cmds, t, q, dq, structure = fast_recording
+    native = replay.NativeReplay(limited, _spec(limited), structure=STRUCTURES[structure])
     state = native.exact.state(cmds[0], np.zeros(q.shape[1]), 0.0)
     n = int(round(DURATION / native.timestep))
     ((_, qn, _),) = native.run_many([(truth, state, ct, cmds)], n, DELAY, PERIOD)
     every = int(round(PERIOD / native.timestep))
     err = np.sqrt(((qn[every - 1 :: every][: len(q)] - q) ** 2).mean(axis=0))
     assert err.max() < 1e-3, f"RMS per joint, mrad: {np.round(1e3 * err, 3)}"
+
+
+def test_a_replay_in_another_structure_misses_the_recording(limited, fast_recording):
+    """The structures differ by far more than the replay's error: each recording told apart."""
+    r, truth, ct, cmds, t, q, dq, structure = fast_recording
+    every = int(round(PERIOD / r.timestep))
+    for other in sorted(set(STRUCTURES) - {structure}):
+        o = replay.Replay(limited, structure=STRUCTURES[other])
+        state = o.state(cmds[0], np.zeros(q.shape[1]), 0.0)
+        _, qo, _ = o.run(truth, state, int(round(DURATION / o.timestep)), ct, cmds, DELAY, PERIOD)
+        err = np.sqrt(((qo[every - 1 :: every][: len(q)] - q) ** 2).mean(axis=0))
+        assert err.max() > 3e-3, f"{other} replays a {structure} recording within {err.max():.2g} rad"
+
+
+def test_the_limited_robot_runs_its_servo_as_written_unless_stated(limited, tmp_path):
+    """Its robot file states gains and no structure: MuJoCo's <position> law, compensating nothing."""
+    pc = _actuation.position_consts(limited)
+    assert not pc.weight.any() and not pc.feedforward.any()

@@ -32,7 +32,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
-from jaxsync.physics.servo import joint_inertia, servo_of
+from jaxsync.physics.servo import STRUCTURES, joint_inertia, servo_of
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
 SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
@@ -51,6 +51,8 @@ POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the mo
 # half-widths within these shares of the fitted value
 NOISE_MULTIPLE = 2.0
 DELAY_MARGIN = 0.02
+STRUCTURE_MARGIN = 0.05  # held-out cost: another structure within 5 % of the winner's explains the arm as well
+HELD_OUT_EVERY = 4  # every fourth window of each joint held out to choose the structure
 BOUND_MARGIN = 0.01
 DETERMINED = {"stiffness": 0.10, "damping": 0.20}
 FD_STEP = 1e-3  # the finite-difference step on the gain factors (~1): above the friction loss's roughness
@@ -75,6 +77,16 @@ class Calibration:
     windows: int
     noise: np.ndarray  # rad, each joint's position noise in the recording (noise_floor)
     problems: tuple[str, ...] = ()  # why the result cannot be trusted (none: it can)
+    structure: str = "feedforward"  # the servo structure fitted (jaxsync.physics.servo.STRUCTURES)
+    structure_costs: dict = dataclasses.field(default_factory=dict)  # structure -> held-out cost
+
+    @property
+    def structure_margin(self) -> float | None:
+        """How much worse the runner-up structure explains the held-out windows (0.3: 30 %), None with one."""
+        others = [c for k, c in self.structure_costs.items() if k != self.structure]
+        if not others:
+            return None
+        return min(others) / max(self.structure_costs[self.structure], 1e-300) - 1.0
 
     @property
     def poor(self) -> list[str]:
@@ -101,16 +113,17 @@ def _spec(model):
 class Problem:
     """The recording cut into windows, as the toolbox's model sequences, and its residual."""
 
-    def __init__(self, model, rec, window: float = 0.5, timestep: float | None = None):
+    def __init__(self, model, rec, window: float = 0.5, timestep: float | None = None, structure=None):
         # the toolbox is imported here, not at the top: only calibration needs it (mujoco[sysid])
         from mujoco import sysid
 
         self.sysid = sysid
         check_symmetric(model)
         spec = _spec(model)
-        self.native = NativeReplay(model, spec, timestep=timestep)
+        self.native = NativeReplay(model, spec, timestep=timestep, structure=structure)
         self.replay = self.native.exact
-        self.exact = False  # True: roll out through the position stack's own servo code (slower)
+        # the delay and the replay mode, shared with every subset of the windows (_subset) by reference
+        self._shared = {"delay": 0, "exact": False}
         self.names = bag_joint_names(model)
         if tuple(rec.joints) != self.names:
             raise ConfigError(f"the recording's joints {rec.joints} are not the model's {self.names}")
@@ -122,7 +135,6 @@ class Problem:
             raise ConfigError(
                 f"window must be 5 physics steps to half the recording, got {window} s", inputs=("window",)
             )
-        self.delay = 0
         nu = self.replay.m.nu
         acts = self.replay.pc.actuator_ids
         starts = np.arange(0, len(rec.state_times), max(1, int(round(window / np.median(np.diff(rec.state_times))))))
@@ -155,6 +167,24 @@ class Problem:
         self.sequences = sysid.ModelSequences("arms", spec, seq, states, controls, sensors)
         self.velocity = rec.dq is not None
         self.residual_fn = self.residual_over(self.sequences)
+
+    @property
+    def delay(self) -> int:
+        """The delay the rollouts apply, control periods (one for the problem and its subsets)."""
+        return self._shared["delay"]
+
+    @delay.setter
+    def delay(self, value: int) -> None:
+        self._shared["delay"] = int(value)
+
+    @property
+    def exact(self) -> bool:
+        """True: roll out through the position stack's own servo code (slower)."""
+        return self._shared["exact"]
+
+    @exact.setter
+    def exact(self, value: bool) -> None:
+        self._shared["exact"] = bool(value)
 
     def residual_over(self, sequences):
         """The toolbox's residual over ``sequences``, rolled out by this problem's replay."""
@@ -270,13 +300,19 @@ def calibrate(
     *,
     delays=range(0, 5),
     fields=FACTORS,
+    structures=None,
     window: float = 0.5,
     timestep: float | None = None,
     scan_iters: int = 4,
     final_iters: int = 2,
     progress=None,
 ) -> tuple[Calibration, Problem, object, object, object]:
-    """Fit each joint's servo (and optionally joint damping, friction loss, armature) and the delay.
+    """Fit each joint's servo (and optionally joint damping, friction loss, armature), its structure
+    and the delay.
+
+    ``structures``: the candidate servo structures (``jaxsync.physics.servo.STRUCTURES`` names;
+    default all three), each scanned over the delays on three windows in four and scored on the
+    fourth (on every other in a recording of under 8 windows); the best is fitted on every window.
 
     Returns the :class:`Calibration` and, for the report, the problem, the
     starting and fitted ``ParameterDict`` and the toolbox's result."""
@@ -284,27 +320,48 @@ def calibrate(
     if unknown or not set(FACTORS) <= set(fields):
         raise ConfigError(f"fields must hold {list(FACTORS)} and any of {list(FIELDS[2:])}, got {list(fields)}",
                           inputs=("fit",))  # fmt: skip
+    names = list(STRUCTURES) if structures is None else list(structures)
+    bad = [n for n in names if n not in STRUCTURES]
+    if bad or not names:
+        raise ConfigError(f"structures must be one or more of {list(STRUCTURES)}, got {list(names)}",
+                          inputs=("structures",))  # fmt: skip
     say = progress or (lambda text: None)
     start = time.perf_counter()
     step = float(model.mj_model.opt.timestep)
-    fine = Problem(model, rec, window, timestep or replay_step(model))
-    # the delay is chosen on the model's own step (it shows at any step), the gains fitted on the fine one
-    coarse = Problem(model, rec, window, step) if fine.replay.timestep < step else fine
-    nominal = fine.replay.nominal()
-    pd0 = fine.parameters(nominal, fields)
-    coarse.parameters(nominal, fields)
-    costs, fitted = {}, {}
-    for delay in delays:
-        if len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values()) and max(costs) > min(costs, key=costs.get):
-            break  # past the best delay and well above it: the cost rises from here on
-        costs[int(delay)], fitted[int(delay)] = _joint_by_joint(coarse, pd0, fields, int(delay), SCAN_ITERS)
-        say(f"delay {delay}: joint-by-joint fit, cost {costs[int(delay)]:.4g} ({time.perf_counter() - start:.1f} s)")
-    best = min(costs, key=costs.get)
+    fine_step = timestep or replay_step(model)
+    # each structure: the delay scanned (joint by joint, on the model's own step: the delay shows at any
+    # step) on three windows in four, the held-out fourth scored at the best delay
+    scans, held_costs = {}, {}
+    for name in names:
+        coarse = Problem(model, rec, window, step if fine_step < step else fine_step, structure=STRUCTURES[name])
+        nominal = coarse.replay.nominal()
+        pd0 = coarse.parameters(nominal, fields)
+        train, held = (_split(coarse, HELD_OUT_EVERY, keep) for keep in (True, False))
+        if len(names) == 1 or held is None:
+            train = coarse
+        costs, fitted = {}, {}
+        for delay in delays:
+            rising = len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values())
+            if rising and max(costs) > min(costs, key=costs.get):
+                break  # past the best delay and well above it: the cost rises from here on
+            costs[int(delay)], fitted[int(delay)] = _joint_by_joint(train, pd0, fields, int(delay), SCAN_ITERS)
+            say(f"{name}, delay {delay}: joint-by-joint fit, cost {costs[int(delay)]:.4g} "
+                f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
+        best = min(costs, key=costs.get)
+        if len(names) > 1 and held is not None:
+            held.delay = best
+            held_costs[name] = held.cost(fitted[best])
+            say(f"{name}: held-out cost {held_costs[name]:.4g} at delay {best} ({time.perf_counter() - start:.1f} s)")
+        scans[name] = (coarse, nominal, pd0, costs, fitted, best)
+    chosen = min(held_costs, key=held_costs.get) if held_costs else names[0]
+    coarse, nominal, pd0, costs, fitted, best = scans[chosen]
+    fine = Problem(model, rec, window, fine_step, structure=STRUCTURES[chosen]) if fine_step < step else coarse
+    fine.parameters(nominal, fields)
     prob = fine
     pd = fitted[best]
     if fine is not coarse:
         _, pd = _joint_by_joint(fine, pd, fields, best, scan_iters)
-        say(f"delay {best}: joint-by-joint fit at a {fine.replay.timestep * 1000:g} ms step "
+        say(f"{chosen}, delay {best}: joint-by-joint fit at a {fine.replay.timestep * 1000:g} ms step "
             f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
     pd, result = prob.fit(pd, max_iters=final_iters)
     say(f"delay {best}: all {pd.size} parameters together ({time.perf_counter() - start:.1f} s)")
@@ -325,7 +382,8 @@ def calibrate(
         joints=prob.names, delay=best, period=prob.period, fitted=prob.joints_of(pd), nominal=nominal,
         intervals=prob.intervals_of(pd, np.asarray(half)), rms_before=before, rms_after=after, motion=motion,
         delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
-        windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q),
+        windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q), structure=chosen,
+        structure_costs=held_costs,
     )  # fmt: skip
     cal.problems = tuple(problems(cal, list(delays), pd))
     return cal, prob, pd0, pd, result
@@ -352,6 +410,11 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     near = [d for d, c in cal.delay_costs.items() if d != cal.delay and c <= (1 + DELAY_MARGIN) * best]
     if near:
         out.append(f"delays {near} explain the recording within {DELAY_MARGIN:.0%} of delay {cal.delay}'s cost")
+    margin = cal.structure_margin
+    if margin is not None and margin < STRUCTURE_MARGIN:
+        runner = min((k for k in cal.structure_costs if k != cal.structure), key=cal.structure_costs.get)
+        out.append(f"the {runner} servo explains the held-out windows within {margin:.1%} of the {cal.structure} "
+                   f"one's cost: the recording does not tell the structures apart")  # fmt: skip
     lo, hi = FACTOR_BOUNDS
     bound = []
     for key in pd.keys():
@@ -408,6 +471,22 @@ def _joint_by_joint(prob: Problem, pd, fields, delay: int, iters: int):
     return prob.cost(pd), pd
 
 
+def _split(prob: Problem, every: int, keep: bool) -> Problem | None:
+    """The problem over the windows but every ``every``-th in time (``keep``), or over those (not
+    ``keep``); every other where there are fewer than ``2 every`` windows; None under 2 windows."""
+    n = len(prob.dominant)
+    every = every if n >= 2 * every else 2
+    held = set(range(every - 1, n, every))
+    rows = [i for i in range(n) if (i not in held) == keep]
+    if len(rows) < 2:
+        return None
+    part = _subset(prob, rows)
+    part.dominant = [prob.dominant[i] for i in rows]
+    if hasattr(part, "blocks"):
+        del part.blocks
+    return part
+
+
 def _halved(prob: Problem, k: int) -> Problem:
     """The problem over every other window of each joint (k = 0: the first, third, ...; 1: the others)."""
     rows = []
@@ -432,5 +511,5 @@ def _subset(prob: Problem, rows) -> Problem:
     for key in ("sequence_name", "initial_state", "control", "sensordata", "measured_rollout"):
         setattr(part, key, [getattr(ms, key)[i] for i in rows])
     sub.sequences = part
-    sub.residual_fn = prob.residual_over(part)
+    sub.residual_fn = prob.residual_over(part)  # the delay and the replay mode: shared (Problem._shared)
     return sub

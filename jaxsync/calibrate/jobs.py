@@ -24,6 +24,7 @@ from jaxsync.calibrate import sensor as _sensor
 from jaxsync.calibrate.fit import calibrate
 from jaxsync.calibrate.replay import UNITS
 from jaxsync.io import bags
+from jaxsync.physics.servo import STRUCTURES
 
 
 @contextlib.contextmanager
@@ -69,9 +70,11 @@ def fragment(cal, source: str, model_name: str, noise=None) -> str:
     n = len(cal.joints) // 2
     rnd = lambda a: [float(f"{v:.6g}") for v in a]  # noqa: E731
     arms = (("right", slice(0, n)), ("left", slice(n, 2 * n)))
+    w, f = STRUCTURES[cal.structure]
     doc = {
-        "servo": {arm: {"stiffness": rnd(cal.fitted.stiffness[sl]), "damping": rnd(cal.fitted.damping[sl])}
-                  for arm, sl in arms},
+        "servo": {"weight_compensation": w, "velocity_feedforward": f,
+                  **{arm: {"stiffness": rnd(cal.fitted.stiffness[sl]), "damping": rnd(cal.fitted.damping[sl])}
+                     for arm, sl in arms}},
         "delay": {"periods": int(cal.delay), "control_rate": float(f"{1.0 / cal.period:.6g}")},
     }  # fmt: skip
     extra = [f for f in cal.fields if f not in ("stiffness", "damping")]
@@ -82,7 +85,9 @@ def fragment(cal, source: str, model_name: str, noise=None) -> str:
         doc["sensor"] = {"force_noise": rnd([noise.force_noise])[0], "torque_noise": rnd([noise.torque_noise])[0]}
     head = (
         f"# jaxsync calibrate, {datetime.date.today().isoformat()}: {source} on {model_name}\n"
-        "# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay"
+        f"# the servo's structure ({cal.structure}"
+        + (f", {cal.structure_margin:.0%} better than the next on held-out windows" if cal.structure_margin else "")
+        + ")\n# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay"
         + (
             "; joint_dynamics: the MJCF joints' damping (N m s/rad), frictionloss (N m), armature (kg m^2)"
             if extra
@@ -174,6 +179,9 @@ def calibrate_job(
             "state_samples": len(rec.state_times),
             "command_period_s": cal.period,
             "delay_periods": cal.delay,
+            "structure": cal.structure,
+            "structure_held_out_costs": dict(cal.structure_costs),
+            "structure_margin": cal.structure_margin,
             "delay_costs": {str(k): v for k, v in cal.delay_costs.items()},
             "windows": cal.windows,
             "seconds": cal.seconds,

@@ -1,7 +1,7 @@
 """Recorded position commands replayed through the position stack's servo and delay, on MuJoCo C.
 
 The same servo law the position stack simulates (``jaxsync.sim.actuation.
-servo_torque``, the robot's compensation of its own bias forces included):
+servo_torque``, in the servo's structure: ``jaxsync.physics.servo``):
 on every physics step the servo holds the command of ``delay`` control
 periods ago (the latest command received by then) and its velocity (its
 difference with the one before, over the command period). The arms move
@@ -48,15 +48,23 @@ class Joints:
 class Replay:
     """A model of the arms for replaying commands (contacts off, the motors' range opened)."""
 
-    def __init__(self, model, timestep: float | None = None, integrator: str | None = None):
+    def __init__(
+        self, model, timestep: float | None = None, integrator: str | None = None, structure: tuple | None = None
+    ):
+        """``structure``: (weight_compensation, velocity_feedforward) to replay
+        with (``jaxsync.physics.servo.STRUCTURES``); default the model's servo's."""
         self.model = model
+        servo = servo_of(model)
+        if structure is not None:
+            servo = servo.with_structure(*structure)
+        self.servo = servo
         m = copy.deepcopy(model.mj_model)
         m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
         if timestep is not None:
             m.opt.timestep = float(timestep)
         if integrator is not None:
             m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
-        self.pc = _actuation.position_consts(model)
+        self.pc = _actuation.position_consts(model, servo)
         for name, where, value in _actuation.model_updates(self.pc, 1.0):
             getattr(m, name)[where] = value
         self.m = m
@@ -70,7 +78,7 @@ class Replay:
 
     def nominal(self) -> Joints:
         """What the model holds: the position stack's servo and the MJCF's joint parameters."""
-        servo, m, dofs = servo_of(self.model), self.model.mj_model, self.pc.dof_adr
+        servo, m, dofs = self.servo, self.model.mj_model, self.pc.dof_adr
         return Joints(
             servo.stiffness.reshape(-1).astype(float),
             servo.damping.reshape(-1).astype(float),
@@ -111,8 +119,10 @@ class Replay:
         t0 = float(d.time)
         times = t0 + h * np.arange(n_steps)
         cmd, vel = self.acting(times, command_times, commands, delay, period)
-        k, b, lim = joints.stiffness, joints.damping, self.limit
-        ff = k * cmd + b * vel  # the servo's terms that do not depend on the state
+        cmd = np.clip(cmd, pc.command_lo, pc.command_hi)
+        k, b, lim, w = joints.stiffness, joints.damping, self.limit, pc.weight
+        ff = k * cmd + b * (pc.feedforward * vel)  # the servo's terms that do not depend on the state
+        weighted = bool(np.any(w))
         qs, ds, us = _view(qadr), _view(dofs), _view(acts)
         qpos, qvel, bias, ctrl = d.qpos, d.qvel, d.qfrc_bias, d.ctrl
         t1, t2, nlim = np.empty(len(dofs)), np.empty(len(dofs)), -lim
@@ -124,8 +134,9 @@ class Replay:
             np.subtract(ff[i], t1, out=t1)
             np.multiply(b, dq, out=t2)
             t1 -= t2
-            t1 += bias[ds]
-            np.clip(t1, nlim, lim, out=t1)  # tau = clip(k (q_cmd - q) + b (dq_cmd - dq) + c, +-limit)
+            if weighted:
+                t1 += w * bias[ds]
+            np.clip(t1, nlim, lim, out=t1)  # tau = clip(k (q_cmd - q) + b (f dq_cmd - dq) + w c, +-limit)
             t1 += t2  # the damping b dq' acts implicitly (jaxsync.sim.actuation)
             ctrl[us] = t1
             mujoco.mj_step2(m, d)
@@ -172,17 +183,20 @@ def record(
 
 class NativeReplay:
     """The same replay in MuJoCo's own terms, for ``mujoco.rollout`` (C, threaded): per joint a
-    position actuator (k), a velocity feed-forward actuator (b, its control the command's velocity)
-    and the joint's damping b; the arms' weight compensated through their actuators (MuJoCo's
-    ``gravcomp`` with ``actuatorgravcomp``). It leaves out what :class:`Replay` adds beyond that: the
-    compensation of Coriolis and centrifugal forces (at the excitation's speeds a few micro-radians
-    of tracking on this machine's test robots, docs/calibrate.md) and the clip of the servo's
-    torque to the joint's limit (a motion within the limits reaches neither)."""
+    position actuator (k), a velocity feed-forward actuator (b, its control the command's velocity,
+    where the structure feeds it forward) and the joint's damping b; where the structure compensates
+    the arms' weight, through their actuators (MuJoCo's ``gravcomp`` with ``actuatorgravcomp``). It
+    leaves out what :class:`Replay` adds beyond that: the compensation of Coriolis and centrifugal
+    forces (at the excitation's speeds a few micro-radians of tracking on this machine's test
+    robots, docs/calibrate.md) and the clip of the servo's torque to the joint's limit (a motion
+    within the limits reaches neither)."""
 
-    def __init__(self, model, spec, timestep: float | None = None, threads: int | None = None):
-
-        self.exact = Replay(model, timestep=timestep)
+    def __init__(
+        self, model, spec, timestep: float | None = None, threads: int | None = None, structure: tuple | None = None
+    ):
+        self.exact = Replay(model, timestep=timestep, structure=structure)
         pc = self.exact.pc
+        weighted = bool(np.any(pc.weight))
         m0 = model.mj_model
         joint_names = [mujoco.mj_id2name(m0, mujoco.mjtObj.mjOBJ_JOINT, int(m0.dof_jntid[i])) for i in pc.dof_adr]
         spec = spec.copy()
@@ -193,9 +207,10 @@ class NativeReplay:
             f = spec.add_actuator(name=f"jaxsync_servo_ff {name}", target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
             f.set_to_motor()
             f.ctrllimited = 0
-            spec.joint(name).actgravcomp = 1
+            if weighted:
+                spec.joint(name).actgravcomp = 1
         roots = {int(a.root_body) for a in model.index.arms}
-        for b in range(1, m0.nbody):
+        for b in range(1, m0.nbody if weighted else 1):
             c = b
             while c > 0 and c not in roots:
                 c = int(m0.body_parentid[c])
@@ -248,7 +263,8 @@ class NativeReplay:
             t = float(state[0]) + self.timestep * np.arange(n_steps)
             cmd, vel = self.exact.acting(t, ct, cmds, delay, period)
             u = np.zeros((n_steps, self.m.nu))
-            u[:, self.p_ids], u[:, self.ff_ids] = cmd, vel
+            pc = self.exact.pc
+            u[:, self.p_ids], u[:, self.ff_ids] = np.clip(cmd, pc.command_lo, pc.command_hi), pc.feedforward * vel
             controls.append(u)
             times.append(t + self.timestep)
         out, _ = rollout.rollout(models, self.datas, np.asarray(states), np.asarray(controls))

@@ -33,11 +33,18 @@ def run(args: argparse.Namespace) -> int:
         joints=_names(args.joints), command_joints=_names(args.command_joints), min_samples=args.min_samples,
         report=not args.no_report, delays=delays, fields=fields, window=args.window, timestep=args.timestep,
         wrench_topics=tuple(_names(args.wrench_topics) or ()), force=args.force,
+        structures=_names(args.structures),
         progress=lambda text: print(f"  {text}", file=sys.stderr, flush=True),
     )  # fmt: skip
     cal = out["calibration"]
     print(f"{args.bag}: {out['duration_s']:.1f} s, {out['state_samples']} joint states, {cal.windows} windows, "
           f"fitted in {cal.seconds:.0f} s")  # fmt: skip
+    margin = cal.structure_margin
+    versus = ", ".join(f"{k}: {v:.4g}" for k, v in cal.structure_costs.items())
+    print(
+        f"servo structure: {cal.structure}"
+        + (f" ({margin:.0%} below the next on held-out windows; {versus})" if margin is not None else "")
+    )
     print(f"delay: {cal.delay} control periods of {cal.period * 1000:.3g} ms "
           f"(cost by delay: {', '.join(f'{k}: {v:.4g}' for k, v in cal.delay_costs.items())})")  # fmt: skip
     print(f"{'joint':<22}{'stiffness N m/rad':>28}{'damping N m s/rad':>26}{'RMS error mrad':>22}")
@@ -99,6 +106,10 @@ def add_parser(sub) -> None:
     p.add_argument("--delays", default="0:4", metavar="N|LO:HI", help="candidate delays, control periods (0:4)")
     p.add_argument("--fit", default=None, metavar="FIELDS",
                    help="also fit joint_damping, frictionloss and/or armature (comma-separated)")  # fmt: skip
+    p.add_argument("--structures", default=None, metavar="NAMES",
+                   help="candidate servo structures, comma-separated: as_written (MuJoCo's <position>), "
+                        "weight_compensated, feedforward (weight-compensated, the command's velocity fed forward); "
+                        "each fitted, the best on held-out windows kept (default: all three)")  # fmt: skip
     p.add_argument("--window", type=positive(float), default=0.5, help="seconds per window (0.5)")
     p.add_argument(
         "--timestep",

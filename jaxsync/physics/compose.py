@@ -92,9 +92,10 @@ class Composed:
     joint_names: dict[str, tuple[str, ...]]  # the robot's own joint names per arm ("right", "left")
     links: dict[str, dict[str, str]]  # per arm, the robot's own body names: "base" (of the chain), "tip" (flange)
     torque_limits: dict[str, tuple[float, ...]]
-    # per arm, each joint's (stiffness, damping) of the file's own position
-    # actuator (N m/rad, N m s/rad), None where some joint has none
-    position_servos: dict[str, tuple[tuple[float, float], ...] | None]
+    # per arm, each joint's (stiffness, damping, lowest command, highest command)
+    # of the file's own position actuator (N m/rad, N m s/rad, rad; +-inf where
+    # its control is not limited), None where some joint has none
+    position_servos: dict[str, tuple[tuple[float, float, float, float], ...] | None]
     to_task: tuple[np.ndarray, np.ndarray]  # (R, t): p_task = R @ p_robot + t
     notes: list[str]
 
@@ -229,11 +230,12 @@ def _limits(m: mujoco.MjModel, arm, prefix: str, jids: list[int], label: str) ->
     return tuple(out)
 
 
-def _position_servos(m: mujoco.MjModel, jids: list[int]) -> tuple[tuple[float, float], ...] | None:
+def _position_servos(m: mujoco.MjModel, jids: list[int]) -> tuple[tuple[float, float, float, float], ...] | None:
     """Each joint's position servo as the file writes it: an actuator on the
     joint with a fixed gain kp and an affine bias (0, -kp, -kv), MuJoCo's
     ``<position>`` (or the ``<general>`` that spells it out). Through a gear g
-    the joint sees stiffness g^2 kp and damping g^2 kv. None if a joint has none."""
+    the joint sees stiffness g^2 kp and damping g^2 kv, and a control range
+    (lo, hi) limits the joint's command to (lo, hi) / g. None if a joint has none."""
     out = []
     for j in jids:
         found = None
@@ -248,8 +250,9 @@ def _position_servos(m: mujoco.MjModel, jids: list[int]) -> tuple[tuple[float, f
                 and np.isclose(bias[1], -gain[0])
                 and bias[2] <= 0
             ):
-                g2 = float(m.actuator_gear[a, 0]) ** 2
-                found = (g2 * float(gain[0]), -g2 * float(bias[2]))
+                g = float(m.actuator_gear[a, 0])
+                lo, hi = (m.actuator_ctrlrange[a] / g) if m.actuator_ctrllimited[a] else (-np.inf, np.inf)
+                found = (g * g * float(gain[0]), -g * g * float(bias[2]), float(min(lo, hi)), float(max(lo, hi)))
                 break
         if found is None:
             return None

@@ -24,8 +24,10 @@ the horizontal direction from the right arm's base to the left arm's),
 joint's position servo, for ``actuation="position"``: ``{stiffness: [...],
 damping: [...]}``, N m/rad and N m s/rad per joint, or ``{bandwidth: HZ,
 damping_ratio: 1.0}``, or per arm ``{right: {stiffness: [...], damping:
-[...]}, left: {...}}`` as ``jaxsync calibrate`` writes it; without it the
-servo is the MJCF's own position actuators, ``jaxsync.physics.servo``) and
+[...]}, left: {...}}`` as ``jaxsync calibrate`` writes it; without gains the
+servo is the MJCF's own position actuators, ``jaxsync.physics.servo``; and
+its structure, ``weight_compensation: true|false`` and
+``velocity_feedforward: true|false``, false unless stated) and
 ``delay`` (``{periods: N, control_rate: HZ}``: the control periods a
 position command waits before the servo acts on it, at that rate; the
 default ``--delay`` of position-controlled jobs on this robot) and
@@ -70,6 +72,8 @@ _TOP_KEYS = {
 # joint_dynamics: each field's unit and the MJCF joint attribute it replaces
 JOINT_DYNAMICS = {"damping": "N m s/rad", "frictionloss": "N m", "armature": "kg m^2"}
 _SERVO_FORMS = ({"stiffness", "damping"}, {"bandwidth", "damping_ratio"})
+STRUCTURE_KEYS = ("weight_compensation", "velocity_feedforward")
+"""The servo's structure a robot file states (``jaxsync.physics.servo``); unstated: false."""
 _ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
 _ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _OBJECT_KEYS = {"position", "radius", "mass"}
@@ -103,7 +107,9 @@ class Robot:
     model: str | None = None  # absolute path of the bimanual MJCF
     clamp_axis: tuple[float, float, float] | None = None
     stand: bool = True
-    servo: dict | None = None  # {"stiffness": (n,), "damping": (n,)}, {"bandwidth": Hz, "damping_ratio": z}
+    # {"stiffness": (n,), "damping": (n,)}, {"bandwidth": Hz, "damping_ratio": z}, per arm, or none of
+    # these (the MJCF's actuators), with "weight_compensation"/"velocity_feedforward" where stated
+    servo: dict | None = None
     # or {"right": {"stiffness": (n,), "damping": (n,)}, "left": {...}}
     delay: tuple[int, float] | None = None  # (control periods, at control_rate Hz)
     joint_dynamics: dict | None = None  # {"right": {"damping": (n,), ...}, "left": {...}}, fields optional
@@ -276,22 +282,7 @@ def load_robot(path: str | os.PathLike) -> Robot:
     stand = doc.get("stand", True)
     if not isinstance(stand, bool):
         raise ConfigError(f"{_where(path, 'stand')} must be true or false, got {stand!r}")
-    servo = None
-    if isinstance(doc.get("servo"), dict) and set(doc["servo"]) & set(ARM_NAMES):
-        _unknown(doc["servo"], set(ARM_NAMES), path, "servo")
-        missing = [a for a in ARM_NAMES if a not in doc["servo"]]
-        if missing:
-            raise ConfigError(f"{_where(path, 'servo')}: per arm, both arms: missing {missing[0]!r}")
-        servo = {}
-        for arm_name, arm in zip(ARM_NAMES, (right, left), strict=True):
-            one = _servo(doc["servo"][arm_name], len(arm.joints), path, f"servo.{arm_name}")
-            if "stiffness" not in one:
-                raise ConfigError(f"{_where(path, 'servo.' + arm_name)}: per arm, stiffness and damping per joint")
-            servo[arm_name] = one
-    elif "servo" in doc:
-        servo = _servo(doc["servo"], len(right.joints), path)
-        if len(left.joints) != len(right.joints):
-            raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
+    servo = _servo_doc(doc["servo"], (right, left), path) if "servo" in doc else None
     delay = _delay(doc["delay"], path) if "delay" in doc else None
     dynamics = _joint_dynamics(doc["joint_dynamics"], (right, left), path) if "joint_dynamics" in doc else None
     sensor = _sensor(doc["sensor"], path) if "sensor" in doc else None
@@ -346,6 +337,43 @@ def _delay(doc, path: str) -> tuple[int, float]:
     if isinstance(rate, bool) or not isinstance(rate, int | float) or not 1 <= rate <= 100000:
         raise ConfigError(f"{where}.control_rate must be a rate in [1, 100000] Hz, got {rate!r}")
     return int(n), float(rate)
+
+
+def _servo_doc(doc, arms, path: str) -> dict:
+    """``servo``: the gains (per joint, a bandwidth, or per arm; or none: the
+    MJCF's own position actuators) and the structure
+    (``weight_compensation``, ``velocity_feedforward``: true or false each)."""
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{_where(path, 'servo')} must be a mapping, got {doc!r}")
+    doc = dict(doc)
+    structure = {}
+    for key in STRUCTURE_KEYS:
+        if key in doc:
+            v = doc.pop(key)
+            if not isinstance(v, bool):
+                raise ConfigError(f"{_where(path, 'servo.' + key)} must be true or false, got {v!r}")
+            structure[key] = v
+    right, left = arms
+    if not doc:
+        if not structure:
+            raise ConfigError(f"{_where(path, 'servo')} is empty: give the gains, the structure, or both")
+        return structure
+    if set(doc) & set(ARM_NAMES):
+        _unknown(doc, set(ARM_NAMES), path, "servo")
+        missing = [a for a in ARM_NAMES if a not in doc]
+        if missing:
+            raise ConfigError(f"{_where(path, 'servo')}: per arm, both arms: missing {missing[0]!r}")
+        servo = {}
+        for arm_name, arm in zip(ARM_NAMES, arms, strict=True):
+            one = _servo(doc[arm_name], len(arm.joints), path, f"servo.{arm_name}")
+            if "stiffness" not in one:
+                raise ConfigError(f"{_where(path, 'servo.' + arm_name)}: per arm, stiffness and damping per joint")
+            servo[arm_name] = one
+        return {**servo, **structure}
+    servo = _servo(doc, len(right.joints), path)
+    if len(left.joints) != len(right.joints):
+        raise ConfigError(f"{_where(path, 'servo')}: one servo for both arms needs arms of as many joints")
+    return {**servo, **structure}
 
 
 def _servo(doc, n: int, path: str, key: str = "servo") -> dict:

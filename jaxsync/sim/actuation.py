@@ -113,11 +113,19 @@ class PositionConsts(NamedTuple):
     joint_damping: np.ndarray  # (2 n,) the model's own joint damping, N m s/rad
     actuator_ids: np.ndarray  # (2 n,) the joints' torque motors
     joint_ids: np.ndarray  # (2 n,) the arm joints
+    weight: np.ndarray  # (2 n,) 1 where the servo compensates the bias forces, else 0
+    feedforward: np.ndarray  # (2 n,) 1 where its damping acts on the velocity error, 0: on the velocity
+    command_lo: np.ndarray  # (2 n,) the commands' range, rad (-inf: none)
+    command_hi: np.ndarray  # (2 n,)
 
 
-def position_consts(model) -> PositionConsts:
-    servo = servo_of(model)
+def position_consts(model, servo=None) -> PositionConsts:
+    """The constants of ``servo`` (default: the model's, ``jaxsync.physics.servo.servo_of``)."""
+    servo = servo_of(model) if servo is None else servo
     dofs = np.array([i for a in model.index.arms for i in a.dof_adr])
+    rng = servo.command_range if servo.command_range is not None else np.full((*servo.stiffness.shape, 2), np.inf)
+    rng = np.where(np.isfinite(rng), rng, np.array([-np.inf, np.inf]))
+    ones = np.ones(servo.stiffness.size)
     return PositionConsts(
         stiffness=servo.stiffness.reshape(-1),
         damping=servo.damping.reshape(-1),
@@ -126,6 +134,10 @@ def position_consts(model) -> PositionConsts:
         joint_damping=np.asarray(model.mj_model.dof_damping)[dofs].copy(),
         actuator_ids=np.array([i for a in model.index.arms for i in a.actuator_ids]),
         joint_ids=np.asarray(model.mj_model.dof_jntid)[dofs].copy(),
+        weight=ones * float(servo.weight_compensation),
+        feedforward=ones * float(servo.velocity_feedforward),
+        command_lo=rng[..., 0].reshape(-1),
+        command_hi=rng[..., 1].reshape(-1),
     )
 
 
@@ -154,19 +166,24 @@ def servo_torque(pc: PositionConsts, qpos, qvel, qfrc_bias, command, command_vel
     """The servo's torque, clipped to the joint's limit, and the motor torque
     that applies it beside the implicit joint damping, both (2 n,):
 
-        tau   = clip(s (k (q_cmd - q) + b (dq_cmd - dq)) + c, +-limit)
+        tau   = clip(s (k (clip(q_cmd, lo, hi) - q) + b (f dq_cmd - dq)) + w c, +-limit)
         motor = tau + s b dq
 
-    ``s`` the scenario's servo scale. MuJoCo adds -s b dq' (the damping at the
-    step's end velocity, implicit), so the joint gets tau to first order in
-    dt and the damping stays stable at any gain. The servo's damping acts on
-    the velocity error dq_cmd - dq: the command carries its velocity, as
-    ros2_control's position-based controllers write one beside the position
-    (without it a servo lags b / k dq behind a moving command and holds b dq
-    against it)."""
+    ``s`` the scenario's servo scale, (w, f) the servo's structure
+    (``jaxsync.physics.servo``: w = 1 compensates the bias forces c, f = 1
+    feeds the command's velocity forward; both 0 is MuJoCo's ``<position>``
+    actuator as written). MuJoCo adds -s b dq' (the damping at the step's
+    end velocity, implicit), so the joint gets tau to first order in dt and
+    the damping stays stable at any gain. With f = 1 the command carries its
+    velocity, as ros2_control's position-based controllers write one beside
+    the position (without it a servo lags b / k dq behind a moving command
+    and holds b dq against it). The limit clips the torque the servo would
+    apply, nothing else (``model_updates``). MuJoCo C, MJX, the calibration's
+    replay and the tests' references all compute this law."""
     q, dq = qpos[pc.qpos_adr], qvel[pc.dof_adr]
-    tau = servo_scale * (pc.stiffness * (command - q) + pc.damping * (command_vel - dq)) + qfrc_bias[pc.dof_adr]
-    tau = xp.clip(tau, -limit, limit)
+    command = xp.clip(command, pc.command_lo, pc.command_hi)
+    tau = servo_scale * (pc.stiffness * (command - q) + pc.damping * (pc.feedforward * command_vel - dq))
+    tau = xp.clip(tau + pc.weight * qfrc_bias[pc.dof_adr], -limit, limit)
     return tau, tau + servo_scale * pc.damping * dq
 
 
