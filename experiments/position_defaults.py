@@ -48,6 +48,7 @@ def main() -> None:
     p.add_argument("--filters", default="1,0.2,0.05")
     p.add_argument("--set", default="", metavar="NAME=VALUE,...", help="scalar gains changed from the defaults")
     p.add_argument("--gains", action="append", default=[], metavar="LABEL=PATH", help="gains files beside the defaults")
+    p.add_argument("--any-model", action="store_true", help="score gains tuned on another model (robot file)")
     p.add_argument("--delays", default="", metavar="N,...", help="every scenario at each of these delays (periods)")
     args = p.parse_args()
     if any("=" not in item for item in args.gains):
@@ -66,7 +67,7 @@ def main() -> None:
         candidates = {"defaults": default_gains(model, "position", controller)}  # ros2_synchronous: its own
         for item in args.gains:
             label, path = item.split("=", 1)
-            candidates[label] = gains_file.load_for(path, model)
+            candidates[label] = gains_file.load_for(path, model, any_model=args.any_model)
         evaluate = L.make_evaluator(model, 4.0, controller, actuation="position")
         for label, g in candidates.items():
             for item in filter(None, args.set.split(",")):

@@ -489,6 +489,14 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
         "the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
         "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)",
     ]
+    costs = {"as_written": 104.0, "weight_compensated": 300.0, "feedforward": 100.0}
+    close = fit.problems(_calibration(structure="feedforward", structure_costs=costs), [0, 1, 2, 3, 4], pd)
+    assert close == [
+        "the as_written servo explains the held-out windows within 4.0% of the feedforward one's cost: "
+        "the recording does not tell the structures apart"
+    ]
+    apart = _calibration(structure="feedforward", structure_costs=costs | {"as_written": 110.0})
+    assert fit.problems(apart, [0, 1, 2, 3, 4], pd) == [] and apart.structure_margin == pytest.approx(0.1)
 
 
 def test_unknown_servo_structures_are_one_line(bag, tmp_path, capsys):

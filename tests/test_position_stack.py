@@ -290,6 +290,28 @@ def test_position_defaults_hold_the_inner_loop_below_the_slowest_servo(model):
     np.testing.assert_allclose(np.asarray(_gains.default_gains(model, "position").imp_mass)[:, 2], 3.0, rtol=1e-4)
 
 
+def test_a_servo_without_feed_forward_gets_its_lag_led_by_default(model, tmp_path):
+    """ff_vel = b / k (median over the joints, at most FF_VEL_MAX) where the servo does not feed
+    the command's velocity forward: the iiwa-like MJCF's kv / kp = 50 / 2000; none where it does."""
+    iiwa = jaxsync.load_model(os.path.join(ROBOTS, "iiwa14_twice.yaml"), visual=False)
+    assert float(_gains.default_gains(iiwa, "position").ff_vel) == pytest.approx(0.025)
+    assert float(_gains.default_gains(iiwa).ff_vel) == 0.0  # torque-driven arms have no servo
+    for m in (model, jaxsync.load_model(os.path.join(ROBOTS, "ur5e_twice.yaml"), visual=False)):
+        assert float(_gains.default_gains(m, "position").ff_vel) == 0.0
+    import shutil
+
+    for f in ("iiwa14_twice.yaml", "iiwa14_like_arm.xml"):
+        shutil.copy(os.path.join(ROBOTS, f), tmp_path / f)
+    text = (tmp_path / "iiwa14_twice.yaml").read_text()
+    (tmp_path / "ff.yaml").write_text(text + "\nservo: {weight_compensation: true, velocity_feedforward: true}\n")
+    stated = jaxsync.load_model(str(tmp_path / "ff.yaml"), visual=False)
+    assert float(_gains.default_gains(stated, "position").ff_vel) == 0.0
+    slow = text + f"\nservo: {{stiffness: {[2000] * 7}, damping: {[400] * 7}}}\n"
+    (tmp_path / "slow.yaml").write_text(slow)
+    slow_model = jaxsync.load_model(str(tmp_path / "slow.yaml"), visual=False)
+    assert float(_gains.default_gains(slow_model, "position").ff_vel) == _gains.FF_VEL_MAX  # 0.2 s, capped
+
+
 def test_the_paper_model_servo_is_its_stated_bandwidth(model):
     s = _servo.servo_of(model)
     inertia = _servo.joint_inertia(model)

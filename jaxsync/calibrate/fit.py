@@ -32,6 +32,9 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
+from jaxsync.calibrate.windows import halved as _halved
+from jaxsync.calibrate.windows import split as _split
+from jaxsync.calibrate.windows import subset as _subset
 from jaxsync.physics.servo import STRUCTURES, joint_inertia, servo_of
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
@@ -469,47 +472,3 @@ def _joint_by_joint(prob: Problem, pd, fields, delay: int, iters: int):
     for keys, sub in prob.blocks:
         pd, _ = sub.fit(pd, free=keys, max_iters=iters)
     return prob.cost(pd), pd
-
-
-def _split(prob: Problem, every: int, keep: bool) -> Problem | None:
-    """The problem over the windows but every ``every``-th in time (``keep``), or over those (not
-    ``keep``); every other where there are fewer than ``2 every`` windows; None under 2 windows."""
-    n = len(prob.dominant)
-    every = every if n >= 2 * every else 2
-    held = set(range(every - 1, n, every))
-    rows = [i for i in range(n) if (i not in held) == keep]
-    if len(rows) < 2:
-        return None
-    part = _subset(prob, rows)
-    part.dominant = [prob.dominant[i] for i in rows]
-    if hasattr(part, "blocks"):
-        del part.blocks
-    return part
-
-
-def _halved(prob: Problem, k: int) -> Problem:
-    """The problem over every other window of each joint (k = 0: the first, third, ...; 1: the others)."""
-    rows = []
-    for j in sorted(set(prob.dominant)):
-        own = [i for i, d in enumerate(prob.dominant) if d == j]
-        rows += own[k::2] if len(own) > 1 else own
-    half = _subset(prob, sorted(rows))
-    half.dominant = [prob.dominant[i] for i in sorted(rows)]
-    if hasattr(half, "blocks"):
-        del half.blocks  # built again over this half's windows
-    return half
-
-
-def _subset(prob: Problem, rows) -> Problem:
-    """The same problem over the windows ``rows`` only."""
-    ms = prob.sequences
-    sub = object.__new__(Problem)
-    sub.__dict__.update(prob.__dict__)
-    # the same model sequences, fewer of them (ModelSequences' own constructor compiles the spec again)
-    part = object.__new__(type(ms))
-    part.__dict__.update(ms.__dict__)
-    for key in ("sequence_name", "initial_state", "control", "sensordata", "measured_rollout"):
-        setattr(part, key, [getattr(ms, key)[i] for i in rows])
-    sub.sequences = part
-    sub.residual_fn = prob.residual_over(part)  # the delay and the replay mode: shared (Problem._shared)
-    return sub
