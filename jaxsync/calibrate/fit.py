@@ -113,6 +113,12 @@ def _spec(model):
     return spec
 
 
+def _shared(key: str, kind, doc: str) -> property:
+    """A setting of a :class:`Problem` held in its ``_shared`` dict, which its window subsets
+    (``jaxsync.calibrate.windows``) hold by reference: set on one, set on all."""
+    return property(lambda self: self._shared[key], lambda self, v: self._shared.__setitem__(key, kind(v)), doc=doc)
+
+
 class Problem:
     """The recording cut into windows, as the toolbox's model sequences, and its residual."""
 
@@ -171,23 +177,8 @@ class Problem:
         self.velocity = rec.dq is not None
         self.residual_fn = self.residual_over(self.sequences)
 
-    @property
-    def delay(self) -> int:
-        """The delay the rollouts apply, control periods (one for the problem and its subsets)."""
-        return self._shared["delay"]
-
-    @delay.setter
-    def delay(self, value: int) -> None:
-        self._shared["delay"] = int(value)
-
-    @property
-    def exact(self) -> bool:
-        """True: roll out through the position stack's own servo code (slower)."""
-        return self._shared["exact"]
-
-    @exact.setter
-    def exact(self, value: bool) -> None:
-        self._shared["exact"] = bool(value)
+    delay = _shared("delay", int, "The delay the rollouts apply, control periods.")
+    exact = _shared("exact", bool, "True: roll out through the position stack's own servo code (slower).")
 
     def residual_over(self, sequences):
         """The toolbox's residual over ``sequences``, rolled out by this problem's replay."""
