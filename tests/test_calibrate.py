@@ -499,6 +499,17 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
     assert fit.problems(apart, [0, 1, 2, 3, 4], pd) == [] and apart.structure_margin == pytest.approx(0.1)
 
 
+def test_a_structure_far_behind_stops_its_delay_scan(ur5e, recording):
+    """The recording's own structure scanned first; as written, 50 times its cost at the first delay,
+    is scanned no further, and the result is the same."""
+    said = []
+    cal = fit.calibrate(ur5e, recording, delays=range(1, 4), structures=["feedforward", "as_written"],
+                        progress=said.append)[0]  # fmt: skip
+    scanned = [line.split(",")[0] for line in said if "joint-by-joint fit, cost" in line]
+    assert scanned == ["feedforward"] * 3 + ["as_written"], said
+    assert cal.structure == "feedforward" and cal.delay == TRUE_DELAY and cal.structure_margin > 10
+
+
 def test_unknown_servo_structures_are_one_line(bag, tmp_path, capsys):
     out = tmp_path / "cal"
     rc = main(["calibrate", "--robot", UR5E, "--no-visual", "--bag", str(bag), "--out", str(out),

@@ -55,7 +55,8 @@ POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the mo
 NOISE_MULTIPLE = 2.0
 DELAY_MARGIN = 0.02
 STRUCTURE_MARGIN = 0.05  # held-out cost: another structure within 5 % of the winner's explains the arm as well
-HELD_OUT_EVERY = 4  # every fourth window of each joint held out to choose the structure
+HELD_OUT_EVERY = 4  # every fourth window held out to choose the structure
+SCREEN_FACTOR = 10.0  # a structure this far behind another's best training cost stops its delay scan
 BOUND_MARGIN = 0.01
 DETERMINED = {"stiffness": 0.10, "damping": 0.20}
 FD_STEP = 1e-3  # the finite-difference step on the gain factors (~1): above the friction loss's roughness
@@ -325,7 +326,7 @@ def calibrate(
     fine_step = timestep or replay_step(model)
     # each structure: the delay scanned (joint by joint, on the model's own step: the delay shows at any
     # step) on three windows in four, the held-out fourth scored at the best delay
-    scans, held_costs = {}, {}
+    scans, held_costs, best_so_far = {}, {}, np.inf
     for name in names:
         coarse = Problem(model, rec, window, step if fine_step < step else fine_step, structure=STRUCTURES[name])
         nominal = coarse.replay.nominal()
@@ -338,10 +339,13 @@ def calibrate(
             rising = len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values())
             if rising and max(costs) > min(costs, key=costs.get):
                 break  # past the best delay and well above it: the cost rises from here on
+            if costs and min(costs.values()) > SCREEN_FACTOR * best_so_far:
+                break  # far behind another structure on the same windows: no delay brings it back
             costs[int(delay)], fitted[int(delay)] = _joint_by_joint(train, pd0, fields, int(delay), SCAN_ITERS)
             say(f"{name}, delay {delay}: joint-by-joint fit, cost {costs[int(delay)]:.4g} "
                 f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
         best = min(costs, key=costs.get)
+        best_so_far = min(best_so_far, costs[best])
         if len(names) > 1 and held is not None:
             held.delay = best
             held_costs[name] = held.cost(fitted[best])

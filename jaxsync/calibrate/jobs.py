@@ -86,7 +86,7 @@ def fragment(cal, source: str, model_name: str, noise=None) -> str:
     head = (
         f"# jaxsync calibrate, {datetime.date.today().isoformat()}: {source} on {model_name}\n"
         f"# the servo's structure ({cal.structure}"
-        + (f", {cal.structure_margin:.0%} better than the next on held-out windows" if cal.structure_margin else "")
+        + (f"; the next {1 + cal.structure_margin:.3g}x its cost on held-out windows" if cal.structure_margin else "")
         + ")\n# each joint's servo (N m/rad, N m s/rad; joints in the robot file's order) and the command delay"
         + (
             "; joint_dynamics: the MJCF joints' damping (N m s/rad), frictionloss (N m), armature (kg m^2)"

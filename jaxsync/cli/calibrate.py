@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
     versus = ", ".join(f"{k}: {v:.4g}" for k, v in cal.structure_costs.items())
     print(
         f"servo structure: {cal.structure}"
-        + (f" ({margin:.0%} below the next on held-out windows; {versus})" if margin is not None else "")
+        + (f" (the next {1 + margin:.3g}x its cost on held-out windows: {versus})" if margin is not None else "")
     )
     print(f"delay: {cal.delay} control periods of {cal.period * 1000:.3g} ms "
           f"(cost by delay: {', '.join(f'{k}: {v:.4g}' for k, v in cal.delay_costs.items())})")  # fmt: skip
