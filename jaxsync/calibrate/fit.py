@@ -328,7 +328,7 @@ def calibrate(
     # step) on three windows in four, the held-out fourth scored at the best delay
     scans, held_costs, best_so_far = {}, {}, np.inf
     for name in names:
-        coarse = Problem(model, rec, window, step if fine_step < step else fine_step, structure=STRUCTURES[name])
+        coarse = Problem(model, rec, window, max(step, fine_step), structure=STRUCTURES[name])
         nominal = coarse.replay.nominal()
         pd0 = coarse.parameters(nominal, fields)
         train, held = (_split(coarse, HELD_OUT_EVERY, keep) for keep in (True, False))
