@@ -18,6 +18,12 @@ offsetting a reference joint trajectory that follows the plan.
 ``ros2_synchronous``: the same rule, the reference it offsets following the
 plan plus the synchronous offset of eqs. 12-17 less the rule's own, so that
 the command carries the paper's law.
+``ros2_coupled``: the same rule plus the coupling family of
+``jaxsync.control.coupling`` (per-axis gains on the absolute errors'
+difference, the rules' offsets and the other arm's wrench error, each
+filtered), of which the other two are special cases, entering through the
+reference's target; ``ros2_coupled_direct`` the same family put onto the
+rule's reference joints in the same period.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import jax.numpy as jnp
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import baselines as _baselines
+from jaxsync.control import coupling as _coupling
 from jaxsync.control import impedance as _impedance
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import ros2_admittance as _ra
@@ -37,7 +44,12 @@ from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control import so3 as _so3
 from jaxsync.control import sync as _sync
 from jaxsync.control.gains import Gains
-from jaxsync.control.names import ALL_CONTROLLERS, CONTROLLERS, POSITION_ONLY  # re-exported: jaxsync.CONTROLLERS
+from jaxsync.control.names import (
+    ALL_CONTROLLERS,
+    CONTROLLERS,
+    FAMILY,
+    POSITION_ONLY,
+)  # re-exported: jaxsync.CONTROLLERS
 from jaxsync.physics.sensing import ArmState
 
 
@@ -116,6 +128,7 @@ class ControllerState(NamedTuple):
     force_integral: jax.Array  # (2, 6) task_space's integral of the internal wrench
     ros2: _ros2_loop.Ros2State  # ros2_admittance's reference joints q_ref and the two arms' rule states
     wrench_filter: jax.Array  # (2, 6) position-controlled arms: f_i - f_id through the F/T filter, world
+    coupling: _coupling.CouplingState  # ros2_coupled's channel filters (jaxsync.control.coupling)
 
 
 class ControlInfo(NamedTuple):
@@ -143,6 +156,7 @@ def init(q0: jax.Array | None = None) -> ControllerState:
         force_integral=jnp.zeros((2, 6)),
         ros2=_ros2_loop.init(jnp.zeros(14) if q0 is None else q0),
         wrench_filter=jnp.zeros((2, 6)),
+        coupling=_coupling.init(),
     )
 
 
@@ -330,9 +344,12 @@ def _ros2_admittance(options, gains, state, arms, ref, dt, ft_filter):
         [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], pads.pos[i], pads.rot[i]) for i in range(2)]
     )
     coupled = options.kind == "ros2_synchronous"
-    command, ros2, off = _ros2_loop.step(
-        gains, state.ros2, arms, ref, dt, options.distro, coupled, options.cross_term, ft_filter
-    )
+    args = (gains, state.ros2, arms, ref, dt, options.distro, coupled, options.cross_term, ft_filter)
+    if options.kind in FAMILY:
+        command, ros2, off, family = _ros2_loop.step(*args, family=state.coupling, placement=FAMILY[options.kind])
+        state = state._replace(coupling=family)
+    else:
+        command, ros2, off = _ros2_loop.step(*args)
     info = ControlInfo(offset=off, delta=delta, force_error=pads.wrench - ref.wrench)
     return command, state._replace(ros2=ros2), info
 
@@ -391,4 +408,19 @@ _LAWS = {
 # the controllers of position-controlled arms integrate in joint space; what the compliance probe reads of
 # them is a Cartesian stand-in: the rule's offset as the classical filter's at the pad, and the rule plus the
 # coupling, whose command carries the synchronous offset once the reference has caught up, as that law
-_CARTESIAN_STANDINS = {"ros2_admittance": _classical, "ros2_synchronous": _synchronous}
+def _coupled_family(gains, state, ref, force_error, delta, dt, cross):
+    """The rule's offset e_i as the classical filter's plus the coupling
+    family's o_i (``jaxsync.control.coupling``, the reference placement:
+    the command carries e_i + o_i once the reference has caught up)."""
+    imp, dde = _impedance_filters(gains, state, ref, force_error, dt)
+    u, u_dot = _coupling.inputs(gains, delta, imp.offset, imp.rate, force_error, ref.pad_rot)
+    o, o_vel, family = _coupling.step(gains, state.coupling, u, u_dot, ref.pad_rot)
+    return (imp.offset + o, imp.rate + o_vel, dde), state._replace(impedance=imp, coupling=family)
+
+
+_CARTESIAN_STANDINS = {
+    "ros2_admittance": _classical,
+    "ros2_synchronous": _synchronous,
+    "ros2_coupled": _coupled_family,
+    "ros2_coupled_direct": _coupled_family,
+}

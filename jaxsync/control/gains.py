@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import coupling as _coupling
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.physics.inertia import pad_apparent_inertia
 from jaxsync.physics.servo import joint_inertia, servo_of
@@ -62,11 +63,20 @@ class Gains(NamedTuple):
     force_i: jax.Array
     ff_vel: jax.Array
     ff_acc: jax.Array
+    cpl_rel: jax.Array
+    cpl_own: jax.Array
+    cpl_other: jax.Array
+    cpl_force: jax.Array
+    cpl_rel_a: jax.Array
+    cpl_own_a: jax.Array
+    cpl_other_a: jax.Array
+    cpl_force_a: jax.Array
 
 
 # the gains each controller reads besides the shared joint-space law's (kp_pos, kd_pos, kp_null, kd_null)
 IMPEDANCE_FIELDS = ("imp_mass", "imp_damping", "imp_stiffness")
 COUPLING_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll")  # the paper's relative-error and cross-term factors
+FAMILY_FIELDS = _coupling.FIELDS
 USED = {
     "classical": IMPEDANCE_FIELDS,
     "synchronous": IMPEDANCE_FIELDS + COUPLING_FIELDS,
@@ -77,6 +87,9 @@ USED = {
     "ros2_admittance": IMPEDANCE_FIELDS,
     # the rule plus the coupling: its relative-error and cross-term factors
     "ros2_synchronous": IMPEDANCE_FIELDS + COUPLING_FIELDS,
+    # the rule plus the coupling family (jaxsync.control.coupling): its channels' gains and filters
+    "ros2_coupled": IMPEDANCE_FIELDS + FAMILY_FIELDS,
+    "ros2_coupled_direct": IMPEDANCE_FIELDS + FAMILY_FIELDS,
 }
 
 
@@ -147,6 +160,9 @@ def default_gains(model=None, actuation: str = "torque", controller: str | None 
         force_i=np.array([1e-4, 1e-4, 1 / 2000, 1e-3, 1e-3, 1e-3]),
         ff_vel=0.0,
         ff_acc=0.0,
+        # no coupling: ros2_coupled starts as the rule alone
+        **{f: np.zeros((2, 6)) for f in _coupling.GAIN_FIELDS},
+        **{f: np.ones((2, 6)) for f in _coupling.FILTER_FIELDS},
     )
     return strongly_typed(g)
 
@@ -316,6 +332,8 @@ _BOUNDS = {
     "force_i": (0.0, math.inf, True),
     "ff_vel": (-FF_VEL_MAX, FF_VEL_MAX, True),
     "ff_acc": (-FF_ACC_MAX, FF_ACC_MAX, True),
+    **{f: (-_coupling.GAIN_MAX, _coupling.GAIN_MAX, True) for f in _coupling.GAIN_FIELDS},
+    **{f: (0.0, 1.0, False) for f in _coupling.FILTER_FIELDS},
 }
 
 

@@ -39,7 +39,10 @@ these choices (docs/ros2-rule.md, "ros2_controllers' rule in the loop"):
 - The joint command is the rule's command.positions (q_ref + its joint offset).
 
 ``"ros2_synchronous"`` is the same rule with the reference's target carrying
-the paper's coupling less the rule's own offset (:func:`coupled_reference`).
+the paper's coupling less the rule's own offset (:func:`coupled_reference`);
+``"ros2_coupled"`` the rule with the coupling family of
+``jaxsync.control.coupling`` (:func:`family_target`), entering through the
+reference's target or onto the rule's reference joints.
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxsync.control import coupling as _coupling
 from jaxsync.control import joint_space as _joint_space
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import so3 as _so3
@@ -180,6 +184,25 @@ def coupled_reference(gains, state: Ros2State, arms, ref, cross_term: str = "squ
         - e
     )
     off_vel = k_il[:, None] * _sync.cross_mapped(e_dot, ref.pad_pos, cross_term) - e_dot
+    return _offset_reference(ref, off, off_vel)
+
+
+def family_target(gains, cstate, state: Ros2State, arms, ref):
+    """The coupling family's offset o_i (``jaxsync.control.coupling``) from the
+    sensed pads' absolute errors, the rules' Cartesian offsets e_i = J_i dq_i
+    and rates from the last period, and the pads' wrench errors. Returns
+    (o (2, 6), its rate (2, 6), world frame, the family's new state)."""
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
+    )
+    e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
+    e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
+    eps = jnp.stack([arms[i].wrench for i in range(2)]) - ref.wrench
+    u, u_dot = _coupling.inputs(gains, delta, e, e_dot, eps, ref.pad_rot)
+    return _coupling.step(gains, cstate, u, u_dot, ref.pad_rot)
+
+
+def _offset_reference(ref, off, off_vel):
     return ref._replace(
         pad_pos=ref.pad_pos + off[:, :3],
         pad_rot=jnp.stack([_so3.exp(off[i, 3:]) @ ref.pad_rot[i] for i in range(2)]),
@@ -197,6 +220,8 @@ def step(
     coupled: bool = False,
     cross_term: str = "squeeze",
     ft_filter=1.0,
+    family=None,
+    placement: str = "reference",
 ):
     """One control period of both arms' rules.
 
@@ -204,22 +229,42 @@ def step(
     ``jaxsync.control.controller.Reference``; dt the period, s; distro the
     release (static); coupled (static): the reference each rule offsets
     carries the paper's coupling (:func:`coupled_reference`), cross_term its
-    reading of eq. 16; ft_filter the rule's F/T filter coefficient. Returns (2 n,) the joint position commands, the new
-    state and (2, 6) the rules' Cartesian offsets J dq (world frame, at the pad).
+    reading of eq. 16; ft_filter the rule's F/T filter coefficient;
+    family: the coupling family's state (``jaxsync.control.coupling``,
+    "ros2_coupled"; None: none), entering as ``placement`` says (static).
+    Returns (2 n,) the joint position commands, the new state and (2, 6) the
+    rules' Cartesian offsets J dq (world frame, at the pad); with ``family``
+    also the family's new state.
     """
     rule = _ra.admittance_rule(distro)
-    target = coupled_reference(gains, state, arms, ref, cross_term) if coupled else ref
+    target, shift = ref, None
+    if coupled:
+        target = coupled_reference(gains, state, arms, ref, cross_term)
+    if family is not None:
+        o, o_vel, family = family_target(gains, family, state, arms, ref)
+        if placement == "reference":
+            target = _offset_reference(ref, o, o_vel)
+        elif placement == "direct":
+            shift = (o, o_vel)
+        else:
+            raise ValueError(f"placement must be one of {_coupling.PLACEMENTS}, got {placement!r}")
     out, q_refs, rules, offsets = [], [], [], []
     for i in range(2):
         arm = arms[i]
         q_ref, rate = reference_step(gains, arm, state.q_ref[i], target, i, dt)
+        q_rule, rate_rule = q_ref, rate
+        if shift is not None:  # the offset on the rule's reference joints, through J#, this period
+            dls = jnp.linalg.solve(
+                arm.jac.T @ arm.jac + _joint_space.COMMAND_ALPHA * jnp.eye(arm.jac.shape[1]), arm.jac.T
+            )
+            q_rule, rate_rule = q_ref + dls @ shift[0][i], rate + dls @ shift[1][i]
         w_ref = None if distro == "humble" else -_in_pad(arm.pad_rot, ref.wrench[i])
         command, rs = rule.step(
             params(gains, i, ref.pad_rot[i], distro, ft_filter),
             jax.tree_util.tree_map(lambda x, i=i: x[i], state.rule),
-            kinematics(arm, q_ref),
+            kinematics(arm, q_rule),
             _in_pad(arm.pad_rot, arm.wrench),
-            _ra.JointPoint(q_ref, rate, jnp.zeros_like(rate)),
+            _ra.JointPoint(q_rule, rate_rule, jnp.zeros_like(rate)),
             dt,
             wrench_reference=w_ref,
         )
@@ -228,4 +273,6 @@ def step(
         rules.append(rs)
         offsets.append(arm.jac @ rs.joint_pos)
     new = Ros2State(q_ref=jnp.stack(q_refs), rule=jax.tree_util.tree_map(lambda *x: jnp.stack(x), *rules))
+    if family is not None:
+        return jnp.concatenate(out), new, jnp.stack(offsets), family
     return jnp.concatenate(out), new, jnp.stack(offsets)

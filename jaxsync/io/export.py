@@ -76,6 +76,11 @@ MEANING = {
     "ff_vel": ("the joint command's feed-forward of the planned twist (position-controlled arms)", "s"),
     "ff_acc": ("the joint command's feed-forward of the planned acceleration (position-controlled arms)", "s^2"),
 }
+_FAMILY_INPUTS = ("the absolute errors' difference", "its own rule offset", "the other arm's rule offset",
+                  "the other arm's wrench error over its stiffness")  # fmt: skip
+for _c, _what in zip(_gains.FAMILY_FIELDS, _FAMILY_INPUTS, strict=False):  # the coupling family (ros2_coupled)
+    MEANING[_c] = (f"coupling family: each arm's gain on {_what}, pad frame", "1 (|c| <= 2)")
+    MEANING[_c + "_a"] = (f"coupling family: the first-order filter on {_what}", "1 (0 < a <= 1)")
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null", "ff_vel", "ff_acc")
 # the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
 BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")

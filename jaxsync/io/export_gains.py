@@ -22,6 +22,8 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
+from jaxsync.control.coupling import FILTER_FIELDS as FAMILY_FILTERS
+from jaxsync.control.coupling import GAIN_FIELDS as FAMILY_GAINS
 from jaxsync.control.gains import COUPLING_FIELDS, Gains
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
@@ -114,6 +116,14 @@ def export_gains(
             )
             target = dataclasses.replace(target, filter_coefficient=_actuation.check_ft_filter(ft_filter, one=True)[0])
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
+    if fmt == "ros2-admittance" and _family(g):
+        raise ConfigError(
+            "ros2-admittance: these gains set the coupling family of the ros2_coupled controllers (a cpl_rel, "
+            "cpl_own, cpl_other or cpl_force not 0, or a filter cpl_*_a not 1), which has no ros2_control form: "
+            "the two admittance files alone would run the rule uncoupled. Export them as yaml or json "
+            "(docs/coupling.md)",
+            inputs=("gains",),
+        )
     warnings = []
     if fmt == "ros2-admittance":
         problems = deployed_stability(g, 1.0 / target.update_rate)
@@ -237,6 +247,16 @@ def _phases(gains) -> list[tuple[str | None, Gains]]:
 def _coupled(g) -> bool:
     """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
     return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in COUPLING_FIELDS)
+
+
+def _family(g) -> bool:
+    """Any phase's coupling family not at its defaults (``jaxsync.control.coupling``): a gain not 0, a filter
+    not 1."""
+    return any(
+        bool(np.any(np.asarray(getattr(p, k)) != (1.0 if k in FAMILY_FILTERS else 0.0)))
+        for _, p in _phases(g)
+        for k in FAMILY_GAINS + FAMILY_FILTERS
+    )
 
 
 def _fed_forward(g) -> bool:

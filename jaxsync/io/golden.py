@@ -60,6 +60,8 @@ STATE_PARTS = {
     "task_space": ("force_integral", "wrench_filter"),
     "ros2_admittance": ("ros2",),
     "ros2_synchronous": ("ros2",),
+    "ros2_coupled": ("ros2", "coupling"),
+    "ros2_coupled_direct": ("ros2", "coupling"),
 }
 # each state part's columns (``state.<path>[arm][k]``, rows right then left): meaning, frame, unit
 STATE_FIELDS = {
@@ -79,6 +81,9 @@ STATE_FIELDS = {
     "ros2.rule.admittance_velocity": "J joint_vel at the pad (the F/T frame), base frame (the world), [m/s; rad/s]",
     "ros2.rule.admittance_acceleration": "J joint_acc at the pad, base frame (the world), [m/s^2; rad/s^2]",
     "ros2.rule.wrench_world": "the rule's filtered wrench (measurement plus set-point), world frame, [N; N m]",
+    "coupling.value": "ros2_coupled's filtered channel inputs [channel][arm][axis], channels rel, own, other, force "
+    "(docs/coupling.md), each arm's planned pad frame, [m; rad] (force: over the arm's stiffness)",
+    "coupling.rate": "their rates (own, other; rel and force 0), [m/s; rad/s]",
 }
 # what a controller's step reads of each arm: (field, meaning)
 ARM_FIELDS = (

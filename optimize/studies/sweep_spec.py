@@ -25,7 +25,7 @@ from jaxsync.sim.scenario import Scenario
 AXES = {"x": 0, "y": 1, "z": 2, "rx": 3, "ry": 4, "rz": 5}
 ARMS = {"r": 0, "right": 0, "l": 1, "left": 1}
 VEC_AXES = {"x": 0, "y": 1, "z": 2}
-PER_ARM_GAINS = ("imp_mass", "imp_damping", "imp_stiffness")
+PER_ARM_GAINS = ("imp_mass", "imp_damping", "imp_stiffness") + _gains.FAMILY_FIELDS
 AXIS_GAINS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")  # (6,): one per axis
 SCALAR_GAINS = tuple(f for f in Gains._fields if f not in PER_ARM_GAINS + AXIS_GAINS)
 VECTOR_FIELDS = ("object_offset", "lift")

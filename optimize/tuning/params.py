@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.control import coupling as _coupling
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import FF_ACC_MAX, FF_VEL_MAX, USED, Gains, servo_limits_loop
 from jaxsync.control.names import CONTROLLERS
@@ -54,7 +55,12 @@ FF_MAX = {"ff_vel": FF_VEL_MAX, "ff_acc": FF_ACC_MAX}
 # shifts the whole carry in time, and tuned on a batch of 4 it ran to its bound (0.05 s, where 6 ms
 # does better held out: docs/deploy-tuning.md); set it, or tune it by name
 SERVO_ADDED = LOOP + ("ff_acc",)
-TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED
+# the coupling family (ros2_coupled, jaxsync.control.coupling): per arm and axis like the impedance; each
+# channel's gain c = GAIN_MAX tanh(theta), each filter a = A_MIN + (1 - A_MIN) sigmoid(theta)
+FAMILY = _coupling.GAIN_FIELDS
+FAMILY_FILTERS = _coupling.FILTER_FIELDS
+A_MIN, A_START_MAX = 1e-3, 0.95  # a filter starts at most at 0.95, where its gradient is not yet 0
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED + FAMILY + FAMILY_FILTERS
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
 DEFAULT_TUNED_FOR = {
@@ -64,6 +70,8 @@ DEFAULT_TUNED_FOR = {
     "task_space": FORCE,
     "ros2_admittance": IMPEDANCE,  # ros2_controllers' rule: the admittance file's mass, damping, stiffness
     "ros2_synchronous": DEFAULT_TUNED,  # the rule's, and the coupling's factors
+    "ros2_coupled": IMPEDANCE + FAMILY,  # the rule's, and the family's channel gains (filters: by name)
+    "ros2_coupled_direct": IMPEDANCE + FAMILY,
 }
 # the gain each tuned name sets
 GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
@@ -234,6 +242,12 @@ class TuneSpec:
             elif name in FEED:
                 ratio = float(np.asarray(getattr(base, name))) / FF_MAX[name]
                 theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
+            elif name in FAMILY:
+                ratio = self._reduce(getattr(base, name)) / _coupling.GAIN_MAX
+                theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
+            elif name in FAMILY_FILTERS:
+                a = np.clip(self._reduce(getattr(base, name)), 2 * A_MIN, A_START_MAX)
+                theta[name] = jnp.asarray(_logit((a - A_MIN) / (1.0 - A_MIN)))
             elif name == "imp_mass":
                 theta[name] = jnp.asarray(np.log(self._reduce(base.imp_mass)))
             elif name == "imp_stiffness":
@@ -277,6 +291,12 @@ class TuneSpec:
             zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
         if any(n in theta for n in IMPEDANCE):
             g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
+        for name in FAMILY:
+            if name in theta:
+                g[name] = self._expand(_coupling.GAIN_MAX * jnp.tanh(theta[name]))
+        for name in FAMILY_FILTERS:
+            if name in theta:
+                g[name] = self._expand(A_MIN + (1.0 - A_MIN) * jax.nn.sigmoid(theta[name]))
         for name in ("obj_mass", "obj_stiffness", "force_p", "force_i"):
             if name in theta:
                 g[name] = self._expand_vector(jnp.exp(theta[name]))
@@ -325,6 +345,11 @@ class TuneSpec:
             "parameters": self.size(),
             "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
             "k_range": [-1, 1],
+            **(
+                {"coupling_gain_range": [-_coupling.GAIN_MAX, _coupling.GAIN_MAX], "coupling_filter_range": [A_MIN, 1]}
+                if set(FAMILY + FAMILY_FILTERS) & set(self.tuned)
+                else {}
+            ),
             **(
                 {"feedforward_range": {n: [-FF_MAX[n], FF_MAX[n]] for n in FEED}} if set(FEED) & set(self.tuned) else {}
             ),

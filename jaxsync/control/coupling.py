@@ -1,0 +1,140 @@
+"""A family of couplings between the two arms, on top of ros2_controllers'
+admittance rule: the controllers ``"ros2_coupled"`` and
+``"ros2_coupled_direct"`` (docs/coupling.md).
+
+Each arm runs the stock rule (``jaxsync.control.ros2_loop``); the coupling is
+one small step beside it that offsets the target the rule's reference joints
+follow. Per arm i (j the other), in arm i's planned pad frame R_i (x, y
+tangential, z the pad normal, then rotations about them), four channels, each
+a per-axis gain c and a first-order filter a (y' = a u + (1 - a) y; a = 1
+passes the input through):
+
+  ``rel``    u = R_i^T (delta_i - delta_j), the absolute errors' difference
+             (eq. 12: delta_i = x_id - x_i from the sensed pads; the paper's
+             relative error, taken from arm i's side);
+  ``own``    u = R_i^T e_i, the arm's own rule offset e_i = J_i dq_i;
+  ``other``  u = R_i^T e_j, the other arm's rule offset;
+  ``force``  u = R_i^T (f_j - f_jd) / K_i, the other arm's wrench error in
+             units of arm i's own compliance (per axis; 0 where K_i = 0):
+             c = 1 yields to the other arm's force error as arm i's spring
+             yields to its own.
+
+The offset is o_i = R_i sum_c (c ⊙ y_c), its rate R_i sum_c (c ⊙ y'_c) (the
+rates of the own and other channels are the rule offsets' rates J dq dot,
+filtered alike; rel and force carry none). Where it enters (``PLACEMENTS``,
+the controller's name says which: ``jaxsync.control.names.FAMILY``):
+
+  ``reference`` (``ros2_coupled``): the target of arm i's reference joints is the plan plus
+             o_i, so the command is q_ref + dq_i: once the reference has
+             caught up (a time 1 / lambda, lambda = 2 kp_pos / kd_pos) the
+             pad's offset is e_i + o_i;
+  ``direct`` (``ros2_coupled_direct``): o_i goes onto the rule's reference joints through the damped
+             least squares J# in the same period, the reference following
+             the plan alone.
+
+Special cases (tests check both): every gain 0 is the rule alone
+(``ros2_admittance``, whatever the filters); ``rel`` = (k_rk, -k_lk) per
+arm, ``own`` = k_il - 1, ``other`` = -k_il, filters 1 and the reference
+placement is ``ros2_synchronous`` with its squeeze cross term (o_i = k_ik
+(delta_r - delta_l) + k_il (e_i - e_j) - e_i).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+CHANNELS = ("rel", "own", "other", "force")
+GAIN_FIELDS = tuple(f"cpl_{c}" for c in CHANNELS)
+FILTER_FIELDS = tuple(f"cpl_{c}_a" for c in CHANNELS)
+FIELDS = GAIN_FIELDS + FILTER_FIELDS
+PLACEMENTS = ("reference", "direct")
+GAIN_MAX = 2.0
+"""|c| <= 2 per channel and axis: the paper's own-offset factor k_il - 1 lies
+in (-2, 0) for |k_il| < 1."""
+
+
+class CouplingState(NamedTuple):
+    """Each channel's filtered input and rate, (4, 2, 6): channels as
+    ``CHANNELS``, rows right then left, each arm's planned pad frame."""
+
+    value: jax.Array
+    rate: jax.Array
+
+
+def init(dtype=None) -> CouplingState:
+    z = jnp.zeros((len(CHANNELS), 2, 6), dtype=dtype)
+    return CouplingState(value=z, rate=z)
+
+
+def to_pad(rot: jax.Array, v: jax.Array) -> jax.Array:
+    """(6,) world-frame [translation; rotation] into the frame ``rot``."""
+    return jnp.concatenate([rot.T @ v[:3], rot.T @ v[3:]])
+
+
+def from_pad(rot: jax.Array, v: jax.Array) -> jax.Array:
+    """(6,) frame ``rot`` -> world."""
+    return jnp.concatenate([rot @ v[:3], rot @ v[3:]])
+
+
+def inputs(gains, delta, e, e_dot, force_error, pad_rot):
+    """The channels' inputs and rates, (4, 2, 6) each, from the absolute
+    errors ``delta`` (2, 6), the rule offsets ``e`` and rates ``e_dot``
+    (2, 6), the pads' wrench errors ``force_error`` f_i - f_id (2, 6), all
+    world frame, and the planned pad rotations ``pad_rot`` (2, 3, 3)."""
+    k = gains.imp_stiffness
+    safe = jnp.where(k > 0, k, 1.0)
+    inv_k = jnp.where(k > 0, 1.0 / safe, 0.0)
+    zero = jnp.zeros_like(e)
+    rows, rates = [], []
+    for i in range(2):
+        j = 1 - i
+        rot = pad_rot[i]
+        rows.append(
+            jnp.stack(
+                [
+                    to_pad(rot, delta[i] - delta[j]),
+                    to_pad(rot, e[i]),
+                    to_pad(rot, e[j]),
+                    to_pad(rot, force_error[j]) * inv_k[i],
+                ]
+            )
+        )
+        rates.append(jnp.stack([zero[i], to_pad(rot, e_dot[i]), to_pad(rot, e_dot[j]), zero[i]]))
+    return jnp.stack(rows, axis=1), jnp.stack(rates, axis=1)
+
+
+def step(gains, state: CouplingState, u, u_dot, pad_rot):
+    """One period of the filters and the offset: returns (o (2, 6), its rate
+    (2, 6), world frame, the new state)."""
+    a = jnp.stack([getattr(gains, f) for f in FILTER_FIELDS])
+    c = jnp.stack([getattr(gains, f) for f in GAIN_FIELDS])
+    value = a * u + (1.0 - a) * state.value
+    rate = a * u_dot + (1.0 - a) * state.rate
+    o = jnp.sum(c * value, axis=0)
+    o_dot = jnp.sum(c * rate, axis=0)
+    off = jnp.stack([from_pad(pad_rot[i], o[i]) for i in range(2)])
+    off_vel = jnp.stack([from_pad(pad_rot[i], o_dot[i]) for i in range(2)])
+    return off, off_vel, CouplingState(value=value, rate=rate)
+
+
+def of_synchronous(gains):
+    """``gains`` with the family set to ros2_synchronous's coupling (squeeze
+    cross term): rel = (k_rk, -k_lk), own = k_il - 1, other = -k_il per arm,
+    every axis, filters 1."""
+    full = lambda right, left: jnp.stack(  # noqa: E731
+        [jnp.full(6, right, dtype=gains.imp_mass.dtype), jnp.full(6, left, dtype=gains.imp_mass.dtype)]
+    )
+    one = jnp.ones_like(gains.imp_mass)
+    return gains._replace(
+        cpl_rel=full(gains.k_rk, -gains.k_lk),
+        cpl_own=full(gains.k_rl - 1.0, gains.k_ll - 1.0),
+        cpl_other=full(-gains.k_rl, -gains.k_ll),
+        cpl_force=jnp.zeros_like(gains.imp_mass),
+        cpl_rel_a=one,
+        cpl_own_a=one,
+        cpl_other_a=one,
+        cpl_force_a=one,
+    )
