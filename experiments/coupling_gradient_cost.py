@@ -87,7 +87,13 @@ def main() -> None:
     for name, t in times.items():
         value, grad = fns[name][1](cases[name], s)
         family_grad = {f: float(jnp.max(jnp.abs(getattr(grad, f)))) for f in C.FIELDS}
+        if name == "ros2_coupled" and min(family_grad.values()) == 0.0:
+            raise SystemExit(f"a family gradient is 0 ({family_grad}): the figure would not time the family")
+        traj = jaxsync.make_rollout(model, name, args.duration, actuation="position")(cases[name], s)
+        m = jaxsync.summarize(traj, s)
         result["controllers"][name] = {
+            "dropped": bool(m.dropped),
+            "settled_peak_resultant_N": float(m.settled_peak_resultant_N),
             "forward_s": min(t["forward"]),
             "gradient_s": min(t["gradient"]),
             "gradient_over_forward": min(t["gradient"]) / min(t["forward"]),

@@ -110,7 +110,7 @@ def _numpy_family(g, value, rate, delta, e, e_dot, eps, rots):
     for i in range(2):
         j, rot = 1 - i, np.asarray(rots[i])
         pad = lambda v, rot=rot: np.concatenate([rot.T @ v[:3], rot.T @ v[3:]])  # noqa: E731
-        k = np.asarray(g.imp_stiffness)[i]
+        k = np.asarray(g.imp_stiffness)[i] + np.asarray(g.imp_damping)[i] / 0.1
         u = [pad(delta[i] - delta[j]), pad(e[i]), pad(e[j]), pad(eps[j]) / k]
         du = [np.zeros(6), pad(e_dot[i]), pad(e_dot[j]), np.zeros(6)]
         o, ov = np.zeros(6), np.zeros(6)

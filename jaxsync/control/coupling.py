@@ -14,10 +14,12 @@ passes the input through):
              relative error, taken from arm i's side);
   ``own``    u = R_i^T e_i, the arm's own rule offset e_i = J_i dq_i;
   ``other``  u = R_i^T e_j, the other arm's rule offset;
-  ``force``  u = R_i^T (f_j - f_jd) / K_i, the other arm's wrench error in
-             units of arm i's own compliance (per axis; 0 where K_i = 0):
-             c = 1 yields to the other arm's force error as arm i's spring
-             yields to its own.
+  ``force``  u = R_i^T (f_j - f_jd) / (K_i + B_i / T), T = ``FORCE_TIME``,
+             the other arm's wrench error over arm i's own admittance as it
+             shows over T (per axis: a spring K_i yields 1 / K_i, a damper
+             B_i about T / B_i; 0 where both are 0): c = 1 yields to the other
+             arm's force error about as far as arm i's rule yields to its
+             own within T.
 
 The offset is o_i = R_i sum_c (c ⊙ y_c), its rate R_i sum_c (c ⊙ y'_c) (the
 rates of the own and other channels are the rule offsets' rates J dq dot,
@@ -51,6 +53,9 @@ GAIN_FIELDS = tuple(f"cpl_{c}" for c in CHANNELS)
 FILTER_FIELDS = tuple(f"cpl_{c}_a" for c in CHANNELS)
 FIELDS = GAIN_FIELDS + FILTER_FIELDS
 PLACEMENTS = ("reference", "direct")
+FORCE_TIME = 0.1
+"""s: the time over which the force channel's scale is arm i's admittance (the
+compliance probe's, ``jaxsync.control.compliance.PROBE_TIME``)."""
 GAIN_MAX = 2.0
 """|c| <= 2 per channel and axis: the paper's own-offset factor k_il - 1 lies
 in (-2, 0) for |k_il| < 1."""
@@ -84,7 +89,7 @@ def inputs(gains, delta, e, e_dot, force_error, pad_rot):
     errors ``delta`` (2, 6), the rule offsets ``e`` and rates ``e_dot``
     (2, 6), the pads' wrench errors ``force_error`` f_i - f_id (2, 6), all
     world frame, and the planned pad rotations ``pad_rot`` (2, 3, 3)."""
-    k = gains.imp_stiffness
+    k = gains.imp_stiffness + gains.imp_damping / FORCE_TIME
     safe = jnp.where(k > 0, k, 1.0)
     inv_k = jnp.where(k > 0, 1.0 / safe, 0.0)
     zero = jnp.zeros_like(e)

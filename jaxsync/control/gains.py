@@ -43,6 +43,15 @@ class Gains(NamedTuple):
     force_p, force_i: the proportional (m/N, rad/(N m)) and integral
       (m/(N s), rad/(N m s)) gains of the internal-force loop on the relative
       variable ("task_space", Chiacchio, Chiaverini and Siciliano 1996).
+
+    The coupling family on top of ros2_controllers' rule ("ros2_coupled",
+    ``jaxsync.control.coupling``), (2, 6) per arm and pad axis:
+    cpl_rel, cpl_own, cpl_other, cpl_force: each channel's gain (0: none,
+      |c| <= 2) on the absolute errors' difference, the arm's own rule
+      offset, the other arm's, and the other arm's wrench error over the
+      arm's own admittance;
+    cpl_rel_a, cpl_own_a, cpl_other_a, cpl_force_a: each channel's
+      first-order filter coefficient, (0, 1] (1: unfiltered).
     """
 
     imp_mass: jax.Array

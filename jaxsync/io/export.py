@@ -77,7 +77,7 @@ MEANING = {
     "ff_acc": ("the joint command's feed-forward of the planned acceleration (position-controlled arms)", "s^2"),
 }
 _FAMILY_INPUTS = ("the absolute errors' difference", "its own rule offset", "the other arm's rule offset",
-                  "the other arm's wrench error over its stiffness")  # fmt: skip
+                  "the other arm's wrench error over its admittance")  # fmt: skip
 for _c, _what in zip(_gains.FAMILY_FIELDS, _FAMILY_INPUTS, strict=False):  # the coupling family (ros2_coupled)
     MEANING[_c] = (f"coupling family: each arm's gain on {_what}, pad frame", "1 (|c| <= 2)")
     MEANING[_c + "_a"] = (f"coupling family: the first-order filter on {_what}", "1 (0 < a <= 1)")

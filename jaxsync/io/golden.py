@@ -82,7 +82,7 @@ STATE_FIELDS = {
     "ros2.rule.admittance_acceleration": "J joint_acc at the pad, base frame (the world), [m/s^2; rad/s^2]",
     "ros2.rule.wrench_world": "the rule's filtered wrench (measurement plus set-point), world frame, [N; N m]",
     "coupling.value": "ros2_coupled's filtered channel inputs [channel][arm][axis], channels rel, own, other, force "
-    "(docs/coupling.md), each arm's planned pad frame, [m; rad] (force: over the arm's stiffness)",
+    "(docs/coupling.md), each arm's planned pad frame, [m; rad] (force: over the arm's admittance, docs/coupling.md)",
     "coupling.rate": "their rates (own, other; rel and force 0), [m/s; rad/s]",
 }
 # what a controller's step reads of each arm: (field, meaning)
