@@ -98,8 +98,8 @@ def add_parser(sub) -> None:
         type=controller_list(minimum=2, known=ALL_CONTROLLERS),
         default=["classical", "synchronous"],
         help="comma-separated controllers to roll out, the first the reference of the ratios "
-        f"(default classical,synchronous; any of {', '.join(ALL_CONTROLLERS)}; ros2_admittance and "
-        "ros2_synchronous with --actuation position only)",
+        f"(default classical,synchronous; any of {', '.join(ALL_CONTROLLERS)}; the ros2_ ones with "
+        "--actuation position only)",
     )
     p.add_argument("--duration", type=positive(float), default=4.0, help="seconds simulated (default 4)")
     add_stack_arguments(p)
