@@ -21,7 +21,7 @@ from jaxsync.control import coupling as _coupling
 from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control.compliance import stiffness_at_pad
 from jaxsync.physics.sensing import ArmState
-from optimize.tuning.params import TuneSpec
+from jaxsync.optimize.tuning.params import TuneSpec
 
 DELAY = 1
 

@@ -1,0 +1,126 @@
+"""Does the coupling family lower the tuned rule any further? Both continued alike from the rule's optimum.
+
+Reads a finished ``jaxsync study`` folder that tuned ``ros2_admittance``
+(e.g. ``--controllers ros2_admittance,...``). For each of its seeds and
+bounds, from that run's tuned gains (the coupling family at 0: the rule
+alone, exactly), two runs of ``--iterations`` more on the study's own tuning
+job (its batches, bounds, held-out set; a fresh training seed, seed + 100,
+so that neither replays the batches it was tuned on):
+
+- ``rule``: ros2_admittance, its own parameters (the rule's impedance);
+- ``coupled``: ros2_coupled (or ``--family ros2_coupled_direct``), the
+  same impedance and the family's four channel gains, starting at 0.
+
+The family contains the rule and both start at the same point with the same
+added budget, so a ratio coupled / rule below 1 is what the coupling adds.
+Prints and writes per seed and bound the held-out settled peak of both, the
+paired ratio over the held-out scenarios with a bootstrap 95 % interval,
+drops, and whether each run converged.
+
+    python experiments/coupling_on_the_rule.py --study results/study_coupling --iterations 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import jax
+import numpy as np
+
+import jaxsync
+from jaxsync.io import gains_file
+from jaxsync.optimize.studies import study as S
+from jaxsync.optimize.tuning import pipeline as P
+
+
+def _peaks(summary: dict) -> np.ndarray:
+    return np.asarray(summary["heldout_after"]["per_scenario_peak_N"], dtype=float)
+
+
+def _ratio(a: np.ndarray, b: np.ndarray, n: int = 2000, seed: int = 0) -> tuple[float, float, float]:
+    """Mean of a over mean of b, paired bootstrap 95 % interval over the scenarios."""
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(a), (n, len(a)))
+    boot = a[idx].mean(1) / b[idx].mean(1)
+    return float(a.mean() / b.mean()), float(np.quantile(boot, 0.025)), float(np.quantile(boot, 0.975))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--study", required=True)
+    p.add_argument("--iterations", type=int, default=20)
+    p.add_argument("--family", default="ros2_coupled", choices=["ros2_coupled", "ros2_coupled_direct"])
+    p.add_argument("--out", default="results/coupling_on_the_rule")
+    args = p.parse_args()
+    jaxsync.set_xla_flags()
+    jax.config.update("jax_enable_x64", True)
+    jaxsync.enable_compilation_cache()
+    with open(os.path.join(args.study, S.STUDY_FILE)) as f:
+        stored = json.load(f)
+    flat = dict(stored["config"])
+    own = {k: flat.pop(k) for k in ("controllers", "bounds", "seeds", "bootstrap")}
+    for k in ("controller", "spec", "max_impact_N", "max_stiffness_N_per_m"):
+        flat.pop(k, None)
+    flat["iterations"] = args.iterations
+    cfg = S.StudyConfig(**own, **flat).validate()
+    if "ros2_admittance" not in cfg.controllers:
+        raise SystemExit(f"{args.study}: the study did not tune ros2_admittance")
+    model_path = stored["model"].split("(")[1].split(",")[0]
+    model = jaxsync.load_model(model_path, visual=False)
+    with open(os.path.join(args.study, "reference.json")) as f:
+        reference = json.load(f)
+    rows = []
+    for factor in cfg.bounds:
+        bounds = S.bounds_for(reference, factor)
+        for seed in cfg.seeds:
+            start = gains_file.load(os.path.join(S.run_dir(args.study, "ros2_admittance", factor, seed), "gains.json"))
+            done = {}
+            for label, controller in (("rule", "ros2_admittance"), ("coupled", args.family)):
+                out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", label)
+                tcfg = cfg.tune_config(controller, seed + 100, bounds)
+                done[label] = P.tune_and_evaluate(
+                    model, start, tcfg, out=out, restart=True, mujoco_check=False, log=lambda m: None
+                ).to_dict()
+            r, lo, hi = _ratio(_peaks(done["coupled"]), _peaks(done["rule"]))
+            row = {
+                "bound": factor,
+                "seed": seed,
+                "start_N": done["rule"]["heldout_settled_peak_resultant_N_before"],
+                **{
+                    f"{k}_{what}": v
+                    for k, d in done.items()
+                    for what, v in (
+                        ("N", d["heldout_settled_peak_resultant_N_after"]),
+                        ("dropped", d["heldout_after"]["dropped"]),
+                        ("converged", d["convergence"]["converged"]),
+                        ("iterations", d["convergence"]["iterations"]),
+                        ("selected", d["selected_iteration"]),
+                        ("seconds", d["convergence"]["seconds"]),
+                    )
+                },
+                "coupled_over_rule": r,
+                "ci95": [lo, hi],
+            }
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    a = np.concatenate([_peaks_of(args.out, r, "coupled") for r in rows])
+    b = np.concatenate([_peaks_of(args.out, r, "rule") for r in rows])
+    pooled = _ratio(a, b)
+    result = {"study": args.study, "family": args.family, "iterations": args.iterations, "rows": rows, "pooled": pooled}
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "coupling_on_the_rule.json"), "w") as f:
+        json.dump(result, f, indent=1)
+    print("pooled coupled / rule:", pooled)
+
+
+def _peaks_of(out: str, row: dict, label: str) -> np.ndarray:
+    with open(os.path.join(out, f"bound_{row['bound']:g}", f"seed_{row['seed']}", label, "summary.json")) as f:
+        return _peaks(json.load(f))
+
+
+if __name__ == "__main__":
+    main()
