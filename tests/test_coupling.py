@@ -20,8 +20,8 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import coupling as _coupling
 from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control.compliance import stiffness_at_pad
-from jaxsync.physics.sensing import ArmState
 from jaxsync.optimize.tuning.params import TuneSpec
+from jaxsync.physics.sensing import ArmState
 
 DELAY = 1
 
