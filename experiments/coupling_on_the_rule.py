@@ -38,7 +38,7 @@ from jaxsync.io import gains_file
 from jaxsync.optimize.studies import study as S
 from jaxsync.optimize.tuning import pipeline as P
 from jaxsync.optimize.tuning.cost import CostWeights
-from jaxsync.optimize.tuning.params import FAMILY, TuneSpec
+from jaxsync.optimize.tuning.params import FAMILY_GAINS, TuneSpec
 
 
 def _peaks(summary: dict) -> np.ndarray:
@@ -100,7 +100,7 @@ def main() -> None:
                 out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", label)
                 tcfg = cfg.tune_config(controller, seed + 100, bounds)
                 if label == "coupled" and args.family_only:
-                    tcfg = tcfg.replace(problem=dataclasses.replace(tcfg.problem, spec=TuneSpec(tuned=FAMILY)))
+                    tcfg = tcfg.replace(problem=dataclasses.replace(tcfg.problem, spec=TuneSpec(tuned=FAMILY_GAINS)))
                 if label == "rule" and args.skip_rule:
                     with open(os.path.join(out, "summary.json")) as f:
                         done[label] = json.load(f)

@@ -11,6 +11,10 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
   zeta = ZETA_MIN + (ZETA_MAX - ZETA_MIN) sigmoid(theta): inside the band, so
   every tuned admittance filter is a stable, passive mass-spring-damper.
 
+- the coupling family's gains (ros2_coupled: cpl_rel, cpl_own, cpl_other,
+  cpl_force) = GAIN_MAX tanh(theta), 0 at theta 0; its filters (cpl_*_a) =
+  A_MIN + (1 - A_MIN) sigmoid(theta), starting at most at A_START_MAX.
+
 Impedance parameters are shared by both arms or per arm (``per_arm``), and
 per axis (6 values: the pad frame's x, y, z and rotations about them) or
 isotropic (``isotropic``: one value for translations, one for rotations).
@@ -57,10 +61,10 @@ FF_MAX = {"ff_vel": FF_VEL_MAX, "ff_acc": FF_ACC_MAX}
 SERVO_ADDED = LOOP + ("ff_acc",)
 # the coupling family (ros2_coupled, jaxsync.control.coupling): per arm and axis like the impedance; each
 # channel's gain c = GAIN_MAX tanh(theta), each filter a = A_MIN + (1 - A_MIN) sigmoid(theta)
-FAMILY = _coupling.GAIN_FIELDS
+FAMILY_GAINS = _coupling.GAIN_FIELDS
 FAMILY_FILTERS = _coupling.FILTER_FIELDS
 A_MIN, A_START_MAX = 1e-3, 0.95  # a filter starts at most at 0.95, where its gradient is not yet 0
-TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED + FAMILY + FAMILY_FILTERS
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED + FAMILY_GAINS + FAMILY_FILTERS
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
 DEFAULT_TUNED_FOR = {
@@ -70,8 +74,8 @@ DEFAULT_TUNED_FOR = {
     "task_space": FORCE,
     "ros2_admittance": IMPEDANCE,  # ros2_controllers' rule: the admittance file's mass, damping, stiffness
     "ros2_synchronous": DEFAULT_TUNED,  # the rule's, and the coupling's factors
-    "ros2_coupled": IMPEDANCE + FAMILY,  # the rule's, and the family's channel gains (filters: by name)
-    "ros2_coupled_direct": IMPEDANCE + FAMILY,
+    "ros2_coupled": IMPEDANCE + FAMILY_GAINS,  # the rule's, and the family's channel gains (filters: by name)
+    "ros2_coupled_direct": IMPEDANCE + FAMILY_GAINS,
 }
 # the gain each tuned name sets
 GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
@@ -242,7 +246,7 @@ class TuneSpec:
             elif name in FEED:
                 ratio = float(np.asarray(getattr(base, name))) / FF_MAX[name]
                 theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
-            elif name in FAMILY:
+            elif name in FAMILY_GAINS:
                 ratio = self._reduce(getattr(base, name)) / _coupling.GAIN_MAX
                 theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
             elif name in FAMILY_FILTERS:
@@ -291,7 +295,7 @@ class TuneSpec:
             zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
         if any(n in theta for n in IMPEDANCE):
             g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
-        for name in FAMILY:
+        for name in FAMILY_GAINS:
             if name in theta:
                 g[name] = self._expand(_coupling.GAIN_MAX * jnp.tanh(theta[name]))
         for name in FAMILY_FILTERS:
@@ -347,7 +351,7 @@ class TuneSpec:
             "k_range": [-1, 1],
             **(
                 {"coupling_gain_range": [-_coupling.GAIN_MAX, _coupling.GAIN_MAX], "coupling_filter_range": [A_MIN, 1]}
-                if set(FAMILY + FAMILY_FILTERS) & set(self.tuned)
+                if set(FAMILY_GAINS + FAMILY_FILTERS) & set(self.tuned)
                 else {}
             ),
             **(
