@@ -10,7 +10,12 @@ so that neither replays the batches it was tuned on):
 - ``rule``: ros2_admittance, its own parameters (the rule's impedance);
 - ``coupled``: ros2_coupled (or ``--family ros2_coupled_direct``), the
   same impedance and the family's four channel gains, starting at 0
-  (``--family-only``: the family's gains alone, the impedance kept).
+  (``--family-only``: the family's gains alone, the impedance kept;
+  ``--tune NAMES``: those).
+
+``--from-defaults`` instead starts the coupled run where the study started
+its own (the defaults, the study's seed) and compares it with the study's
+rule run: e.g. the family less a channel, ``--tune``.
 
 The family contains the rule and both start at the same point with the same
 added budget, so a ratio coupled / rule below 1 is what the coupling adds.
@@ -65,6 +70,12 @@ def main() -> None:
         action="store_true",
         help="the coupled run tunes the family's four gains alone, the rule's impedance kept at its optimum",
     )
+    p.add_argument("--tune", default="", help="what the coupled run tunes, comma-separated (its defaults)")
+    p.add_argument(
+        "--from-defaults",
+        action="store_true",
+        help="the coupled run starts from its defaults on the study's seed, beside the study's own rule run",
+    )
     p.add_argument("--skip-rule", action="store_true", help="reuse the rule runs already in --out")
     p.add_argument("--out", default="results/coupling_on_the_rule")
     args = p.parse_args()
@@ -94,13 +105,21 @@ def main() -> None:
     for factor in cfg.bounds:
         bounds = S.bounds_for(reference, factor)
         for seed in cfg.seeds:
-            start = gains_file.load(os.path.join(S.run_dir(args.study, "ros2_admittance", factor, seed), "gains.json"))
+            rule_run = S.run_dir(args.study, "ros2_admittance", factor, seed)
             done = {}
-            for label, controller in (("rule", "ros2_admittance"), ("coupled", args.family)):
+            if args.from_defaults:  # the study's own rule run is the comparison; the family starts where it did
+                with open(os.path.join(rule_run, "summary.json")) as f:
+                    done["rule"] = json.load(f)
+                jobs = [("coupled", args.family, jaxsync.default_gains(model, "position", args.family), seed)]
+            else:
+                start = gains_file.load(os.path.join(rule_run, "gains.json"))
+                jobs = [("rule", "ros2_admittance", start, seed + 100), ("coupled", args.family, start, seed + 100)]
+            for label, controller, start, train_seed in jobs:
                 out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", label)
-                tcfg = cfg.tune_config(controller, seed + 100, bounds)
-                if label == "coupled" and args.family_only:
-                    tcfg = tcfg.replace(problem=dataclasses.replace(tcfg.problem, spec=TuneSpec(tuned=FAMILY_GAINS)))
+                tcfg = cfg.tune_config(controller, train_seed, bounds)
+                tuned = args.tune.split(",") if args.tune else FAMILY_GAINS if args.family_only else None
+                if label == "coupled" and tuned:
+                    tcfg = tcfg.replace(problem=dataclasses.replace(tcfg.problem, spec=TuneSpec(tuned=tuple(tuned))))
                 if label == "rule" and args.skip_rule:
                     with open(os.path.join(out, "summary.json")) as f:
                         done[label] = json.load(f)
@@ -138,18 +157,39 @@ def main() -> None:
             rows.append(row)
             print(json.dumps(row), flush=True)
     a = np.concatenate([_peaks_of(args.out, r, "coupled") for r in rows])
-    b = np.concatenate([_peaks_of(args.out, r, "rule") for r in rows])
+    b = np.concatenate(
+        [
+            _peaks_of(args.out, r, "rule")
+            if not args.from_defaults
+            else _peaks(
+                _load(os.path.join(S.run_dir(args.study, "ros2_admittance", r["bound"], r["seed"]), "summary.json"))
+            )
+            for r in rows
+        ]
+    )
     pooled = _ratio(a, b)
-    result = {"study": args.study, "family": args.family, "iterations": args.iterations, "rows": rows, "pooled": pooled}
+    result = {
+        "study": args.study,
+        "family": args.family,
+        "iterations": args.iterations,
+        "from_defaults": args.from_defaults,
+        "tuned": args.tune or ("family only" if args.family_only else "defaults"),
+        "rows": rows,
+        "pooled": pooled,
+    }
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "coupling_on_the_rule.json"), "w") as f:
         json.dump(result, f, indent=1)
     print("pooled coupled / rule:", pooled)
 
 
+def _load(path: str) -> dict:
+    with open(path) as f:
+        return json.load(f)
+
+
 def _peaks_of(out: str, row: dict, label: str) -> np.ndarray:
-    with open(os.path.join(out, f"bound_{row['bound']:g}", f"seed_{row['seed']}", label, "summary.json")) as f:
-        return _peaks(json.load(f))
+    return _peaks(_load(os.path.join(out, f"bound_{row['bound']:g}", f"seed_{row['seed']}", label, "summary.json")))
 
 
 if __name__ == "__main__":
