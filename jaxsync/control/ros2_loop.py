@@ -157,6 +157,18 @@ def reference_step(gains, arm: ArmState, q_ref: jax.Array, ref, i: int, dt: floa
     return q_ref + dt * rate, rate
 
 
+def _errors(state: Ros2State, arms, ref):
+    """(2, 6) each: the sensed pads' absolute errors delta_i = x_id - x_i
+    (eq. 12), the rules' Cartesian offsets e_i = J_i dq_i and their rates
+    J_i dqdot_i from the last period, world frame."""
+    delta = jnp.stack(
+        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
+    )
+    e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
+    e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
+    return delta, e, e_dot
+
+
 def coupled_reference(gains, state: Ros2State, arms, ref, cross_term: str = "squeeze"):
     """The target each arm's reference joints follow under ``"ros2_synchronous"``:
     the plan plus the paper's synchronous offset o_i less the rule's own offset
@@ -169,11 +181,7 @@ def coupled_reference(gains, state: Ros2State, arms, ref, cross_term: str = "squ
     rates J_i dqdot_i) from the last period. In the squeeze (e_r = -e_l)
     k_rl = k_ll = 1/2 and k_ik = 0 command the rule's own offset; all k zero
     hold the pads on the plan (position control, no compliance at rest)."""
-    delta = jnp.stack(
-        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
-    )
-    e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
-    e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
+    delta, e, e_dot = _errors(state, arms, ref)
     k_il = jnp.stack([gains.k_rl, gains.k_ll])
     off = (
         _sync.synchronous_offset(
@@ -192,11 +200,7 @@ def family_target(gains, cstate, state: Ros2State, arms, ref):
     sensed pads' absolute errors, the rules' Cartesian offsets e_i = J_i dq_i
     and rates from the last period, and the pads' wrench errors. Returns
     (o (2, 6), its rate (2, 6), world frame, the family's new state)."""
-    delta = jnp.stack(
-        [_sync.absolute_error(ref.pad_pos[i], ref.pad_rot[i], arms[i].pad_pos, arms[i].pad_rot) for i in range(2)]
-    )
-    e = jnp.stack([arms[i].jac @ state.rule.joint_pos[i] for i in range(2)])
-    e_dot = jnp.stack([arms[i].jac @ state.rule.joint_vel[i] for i in range(2)])
+    delta, e, e_dot = _errors(state, arms, ref)
     eps = jnp.stack([arms[i].wrench for i in range(2)]) - ref.wrench
     u, u_dot = _coupling.inputs(gains, delta, e, e_dot, eps, ref.pad_rot)
     return _coupling.step(gains, cstate, u, u_dot, ref.pad_rot)
