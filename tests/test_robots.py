@@ -139,6 +139,10 @@ def test_model_mistakes_are_named(tmp_path, edit, message):
         compose_robot(_write(tmp_path, text, "ur5e_like_arm.xml"))
 
 
+_ARMS = ("arms: {right: {joints: [a,b,c,d,e,f], flange: f, model: arm.xml}, left: {joints: [a,b,c,d,e,f], "
+         "flange: f, model: arm.xml}}\nobject: {position: [0, 0, 0]}\n")  # fmt: skip
+
+
 @pytest.mark.parametrize(
     "text,message",
     [
@@ -159,6 +163,12 @@ def test_model_mistakes_are_named(tmp_path, edit, message):
         ("clamp_axis: [0, 0, 1]\narms: {right: {joints: [a,b,c,d,e,f], flange: f, model: arm.xml}, left: "
          "{joints: [a,b,c,d,e,f], flange: f, model: arm.xml}}\nobject: {position: [0, 0, 0]}",
          r"clamp_axis must be horizontal"),
+        (_ARMS + "end_effector: {mass: 0}", r"end_effector\.mass must be a number in \[0\.01, 20\.0\] kg"),
+        (_ARMS + "end_effector: {weight: 1}", r"end_effector: unknown key\(s\) \['weight'\]"),
+        (_ARMS + "end_effector: {inertia: [1, 1, 3]}", r"end_effector\.inertia must be three positive"),
+        (_ARMS + "end_effector: {com: [0, 0, 1]}", r"end_effector\.com must lie within 0\.5 m"),
+        (_ARMS + "end_effector: {pad_offset: 0.001}", r"end_effector\.pad_offset must be a number in"),
+        (_ARMS + "end_effector: 0.3", r"end_effector must be \{mass: kg"),
     ],
 )  # fmt: skip
 def test_robot_file_mistakes_name_the_key(tmp_path, text, message):
@@ -254,3 +264,41 @@ def test_the_grasp_leaves_every_joint_room_to_move(composed, name):
                 lo, hi = m.jnt_range[j]
                 margin = min(ik.MARGIN, 0.05 * (hi - lo))
                 assert lo + margin + 1e-4 < qk < hi - margin - 1e-4, (arm, k, qk)
+
+
+def test_the_end_effector_is_the_robot_files_and_unstated_is_the_documented_default(tmp_path):
+    """The end effector jaxsync adds is what the robot file states (mass, centre of
+    mass, inertia, pad face): the composed scene carries it and the summary says it;
+    stating the documented default changes nothing in the scene."""
+    src = open(robot_path("ur5e_twice.yaml")).read()
+    for name, extra in (
+        ("stated_default", "end_effector: {mass: 0.3, com: [0, 0, 0.02], inertia: [0.0003, 0.0003, 0.0004], "
+                           "pad_offset: 0.036}\n"),
+        ("heavy", "end_effector: {mass: 1.2, com: [0, 0.01, 0.05], pad_offset: 0.08}\n"),
+    ):  # fmt: skip
+        text = src.replace("ur5e_like_arm.xml", os.path.join(ROBOTS, "ur5e_like_arm.xml"))
+        (tmp_path / f"{name}.yaml").write_text(text + extra)
+    plain = compose_robot(robot_path("ur5e_twice.yaml"), visual=False)
+    stated = compose_robot(str(tmp_path / "stated_default.yaml"), visual=False)
+    heavy = compose_robot(str(tmp_path / "heavy.yaml"), visual=False)
+    assert stated[1].fingerprint == plain[1].fingerprint
+    assert plain[1].summary()["end_effector"] == {
+        "mass_kg": 0.3, "com_m": [0.0, 0.0, 0.02], "inertia_kg_m2": [0.0003, 0.0003, 0.0004], "pad_offset_m": 0.036
+    }  # fmt: skip
+    m, scene = heavy
+    assert scene.fingerprint != plain[1].fingerprint
+    assert scene.summary()["end_effector"]["mass_kg"] == 1.2
+    for p in ("r", "l"):
+        ee = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f"{p}_ee")
+        assert m.body_mass[ee] == pytest.approx(1.2)
+        np.testing.assert_allclose(m.body_ipos[ee], [0, 0.01, 0.05])
+        np.testing.assert_allclose(m.body_inertia[ee], [0.0003, 0.0003, 0.0004])
+        d = _at_key(m, "grasp")
+        flange, R = _site(m, d, f"{p}_flange")
+        pad, _ = _site(m, d, f"{p}_pad")
+        assert (pad - flange) @ R[:, 2] == pytest.approx(0.08) and np.linalg.norm(pad - flange) == pytest.approx(0.08)
+    # the grasp is solved for the longer end effector: the pads still touch the ball
+    d = _at_key(m, "grasp")
+    centre = d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "object")]
+    for p in ("r", "l"):
+        assert np.linalg.norm(_site(m, d, f"{p}_pad")[0] - centre) == pytest.approx(scene.object_radius, abs=2e-3)

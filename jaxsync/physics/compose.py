@@ -6,9 +6,10 @@ file's bases), and jaxsync adds what its task needs, in the names the rest of
 jaxsync reads (``jaxsync.physics.model.required_names``):
 
 - at each flange, an end effector body ``r_ee``/``l_ee``: the wrist F/T site
-  ``*_ft`` with force and torque sensors, a 0.3 kg pad and its contact
-  surface (the paper model's pad), the pad frame site ``*_pad`` (z out of the
-  pad face);
+  ``*_ft`` with force and torque sensors, a pad (0.3 kg, its face 36 mm out:
+  ``jaxsync.physics.robot.END_EFFECTOR``, or the robot file's
+  ``end_effector``) and its contact surface (the paper model's pad), the pad
+  frame site ``*_pad`` (z out of the pad face);
 - the object on a free joint where the robot file puts it, a stand (a plane)
   under it, and the explicit pad-object and stand-object contact pairs;
   every other collision off;
@@ -54,8 +55,6 @@ from jaxsync.physics.robot import ARM_NAMES, Robot, is_robot_file, load_robot
 TASK_CENTRE_XY = (0.65, 0.0)  # jaxsync.sim.scenario.NOMINAL_XY
 STAND_TOP_Z = 0.8  # jaxsync.sim.scenario.STAND_TOP_Z
 PREFIX = {"right": "r", "left": "l"}
-EE_MASS = 0.3  # kg: the F/T sensor's flange plate and the pad
-PAD_FACE = 0.036  # m from the flange to the pad face, along the flange's z
 PAD_SPHERE = 0.5  # m: the contact surface is this sphere's cap (jaxsync's paper model, mjcf/dual_arm.xml)
 PAD_PAIR = {
     "condim": 3,
@@ -311,22 +310,25 @@ def _check_flange(m: mujoco.MjModel, d: mujoco.MjData, arm, prefix: str, label: 
             return
 
 
-def _add_end_effector(scene: mujoco.MjSpec, body, pos, quat, p: str) -> None:
+def _add_end_effector(scene: mujoco.MjSpec, body, pos, quat, p: str, spec: dict) -> None:
+    """The end effector ``spec`` (``jaxsync.physics.robot.END_EFFECTOR``'s keys) at the flange frame (pos, quat)."""
     body.add_site(name=f"{p}_flange", pos=pos, quat=quat, size=[0.01, 0.01, 0.01])
     ee = body.add_body(name=f"{p}_ee", pos=pos, quat=quat)
     ee.explicitinertial = True
-    ee.mass = EE_MASS
-    ee.ipos = [0, 0, 0.02]
-    ee.inertia = [0.0003, 0.0003, 0.0004]
+    ee.mass = spec["mass"]
+    ee.ipos = list(spec["com"])
+    ee.inertia = list(spec["inertia"])
+    face = spec["pad_offset"]
     ee.add_site(name=f"{p}_ft", size=[0.012, 0.012, 0.012], rgba=[1, 0.5, 0, 1])
     plain = {"contype": 0, "conaffinity": 0, "density": 0}
-    ee.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.035, 0.01, 0], pos=[0, 0, 0.01],
+    plate = min(0.01, face / 2 - 0.004)  # the sensor plate's half-height, below the pad
+    ee.add_geom(type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.035, plate, 0], pos=[0, 0, plate],
                 rgba=[0.9, 0.5, 0.1, 1], **plain)  # fmt: skip
     ee.add_geom(name=f"{p}_pad_visual", type=mujoco.mjtGeom.mjGEOM_CYLINDER, size=[0.05, 0.008, 0],
-                pos=[0, 0, PAD_FACE - 0.008], rgba=[0.15, 0.15, 0.15, 1], **plain)  # fmt: skip
+                pos=[0, 0, max(face - 0.008, 2 * plate + 0.008)], rgba=[0.15, 0.15, 0.15, 1], **plain)  # fmt: skip
     ee.add_geom(name=f"{p}_pad", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[PAD_SPHERE, 0, 0],
-                pos=[0, 0, PAD_FACE - PAD_SPHERE], group=3, rgba=[0.15, 0.15, 0.15, 0.2], **plain)  # fmt: skip
-    ee.add_site(name=f"{p}_pad", pos=[0, 0, PAD_FACE], size=[0.01, 0.01, 0.01])
+                pos=[0, 0, face - PAD_SPHERE], group=3, rgba=[0.15, 0.15, 0.15, 0.2], **plain)  # fmt: skip
+    ee.add_site(name=f"{p}_pad", pos=[0, 0, face], size=[0.01, 0.01, 0.01])
     scene.add_sensor(name=f"{p}_ft_force", type=mujoco.mjtSensor.mjSENS_FORCE,
                      objtype=mujoco.mjtObj.mjOBJ_SITE, objname=f"{p}_ft")  # fmt: skip
     scene.add_sensor(name=f"{p}_ft_torque", type=mujoco.mjtSensor.mjSENS_TORQUE,
@@ -445,7 +447,7 @@ def compose(robot: Robot, *, visual: bool = True) -> Composed:
             body, pos, quat = site.parent, m0.site_pos[sid].copy(), m0.site_quat[sid].copy()
         else:
             body, pos, quat = scene.body(prefix + arm.flange), np.zeros(3), np.array([1.0, 0, 0, 0])
-        _add_end_effector(scene, body, pos, quat, p)
+        _add_end_effector(scene, body, pos, quat, p, robot.end_effector)
         links[a]["tip"] = body.name.removeprefix(prefix)
     for g in scene.geoms:
         g.contype, g.conaffinity = 0, 0

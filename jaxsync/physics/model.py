@@ -223,6 +223,14 @@ def _build_index(m: mujoco.MjModel, mx: mjx.Model, path: str) -> ModelIndex:
     )
 
 
+def _ee_summary(ee: dict | None) -> dict | None:
+    """The end effector in units a reader can check against a datasheet."""
+    if ee is None:
+        return None
+    return {"mass_kg": ee["mass"], "com_m": list(ee["com"]), "inertia_kg_m2": list(ee["inertia"]),
+            "pad_offset_m": ee["pad_offset"]}  # fmt: skip
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class RobotScene:
     """What composing a robot file gave: the robot, its arms and its task.
@@ -253,6 +261,7 @@ class RobotScene:
     servo: dict | None = None  # the robot file's ``servo:`` (jaxsync.physics.robot)
     position_servos: dict | None = None  # per arm, the MJCF's own position servos (jaxsync.physics.compose)
     sensor: dict | None = None  # the robot file's ``sensor:``, the wrist sensors' noise (a task default)
+    end_effector: dict | None = None  # the end effector added at each flange (jaxsync.physics.robot.END_EFFECTOR)
 
     def summary(self) -> dict:
         """What composing the robot file decided, as plain data (no MjSpec)."""
@@ -264,6 +273,7 @@ class RobotScene:
             "joints": {arm: list(v) for arm, v in self.joint_names.items()},
             "torque_limits_Nm": {arm: list(v) for arm, v in self.torque_limits.items()},
             "object": {"mass_kg": self.object_mass, "radius_m": self.object_radius},
+            "end_effector": _ee_summary(self.end_effector),
             "grasp_manipulability": {arm: poses[arm]["manipulability"] for arm in poses},
             "grasp_static_torque_share_max": {arm: max(poses[arm]["static_torque_share"]) for arm in poses},
             "notes": list(self.notes),
@@ -375,6 +385,7 @@ def compose_robot(path: str, visual: bool = True) -> tuple[mujoco.MjModel, Robot
         servo=robot.servo,
         position_servos=composed.position_servos,
         sensor=robot.sensor,
+        end_effector=dict(robot.end_effector),
     )
     return m, scene
 

@@ -36,7 +36,10 @@ armature: [...]}``, each optional, one value per joint: N m s/rad, N m and
 kg m^2 that replace the MJCF's, as ``jaxsync calibrate --fit`` writes them)
 and ``sensor`` (``{force_noise: N, torque_noise: N m}``, each optional: the
 wrist sensors' white noise, the task's in place of 0.1 N and 0.005 N m, as
-``jaxsync calibrate --wrench-topics`` writes it).
+``jaxsync calibrate --wrench-topics`` writes it) and ``end_effector``
+(``{mass: kg, com: [x, y, z], inertia: [ixx, iyy, izz], pad_offset: m}``,
+each optional, in the flange's frame: the sensor plate and pad jaxsync adds
+at each flange, :data:`END_EFFECTOR` where unstated).
 
 :func:`load_robot` validates everything it can without compiling the MJCF
 (the composer, ``jaxsync.physics.compose``, checks the rest against the
@@ -68,6 +71,7 @@ _TOP_KEYS = {
     "delay",
     "joint_dynamics",
     "sensor",
+    "end_effector",
 }
 # joint_dynamics: each field's unit and the MJCF joint attribute it replaces
 JOINT_DYNAMICS = {"damping": "N m s/rad", "frictionloss": "N m", "armature": "kg m^2"}
@@ -77,6 +81,10 @@ STRUCTURE_KEYS = ("weight_compensation", "velocity_feedforward")
 _ARM_KEYS = {"model", "base", "joints", "flange", "torque_limits", "actuators", "ros_prefix"}
 _ROS_PREFIX = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 _OBJECT_KEYS = {"position", "radius", "mass"}
+END_EFFECTOR = {"mass": 0.3, "com": (0.0, 0.0, 0.02), "inertia": (3e-4, 3e-4, 4e-4), "pad_offset": 0.036}
+"""The end effector jaxsync adds at each flange unless the robot file says otherwise (``end_effector``):
+mass (kg), centre of mass (m, flange frame), principal inertia about it (kg m^2, flange axes) and the pad
+face's distance from the flange along its +z (m): an F/T sensor's plate and a pad."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +122,8 @@ class Robot:
     delay: tuple[int, float] | None = None  # (control periods, at control_rate Hz)
     joint_dynamics: dict | None = None  # {"right": {"damping": (n,), ...}, "left": {...}}, fields optional
     sensor: dict | None = None  # {"force_noise": N, "torque_noise": N m}, each optional
+    # {"mass": kg, "com": (3,) m, "inertia": (3,) kg m^2, "pad_offset": m}: END_EFFECTOR with the file's keys
+    end_effector: dict = dataclasses.field(default_factory=lambda: dict(END_EFFECTOR))
 
     @property
     def arms(self) -> tuple[ArmSpec, ArmSpec]:
@@ -286,10 +296,44 @@ def load_robot(path: str | os.PathLike) -> Robot:
     delay = _delay(doc["delay"], path) if "delay" in doc else None
     dynamics = _joint_dynamics(doc["joint_dynamics"], (right, left), path) if "joint_dynamics" in doc else None
     sensor = _sensor(doc["sensor"], path) if "sensor" in doc else None
+    ee = _end_effector(doc["end_effector"], path) if "end_effector" in doc else dict(END_EFFECTOR)
     return Robot(
         name, os.path.abspath(path), right, left, position, values["radius"], values["mass"], model, axis, stand,
-        servo, delay, dynamics, sensor,
+        servo, delay, dynamics, sensor, ee,
     )  # fmt: skip
+
+
+def _end_effector(doc, path: str) -> dict:
+    """``end_effector``: {mass, com, inertia, pad_offset}, each optional (END_EFFECTOR's value where absent)."""
+    form = "{mass: kg, com: [x, y, z] m, inertia: [ixx, iyy, izz] kg m^2, pad_offset: m}"
+    if not isinstance(doc, dict) or not doc:
+        raise ConfigError(f"{_where(path, 'end_effector')} must be {form}, each key optional, got {doc!r}")
+    _unknown(doc, set(END_EFFECTOR), path, "end_effector")
+    out = dict(END_EFFECTOR)
+    for key, (lo, hi, unit) in {"mass": (0.01, 20.0, "kg"), "pad_offset": (0.005, 0.5, "m")}.items():
+        if key in doc:
+            v = doc[key]
+            if isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi:
+                where = _where(path, "end_effector." + key)
+                raise ConfigError(f"{where} must be a number in [{lo}, {hi}] {unit}, got {v!r}")
+            out[key] = float(v)
+    if "com" in doc:
+        com = _numbers(doc["com"], 3, path, "end_effector.com", "m, in the flange's frame")
+        if np.linalg.norm(com) > 0.5:
+            where = _where(path, "end_effector.com")
+            raise ConfigError(f"{where} must lie within 0.5 m of the flange, got {list(com)}")
+        out["com"] = tuple(com)
+    if "inertia" in doc:
+        what = "kg m^2, principal moments about the centre of mass"
+        i = _numbers(doc["inertia"], 3, path, "end_effector.inertia", what)
+        a, b, c = sorted(i)
+        if a <= 0 or a + b < c:
+            raise ConfigError(
+                f"{_where(path, 'end_effector.inertia')} must be three positive principal moments, each at most "
+                f"the sum of the other two (a rigid body's), got {list(i)}"
+            )
+        out["inertia"] = tuple(i)
+    return out
 
 
 def _sensor(doc, path: str) -> dict:
