@@ -33,6 +33,7 @@ import jaxsync
 from jaxsync.control.gains import default_gains
 from jaxsync.optimize.tuning import pipeline
 from jaxsync.optimize.tuning.config import TuneConfig
+from jaxsync.optimize.tuning.cost import parse_weights
 from jaxsync.runtime.cache import enable_compilation_cache
 from jaxsync.runtime.xla import set_xla_flags
 
@@ -55,13 +56,13 @@ def _start(args):
 
 def run(args) -> None:
     model, base = _start(args)
-    cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol)
+    cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol, weights=parse_weights(args.weight))
     first = os.path.join(args.out, args.start)
     if not os.path.exists(os.path.join(first, "summary.json")):
         pipeline.tune_and_evaluate(model, base, cfg, out=first, restart=True, mujoco_check=False)
     stopped = _summary(first)
     longer = first + "_longer"
-    if not os.path.exists(os.path.join(longer, "summary.json")):
+    if args.extend > 0 and not os.path.exists(os.path.join(longer, "summary.json")):
         shutil.rmtree(longer, ignore_errors=True)
         shutil.copytree(first, longer, ignore=shutil.ignore_patterns(".jaxsync.lock", "summary.json"))
         n = stopped["convergence"]["iterations"] + args.extend
@@ -132,6 +133,7 @@ def main(argv=None) -> int:
     r.add_argument("--plateau-tol", type=float, default=0.02, help="the first run's plateau (0.02; 0: L-BFGS's own)")
     r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")
     r.add_argument("--out", default="results/convergence")
+    r.add_argument("--weight", action="append", metavar="NAME=VALUE", help="a cost weight, as jaxsync tune's")
     e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
     e.add_argument("--start", choices=["default", "perturbed"], required=True)
     e.add_argument("--perturb", type=float, default=1e-6)

@@ -100,10 +100,12 @@ def record(
     timestep: float = 2.5e-4,
     integrator: str = "RK4",
     structure: str = "feedforward",
+    efforts: bool = False,
 ):
     """The arms of ``m0`` (contacts off, its own actuators off) following ``cmds`` through the servo
     above. ``kp``, ``kv``, ``limit``: (n,) in the order of :func:`arm_joints`. Returns (times, q, dq)
-    sampled at the command times (after the first)."""
+    sampled at the command times (after the first), and with ``efforts`` each sample's joint torques:
+    the servo's at that state, under the command acting from then on (what a joint's effort reads)."""
     w, f = STRUCTURES[structure]
     m = copy.deepcopy(m0)
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_ACTUATION)
@@ -113,8 +115,10 @@ def record(
         mujoco.mj_forward(m, d)  # the bias forces at this state
         tau = kp * (cmd - d.qpos[qadr]) + kv * (f * vel - d.qvel[dadr]) + w * d.qfrc_bias[dadr]
         d.qfrc_applied[dadr] = np.clip(tau, -limit, limit)
+        return d.qfrc_applied[dadr].copy()
 
-    return _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=True)
+    out = _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=True, efforts=efforts)
+    return out if efforts else out[:3]
 
 
 def record_actuators(
@@ -166,10 +170,11 @@ def record_actuators(
     return _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=False)
 
 
-def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step: bool):
+def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step: bool, efforts=False):
     """``m`` (contacts off) from ``q0_full`` with the arms at the first command, each command acting
     ``delay`` periods after its stamp; ``servo(d, command, its velocity)`` before every physics step
-    (``per_step``) or once per command period. Returns (times, q, dq) at the command times after the first."""
+    (``per_step``) or once per command period. Returns (times, q, dq) at the command times after the first,
+    and with ``efforts`` the torques ``servo`` returns at each of them under the next command."""
     m.opt.timestep = timestep
     m.opt.integrator = int(getattr(mujoco.mjtIntegrator, f"mjINT_{integrator.upper()}"))
     m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
@@ -180,7 +185,7 @@ def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, p
     mujoco.mj_forward(m, d)
     period = float(command_times[1] - command_times[0])
     per = int(round(period / timestep))
-    out_q, out_dq = [], []
+    out_q, out_dq, out_tau = [], [], []
     for i in range(1, len(command_times)):
         k = max(0, i - 1 - delay)  # the command acting during (t_{i-1}, t_i]
         vel = (cmds[k] - cmds[max(0, k - 1)]) / period
@@ -190,6 +195,11 @@ def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, p
             mujoco.mj_step(m, d)
         out_q.append(d.qpos[qadr].copy())
         out_dq.append(d.qvel[dadr].copy())
+        if efforts:
+            k = max(0, i - delay)  # the command acting from t_i on
+            out_tau.append(servo(d, cmds[k], (cmds[k] - cmds[max(0, k - 1)]) / period))
+    if efforts:
+        return command_times[1:], np.array(out_q), np.array(out_dq), np.array(out_tau)
     return command_times[1:], np.array(out_q), np.array(out_dq)
 
 

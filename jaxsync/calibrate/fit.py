@@ -30,6 +30,7 @@ import mujoco
 import numpy as np
 
 from jaxsync._errors import ConfigError
+from jaxsync.calibrate import efforts as _efforts
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
 from jaxsync.calibrate.windows import halved as _halved
@@ -83,6 +84,7 @@ class Calibration:
     problems: tuple[str, ...] = ()  # why the result cannot be trusted (none: it can)
     structure: str = "feedforward"  # the servo structure fitted (jaxsync.physics.servo.STRUCTURES)
     structure_costs: dict = dataclasses.field(default_factory=dict)  # structure -> held-out cost
+    efforts: object = None  # the servo the recording's joint efforts say (efforts.EffortFit), where it has them
 
     @property
     def structure_margin(self) -> float | None:
@@ -383,6 +385,10 @@ def calibrate(
         windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q), structure=chosen,
         structure_costs=held_costs,
     )  # fmt: skip
+    if rec.effort is not None:  # a second reading of the arm, from its torques: it must agree
+        cal.efforts = _efforts.fit_efforts(model, rec, delays, names)
+        say(f"joint efforts: the {cal.efforts.structure} servo at delay {cal.efforts.delay} "
+            f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
     cal.problems = tuple(problems(cal, list(delays), pd))
     return cal, prob, pd0, pd, result
 
@@ -399,7 +405,8 @@ def noise_floor(q: np.ndarray) -> np.ndarray:
 def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     """Why ``cal`` cannot be trusted, one phrase each (none: it can): a delay at the end of the scan or
     another delay explaining the recording nearly as well, a gain on its bound, a residual over
-    ``NOISE_MULTIPLE`` times the recording's noise, a gain the recording does not determine."""
+    ``NOISE_MULTIPLE`` times the recording's noise, a gain the recording does not determine, and where the
+    recording has joint efforts, a delay, structure or gain they contradict."""
     out = []
     if len(delays) > 1 and cal.delay == max(delays) and max(cal.delay_costs) == cal.delay:
         out.append(f"the delay found, {cal.delay} periods, is the last one scanned: the arm may lag more "
@@ -438,6 +445,8 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
             width = f"+-{r:.0%}" if np.isfinite(r) else "no interval"
             out.append(f"the recording does not determine the {field} of {len(loose)} joint(s) to {share:.0%} "
                        f"(worst {j}: {width})")  # fmt: skip
+    if getattr(cal, "efforts", None) is not None:
+        out.extend(_efforts.disagreements(cal.efforts, cal, DETERMINED))
     return out
 
 

@@ -203,6 +203,8 @@ def calibrate_job(
             "noise_rad": {name: float(v) for name, v in zip(cal.joints, cal.noise, strict=True)},
             "problems": list(cal.problems),
         }
+        if cal.efforts is not None:
+            summary["efforts"] = cal.efforts.to_dict(cal.joints)
         if noise is not None:
             summary["sensor"] = {"topics": list(wrench_topics), **noise.to_dict()}
         (tmp / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))

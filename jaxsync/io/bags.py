@@ -55,6 +55,7 @@ class Recording:
     commands: np.ndarray  # (C, J) rad
     source: str = ""
     wrenches: tuple = ()  # per wrist sensor asked for: (times (W,), values (W, 6) [force N, torque N m])
+    effort: np.ndarray | None = None  # (S, J) N m, the joints' torques where every state carries them
 
     @property
     def duration(self) -> float:
@@ -81,7 +82,7 @@ def _header(t: float, store):
     return store.types["std_msgs/msg/Header"](stamp=_stamp(t, store), frame_id="")
 
 
-def joint_state(t: float, names, q, dq=None, store=None):
+def joint_state(t: float, names, q, dq=None, store=None, effort=None):
     store = store or _typestore()
     empty = np.zeros(0)
     return store.types[JOINT_STATE](
@@ -89,7 +90,7 @@ def joint_state(t: float, names, q, dq=None, store=None):
         name=list(names),
         position=np.asarray(q, float),
         velocity=np.asarray(dq, float) if dq is not None else empty,
-        effort=empty,
+        effort=np.asarray(effort, float) if effort is not None else empty,
     )
 
 
@@ -176,7 +177,9 @@ def write_recording(
     msgs = []
     for i, t in enumerate(rec.state_times):
         dq = rec.dq[i, cols] if rec.dq is not None else None
-        msgs.append((state_topic, JOINT_STATE, start + t, joint_state(start + t, order, rec.q[i, cols], dq, store)))
+        tau = rec.effort[i, cols] if rec.effort is not None else None
+        state = joint_state(start + t, order, rec.q[i, cols], dq, store, tau)
+        msgs.append((state_topic, JOINT_STATE, start + t, state))
     half = len(rec.joints) // 2
     if isinstance(command_topic, str):
         streams = [(command_topic, slice(None), 0.0)]
@@ -287,7 +290,7 @@ def read_recording(
         reader.close()
     if not states:
         raise RecordingError(f"{path}: topic {state_topic} holds no messages", inputs=("state_topic",))
-    t_s, q, dq = _states(states, joints, state_topic)
+    t_s, q, dq, effort = _states(states, joints, state_topic)
     if len(command_topics) == 1:
         t_c, cmd = _commands(commands[command_topic], joints, tuple(command_joints or joints), command_topic)
         t0 = min(t_s[0], t_c[0])  # integer nanoseconds until here: seconds since the epoch lose them in a double
@@ -312,7 +315,7 @@ def read_recording(
         t_w = (np.array([t for t, _ in wrenches[topic]], dtype=np.int64) - t0) * 1e-9
         _times_ok(t_w, topic, min_samples)
         sensed.append((t_w, np.array([w for _, w in wrenches[topic]], float)))
-    return Recording(joints, t_s, q, dq, t_c, cmd, str(path), tuple(sensed))
+    return Recording(joints, t_s, q, dq, t_c, cmd, str(path), tuple(sensed), effort)
 
 
 def _paired(arms, topics):
@@ -356,7 +359,8 @@ def _states(states, joints, topic):
         )
     times = np.zeros(len(states), dtype=np.int64)
     q, dq = np.zeros((len(states), len(joints))), np.zeros((len(states), len(joints)))
-    has_vel = True
+    effort = np.zeros_like(q)
+    has_vel = has_effort = True
     for i, (t_bag, msg) in enumerate(states):
         order = list(msg.name)
         try:
@@ -373,7 +377,11 @@ def _states(states, joints, topic):
             dq[i] = np.asarray(msg.velocity)[cols]
         else:
             has_vel = False
-    return times, q, (dq if has_vel else None)
+        if len(msg.effort) == len(order):
+            effort[i] = np.asarray(msg.effort)[cols]
+        else:
+            has_effort = False
+    return times, q, (dq if has_vel else None), (effort if has_effort else None)
 
 
 def _commands(commands, joints, command_joints, topic):

@@ -1,0 +1,100 @@
+"""The servo read from recorded joint efforts, on recordings jaxsync's model did not make.
+
+The recordings come from ``independent_servo`` (MuJoCo C, the servo law
+written from its definition, RK4 at 0.25 ms) on a robot with the FR3's joint
+torque limits, friction loss and armature; the servo gains are moved from
+the robot file's, the positions, velocities and efforts carry noise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import independent_servo as ind
+import numpy as np
+import pytest
+
+from jaxsync.calibrate import efforts, replay
+from jaxsync.io import bags
+from jaxsync.physics.model import load_model
+
+PERIOD, DURATION = 0.002, 4.0
+NOISE_Q, NOISE_DQ, NOISE_TAU = 1e-4, 2e-3, 0.05
+CASES = [("feedforward", 1), ("weight_compensated", 3), ("as_written", 0)]
+
+
+@pytest.fixture(scope="module")
+def limited(tmp_path_factory):
+    return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"))), visual=False)
+
+
+def _recording(limited, structure, delay, speed=0.5, seed=0):
+    r = replay.Replay(limited)
+    q0 = np.asarray(limited.keyframe_qpos("grasp"))
+    qadr, _ = ind.arm_joints(limited.mj_model)
+    ct, cmds = ind.commands(q0[qadr], PERIOD, DURATION, speed=speed, seed=seed)
+    rng = np.random.default_rng(seed + 10)
+    nominal = r.nominal()
+    kp = nominal.stiffness * rng.uniform(0.6, 1.5, nominal.stiffness.shape)
+    kv = nominal.damping * rng.uniform(0.6, 1.5, nominal.damping.shape)
+    lim = np.tile(ind.FR3_LIMITS, 2)
+    t, q, dq, tau = ind.record(limited.mj_model, q0, kp, kv, lim, ct, cmds, delay, structure=structure, efforts=True)
+    q, dq = ind.noisy(q, dq, NOISE_Q, NOISE_DQ, seed=seed + 20)
+    tau = tau + NOISE_TAU * np.random.default_rng(seed + 30).standard_normal(tau.shape)
+    joints = tuple(f"j{k}" for k in range(q.shape[1]))
+    rec = bags.Recording(joints, t, q, dq, ct, cmds, effort=tau)
+    return rec, kp, kv, tau, lim
+
+
+@pytest.mark.parametrize("structure,delay", CASES)
+def test_the_efforts_give_the_structure_the_delay_and_the_gains(limited, structure, delay):
+    rec, kp, kv, tau, lim = _recording(limited, structure, delay)
+    ef = efforts.fit_efforts(limited, rec, delays=range(0, 5))
+    assert (ef.structure, ef.delay) == (structure, delay), ef.costs
+    k_err, b_err = np.abs(ef.stiffness / kp - 1), np.abs(ef.damping / kv - 1)
+    assert k_err.max() < 0.10 and b_err.max() < 0.20, (np.round(k_err, 3), np.round(b_err, 3))
+    # told apart by far: the next structure and delay explain the efforts much worse
+    assert ef.margin("structure") > 0.5 and ef.margin("delay") > 0.5
+    assert np.array_equal(ef.saturated > 0, (np.abs(tau) >= efforts.SATURATED * lim).any(axis=0))
+
+
+def test_samples_at_the_torque_limit_are_left_out_and_counted(limited):
+    """A fast as-written recording drives the FR3's 12 N m wrists into their limit: those samples,
+    where the gains do not act, are counted and left out, and the gains still come out right."""
+    rec, kp, kv, tau, lim = _recording(limited, "as_written", 2, speed=1.5, seed=3)
+    ef = efforts.fit_efforts(limited, rec, delays=range(0, 5))
+    assert ef.saturated.max() > 0.02
+    assert (ef.structure, ef.delay) == ("as_written", 2)
+    unsaturated = ef.saturated < 0.5
+    assert np.abs(ef.stiffness / kp - 1)[unsaturated].max() < 0.10
+    # the clipped samples kept in, the least squares would be wrong: the counting is what saves it
+    keep = dataclasses.replace(rec, effort=np.clip(rec.effort, -0.9 * lim, 0.9 * lim))
+    clipped = efforts.fit_efforts(limited, keep, delays=[2], structures=["as_written"])
+    assert np.abs(clipped.stiffness / kp - 1).max() > 0.10
+
+
+def test_a_calibration_the_efforts_contradict_is_named():
+    """The motion's fit and the efforts' reading compared: another delay or structure, or a gain off by
+    more than its share, is a phrase naming it; agreement says nothing."""
+    n = 4
+    ef = efforts.EffortFit("feedforward", 2, np.full(n, 100.0), np.full(n, 10.0), np.zeros(n), np.zeros(n), {})
+    fitted = replay.Joints(np.full(n, 100.0), np.full(n, 10.0), np.zeros(n), np.zeros(n), np.zeros(n))
+    cal = type("Cal", (), {"delay": 2, "structure": "feedforward", "fitted": fitted, "joints": ("a", "b", "c", "d")})
+    shares = {"stiffness": 0.10, "damping": 0.20}
+    assert efforts.disagreements(ef, cal, shares) == []
+    cal.fitted = fitted.replace(stiffness=[100.0, 100.0, 100.0, 70.0])
+    (said,) = efforts.disagreements(ef, cal, shares)
+    assert "stiffness of 1 joint(s)" in said and "worst d: 100 against 70" in said
+    cal.delay = 1
+    assert "at delay 2, the motion the feedforward one at delay 1" in efforts.disagreements(ef, cal, shares)[0]
+
+
+def test_efforts_read_back_from_a_bag(limited, tmp_path):
+    rec, *_ = _recording(limited, "feedforward", 1)
+    short = dataclasses.replace(rec, state_times=rec.state_times[:600], q=rec.q[:600], dq=rec.dq[:600],
+                                effort=rec.effort[:600])  # fmt: skip
+    path = bags.write_recording(tmp_path / "bag", short)
+    back = bags.read_recording(path, short.joints, min_samples=100)
+    np.testing.assert_array_equal(back.effort, short.effort)
+    no_effort = bags.write_recording(tmp_path / "plain", dataclasses.replace(short, effort=None))
+    assert bags.read_recording(no_effort, short.joints, min_samples=100).effort is None
