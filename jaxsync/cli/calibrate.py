@@ -53,6 +53,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name:<22}{cal.nominal.stiffness[k]:>9.4g} -> {cal.fitted.stiffness[k]:<8.5g} +-{ks[k]:<7.2g}"
               f"{cal.nominal.damping[k]:>8.4g} -> {cal.fitted.damping[k]:<7.4g} +-{bs[k]:<6.2g}"
               f"{cal.rms_before[k] * 1e3:>9.3f} -> {cal.rms_after[k] * 1e3:.3f}")  # fmt: skip
+    ef = cal.efforts
+    if ef is not None:
+        worst = float(ef.saturated.max())
+        limit = f"; up to {worst:.0%} of a joint's samples at its torque limit (left out)" if worst else ""
+        print(f"joint efforts: the {ef.structure} servo at delay {ef.delay}; stiffness "
+              f"{', '.join(f'{v:.4g}' for v in ef.stiffness)} N m/rad, damping "
+              f"{', '.join(f'{v:.4g}' for v in ef.damping)} N m s/rad{limit}")  # fmt: skip
     if out["noise"] is not None:
         print(f"wrist sensors' noise while still: {out['noise'].force_noise:.4g} N, {out['noise'].torque_noise:.4g} "
               f"N m ({out['noise'].still_s:.1f} s still)")  # fmt: skip
