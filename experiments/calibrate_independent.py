@@ -46,22 +46,31 @@ def case(
     verbose: bool = False,
     timestep: float | None = None,
     generator: str = "actuators",
+    noise_tau: float | None = None,
+    amplitude: float | None = None,
+    speed: float | None = None,
 ):
     nominal = Replay(model).nominal()
     rng = np.random.default_rng(seed)
     n = len(nominal.stiffness)
     kp = nominal.stiffness * rng.uniform(0.75, 1.25, n)
     kv = nominal.damping * rng.uniform(0.75, 1.25, n)
-    ex = excite.excitation(model, duration=duration)
+    shape = {k: v for k, v in (("amplitude", amplitude), ("speed", speed)) if v is not None}
+    ex = excite.excitation(model, duration=duration, **shape)
     q0 = np.asarray(model.keyframe_qpos("grasp"))
     lim = np.tile(ind.FR3_LIMITS, 2)
+    eff = noise_tau is not None
     if generator == "actuators":
-        t, q, dq = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,
-                                        structure=structure)  # fmt: skip
+        out = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,
+                                   structure=structure, efforts=eff)  # fmt: skip
     else:
-        t, q, dq = ind.record(model.mj_model, q0, kp, kv, lim, ex.times, ex.commands, delay, structure=structure)
+        out = ind.record(model.mj_model, q0, kp, kv, lim, ex.times, ex.commands, delay, structure=structure,
+                         efforts=eff)  # fmt: skip
+    t, q, dq = out[:3]
     q, dq = ind.noisy(q, dq, noise_q, noise_dq, seed + 1)
-    rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}")
+    tau = out[3] + noise_tau * np.random.default_rng(seed + 2).standard_normal(out[3].shape) if eff else None
+    rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}",
+                    effort=tau)  # fmt: skip
     start = time.perf_counter()
     cal = calibrate(model, rec, timestep=timestep)[0]
     seconds = time.perf_counter() - start
@@ -90,7 +99,18 @@ def case(
         "poor": len(cal.poor),
         "refused": "; ".join(cal.problems) or "no",
         "rms_after_max_mrad": float(1e3 * cal.rms_after.max()),
+        "gains_from_efforts": len(cal.from_efforts),
         "seconds": seconds,
+        **(
+            {
+                "efforts": f"{cal.efforts.structure} at delay {cal.efforts.delay}",
+                "efforts_stiffness_err_max": float(np.abs(cal.efforts.stiffness / kp - 1).max()),
+                "efforts_damping_err_max": float(np.abs(cal.efforts.damping / kv - 1).max()),
+                "saturated_max": float(cal.efforts.saturated.max()),
+            }
+            if cal.efforts is not None
+            else {}
+        ),
     }
 
 
@@ -102,6 +122,10 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--noise-q", type=float, default=1e-4)
     p.add_argument("--noise-dq", type=float, default=5e-3)
+    p.add_argument("--noise-tau", type=float, default=None,
+                   help="record the joints' efforts with this noise, N m (default: no efforts)")  # fmt: skip
+    p.add_argument("--amplitude", type=float, default=None, help="the excitation's amplitude, rad (excite's)")
+    p.add_argument("--speed", type=float, default=None, help="the excitation's speed cap, rad/s (excite's)")
     p.add_argument("--verbose", action="store_true", help="every joint's errors")
     p.add_argument("--timestep", type=float, default=None, help="the fit's replay step, s (default: calibrate's)")
     p.add_argument(
@@ -125,6 +149,9 @@ def main() -> None:
                 args.verbose,
                 args.timestep,
                 args.generator,
+                args.noise_tau,
+                args.amplitude,
+                args.speed,
             )
             print(" | ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()), flush=True)
 

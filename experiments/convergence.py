@@ -56,7 +56,8 @@ def _start(args):
 
 def run(args) -> None:
     model, base = _start(args)
-    cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol, weights=parse_weights(args.weight))
+    cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol, weights=parse_weights(args.weight),
+                     seed=args.seed)  # fmt: skip
     first = os.path.join(args.out, args.start)
     if not os.path.exists(os.path.join(first, "summary.json")):
         pipeline.tune_and_evaluate(model, base, cfg, out=first, restart=True, mujoco_check=False)
@@ -134,6 +135,7 @@ def main(argv=None) -> int:
     r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")
     r.add_argument("--out", default="results/convergence")
     r.add_argument("--weight", action="append", metavar="NAME=VALUE", help="a cost weight, as jaxsync tune's")
+    r.add_argument("--seed", type=int, default=0, help="the training seed (0)")
     e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
     e.add_argument("--start", choices=["default", "perturbed"], required=True)
     e.add_argument("--perturb", type=float, default=1e-6)

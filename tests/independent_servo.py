@@ -133,13 +133,15 @@ def record_actuators(
     timestep: float = 2.5e-4,
     integrator: str = "implicitfast",
     structure: str = "feedforward",
+    efforts: bool = False,
 ):
     """The same servo as MuJoCo's own actuators on the scene ``spec`` (its actuators replaced): per arm
     joint a ``<position>`` actuator (kp, kv: the damping on the joint's velocity, integrated implicitly
     under implicitfast), a motor carrying kv dq_cmd (feed-forward), and MuJoCo's gravity compensation
     through the actuators (``gravcomp``, ``actuatorgravcomp``: gravity only, not Coriolis). The joints'
     ``actuatorfrcrange`` clips the sum, which is the servo's torque. Returns (times, q, dq) as
-    :func:`record`, in the order of :func:`arm_joints`."""
+    :func:`record`, in the order of :func:`arm_joints`, and with ``efforts`` each sample's joint torques
+    (MuJoCo's ``qfrc_actuator`` under the command acting from then on)."""
     w, f = STRUCTURES[structure]
     spec = spec.copy()
     for act in list(spec.actuators):
@@ -163,11 +165,18 @@ def record_actuators(
     servo_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"servo {n}") for n in names])
     ff_ids = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"ff {n}") for n in names])
 
+    _, dadr = arm_joints(m)
+
     def servo(d, cmd, vel):
         d.ctrl[servo_ids] = cmd
         d.ctrl[ff_ids] = f * kv * vel
+        if efforts:
+            mujoco.mj_forward(m, d)
+            return d.qfrc_actuator[dadr].copy()
+        return None
 
-    return _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=False)
+    out = _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step=False, efforts=efforts)
+    return out if efforts else out[:3]
 
 
 def _play(m, q0_full, command_times, cmds, delay, timestep, integrator, servo, per_step: bool, efforts=False):

@@ -74,19 +74,37 @@ def test_samples_at_the_torque_limit_are_left_out_and_counted(limited):
 
 
 def test_a_calibration_the_efforts_contradict_is_named():
-    """The motion's fit and the efforts' reading compared: another delay or structure, or a gain off by
-    more than its share, is a phrase naming it; agreement says nothing."""
+    """The motion's fit and the efforts' reading compared where both fix a gain: another delay or
+    structure, a gain off by more than its share, or efforts that do not tell the delays apart are each
+    a phrase naming it; agreement, or a gain only one reading fixes, says nothing."""
     n = 4
-    ef = efforts.EffortFit("feedforward", 2, np.full(n, 100.0), np.full(n, 10.0), np.zeros(n), np.zeros(n), {})
+    costs = {("feedforward", 2): 1.0, ("feedforward", 1): 3.0, ("as_written", 2): 5.0}
+    half = {"stiffness": np.full(n, 1.0), "damping": np.full(n, 0.5)}
+    ef = efforts.EffortFit("feedforward", 2, np.full(n, 100.0), np.full(n, 10.0), np.zeros(n), np.zeros(n), costs,
+                           half)  # fmt: skip
     fitted = replay.Joints(np.full(n, 100.0), np.full(n, 10.0), np.zeros(n), np.zeros(n), np.zeros(n))
-    cal = type("Cal", (), {"delay": 2, "structure": "feedforward", "fitted": fitted, "joints": ("a", "b", "c", "d")})
+    cal = type("Cal", (), {"delay": 2, "structure": "feedforward", "fitted": fitted, "joints": ("a", "b", "c", "d"),
+                           "intervals": {"stiffness": np.full(n, 1.0), "damping": np.full(n, 0.5)}})  # fmt: skip
     shares = {"stiffness": 0.10, "damping": 0.20}
-    assert efforts.disagreements(ef, cal, shares) == []
+    said = lambda: efforts.problems(ef, cal, shares, range(0, 5), 0.02, 0.05)  # noqa: E731
+    assert said() == []
     cal.fitted = fitted.replace(stiffness=[100.0, 100.0, 100.0, 70.0])
-    (said,) = efforts.disagreements(ef, cal, shares)
-    assert "stiffness of 1 joint(s)" in said and "worst d: 100 against 70" in said
+    (one,) = said()
+    assert "stiffness of 1 joint(s)" in one and "worst d: 100 against 70" in one
+    cal.intervals = {"stiffness": np.array([1.0, 1.0, 1.0, 30.0]), "damping": np.full(n, 0.5)}
+    assert said() == []  # the motion does not fix d's stiffness: nothing to contradict
     cal.delay = 1
-    assert "at delay 2, the motion the feedforward one at delay 1" in efforts.disagreements(ef, cal, shares)[0]
+    assert "at delay 2, the motion the feedforward one at delay 1" in said()[0]
+    cal.delay = 2
+    ef = dataclasses.replace(ef, costs={**costs, ("feedforward", 3): 1.01})
+    assert "another delay explains the joint efforts within 1.0%" in said()[0]
+    assert efforts.determined(ef, shares).all()
+    loose = dataclasses.replace(
+        ef, intervals={"stiffness": np.array([1.0, 20.0, 1.0, 1.0]), "damping": half["damping"]}
+    )
+    assert efforts.determined(loose, shares).tolist() == [True, False, True, True]
+    ef = loose
+    assert any("do not fix the gains of 1 joint(s) (b)" in p for p in said())
 
 
 def test_efforts_read_back_from_a_bag(limited, tmp_path):

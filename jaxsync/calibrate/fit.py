@@ -85,6 +85,7 @@ class Calibration:
     structure: str = "feedforward"  # the servo structure fitted (jaxsync.physics.servo.STRUCTURES)
     structure_costs: dict = dataclasses.field(default_factory=dict)  # structure -> held-out cost
     efforts: object = None  # the servo the recording's joint efforts say (efforts.EffortFit), where it has them
+    from_efforts: tuple = ()  # the joints whose gains come from the efforts (the motion leaves them open)
 
     @property
     def structure_margin(self) -> float | None:
@@ -324,6 +325,14 @@ def calibrate(
                           inputs=("structures",))  # fmt: skip
     say = progress or (lambda text: None)
     start = time.perf_counter()
+    scanned = [int(d) for d in delays]
+    ef = None
+    if rec.effort is not None:
+        # the joints' torques read the delay and the structure directly (a linear fit, every candidate, in
+        # a second): the motion is fitted at theirs, and the gains they fix are checked against it
+        ef = _efforts.fit_efforts(model, rec, scanned, names)
+        delays, names = [ef.delay], [ef.structure]
+        say(f"joint efforts: the {ef.structure} servo at delay {ef.delay} ({time.perf_counter() - start:.1f} s)")
     step = float(model.mj_model.opt.timestep)
     fine_step = timestep or replay_step(model)
     # each structure: the delay scanned (joint by joint, on the model's own step: the delay shows at any
@@ -375,21 +384,32 @@ def calibrate(
     spread = np.abs(halves[0].as_vector() - halves[1].as_vector())
     half = np.fmax(np.nan_to_num(np.asarray(half, float), nan=np.inf), spread) if np.size(half) else spread
     say(f"delay {best}: each half of the windows fitted again ({time.perf_counter() - start:.1f} s)")
+    intervals = prob.intervals_of(pd, np.asarray(half))
+    from_efforts = ()
+    if ef is not None:  # where the motion leaves a joint's gains open and the efforts fix them: theirs
+        fixed = _efforts.determined(ef, DETERMINED)
+        for field, share in DETERMINED.items():
+            value = np.asarray([float(pd[f"{nm} {field}"].value[0]) for nm in prob.names]) * getattr(nominal, field)
+            fixed &= ~(intervals[field] <= share * value)
+        for k in np.flatnonzero(fixed):
+            for field in FACTORS:
+                factor = float(np.clip(getattr(ef, field)[k] / getattr(nominal, field)[k], *FACTOR_BOUNDS))
+                pd[f"{prob.names[k]} {field}"].value[0] = factor
+                intervals[field][k] = ef.intervals[field][k]
+        from_efforts = tuple(prob.names[k] for k in np.flatnonzero(fixed))
+        if from_efforts:
+            say(f"gains of {len(from_efforts)} joint(s) the motion leaves open taken from the efforts")
     before = prob.tracking(pd0)[0]
     after = prob.tracking(pd)[0]
     motion = np.sqrt(np.mean((rec.q - rec.q.mean(axis=0)) ** 2, axis=0))
     cal = Calibration(
         joints=prob.names, delay=best, period=prob.period, fitted=prob.joints_of(pd), nominal=nominal,
-        intervals=prob.intervals_of(pd, np.asarray(half)), rms_before=before, rms_after=after, motion=motion,
+        intervals=intervals, rms_before=before, rms_after=after, motion=motion,
         delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
         windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q), structure=chosen,
-        structure_costs=held_costs,
+        structure_costs=held_costs, efforts=ef, from_efforts=from_efforts,
     )  # fmt: skip
-    if rec.effort is not None:  # a second reading of the arm, from its torques: it must agree
-        cal.efforts = _efforts.fit_efforts(model, rec, delays, names)
-        say(f"joint efforts: the {cal.efforts.structure} servo at delay {cal.efforts.delay} "
-            f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
-    cal.problems = tuple(problems(cal, list(delays), pd))
+    cal.problems = tuple(problems(cal, scanned, pd))
     return cal, prob, pd0, pd, result
 
 
@@ -408,7 +428,10 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     ``NOISE_MULTIPLE`` times the recording's noise, a gain the recording does not determine, and where the
     recording has joint efforts, a delay, structure or gain they contradict."""
     out = []
-    if len(delays) > 1 and cal.delay == max(delays) and max(cal.delay_costs) == cal.delay:
+    ef = getattr(cal, "efforts", None)
+    if ef is not None:  # the efforts chose the delay and the structure: their margins, and their agreement
+        out.extend(_efforts.problems(ef, cal, DETERMINED, delays, DELAY_MARGIN, STRUCTURE_MARGIN))
+    elif len(delays) > 1 and cal.delay == max(delays) and max(cal.delay_costs) == cal.delay:
         out.append(f"the delay found, {cal.delay} periods, is the last one scanned: the arm may lag more "
                    f"(scan further: --delays 0:{cal.delay + 4})")  # fmt: skip
     best = cal.delay_costs[cal.delay]
@@ -445,8 +468,6 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
             width = f"+-{r:.0%}" if np.isfinite(r) else "no interval"
             out.append(f"the recording does not determine the {field} of {len(loose)} joint(s) to {share:.0%} "
                        f"(worst {j}: {width})")  # fmt: skip
-    if getattr(cal, "efforts", None) is not None:
-        out.extend(_efforts.disagreements(cal.efforts, cal, DETERMINED))
     return out
 
 

@@ -205,6 +205,7 @@ def calibrate_job(
         }
         if cal.efforts is not None:
             summary["efforts"] = cal.efforts.to_dict(cal.joints)
+            summary["gains_from_efforts"] = list(cal.from_efforts)
         if noise is not None:
             summary["sensor"] = {"topics": list(wrench_topics), **noise.to_dict()}
         (tmp / "calibration.json").write_text(json.dumps(summary, indent=1, default=float))

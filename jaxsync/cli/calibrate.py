@@ -60,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"joint efforts: the {ef.structure} servo at delay {ef.delay}; stiffness "
               f"{', '.join(f'{v:.4g}' for v in ef.stiffness)} N m/rad, damping "
               f"{', '.join(f'{v:.4g}' for v in ef.damping)} N m s/rad{limit}")  # fmt: skip
+        if cal.from_efforts:
+            print(f"gains from the efforts (the motion leaves them open): {', '.join(cal.from_efforts)}")
     if out["noise"] is not None:
         print(f"wrist sensors' noise while still: {out['noise'].force_noise:.4g} N, {out['noise'].torque_noise:.4g} "
               f"N m ({out['noise'].still_s:.1f} s still)")  # fmt: skip
