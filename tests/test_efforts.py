@@ -55,6 +55,11 @@ def test_the_efforts_give_the_structure_the_delay_and_the_gains(limited, structu
     assert k_err.max() < 0.10 and b_err.max() < 0.20, (np.round(k_err, 3), np.round(b_err, 3))
     # told apart by far: the next structure and delay explain the efforts much worse
     assert ef.margin("structure") > 0.5 and ef.margin("delay") > 0.5
+    # every joint moved well above its noise: the efforts fix nearly every gain, and where they say so
+    # they are right
+    fixed = efforts.determined(ef, {"stiffness": 0.10, "damping": 0.20})
+    assert fixed.sum() >= len(fixed) - 2, ef.intervals
+    assert k_err[fixed].max() < 0.10 and b_err[fixed].max() < 0.20
     assert np.array_equal(ef.saturated > 0, (np.abs(tau) >= efforts.SATURATED * lim).any(axis=0))
 
 
