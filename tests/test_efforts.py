@@ -91,7 +91,7 @@ def test_a_calibration_the_efforts_contradict_is_named():
     cal = type("Cal", (), {"delay": 2, "structure": "feedforward", "fitted": fitted, "joints": ("a", "b", "c", "d"),
                            "intervals": {"stiffness": np.full(n, 1.0), "damping": np.full(n, 0.5)}})  # fmt: skip
     shares = {"stiffness": 0.10, "damping": 0.20}
-    said = lambda: efforts.problems(ef, cal, shares, range(0, 5), 0.02, 0.05)  # noqa: E731
+    said = lambda: efforts.problems(ef, cal, shares, range(0, 5))  # noqa: E731
     assert said() == []
     cal.fitted = fitted.replace(stiffness=[100.0, 100.0, 100.0, 70.0])
     (one,) = said()
@@ -100,9 +100,10 @@ def test_a_calibration_the_efforts_contradict_is_named():
     assert said() == []  # the motion does not fix d's stiffness: nothing to contradict
     cal.delay = 1
     assert "at delay 2, the motion the feedforward one at delay 1" in said()[0]
-    cal.delay = 2
+    # efforts that hardly tell two delays apart do not decide the delay: the motion's stands
     ef = dataclasses.replace(ef, costs={**costs, ("feedforward", 3): 1.01})
-    assert "another delay explains the joint efforts within 1.0%" in said()[0]
+    assert not ef.decisive() and said() == []
+    cal.delay = 2
     assert efforts.determined(ef, shares).all()
     loose = dataclasses.replace(
         ef, intervals={"stiffness": np.array([1.0, 20.0, 1.0, 1.0]), "damping": half["damping"]}

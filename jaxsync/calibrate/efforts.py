@@ -31,6 +31,7 @@ import numpy as np
 from jaxsync.calibrate.replay import Replay
 from jaxsync.physics.servo import STRUCTURES
 
+DECISIVE = 0.3  # the runner-up delay and structure this much worse: the efforts decide them (else the motion)
 SATURATED = 0.98  # a sample with |tau| at this share of the joint's limit or above: at the limit
 MIN_SAMPLES = 50  # unsaturated samples a joint needs for its two gains
 SMOOTH_S = 0.05  # s: both sides of the regression averaged over this window (the servo's law is linear and
@@ -61,12 +62,19 @@ class EffortFit:
             others = [c for (s, d), c in self.costs.items() if s == self.structure and d != self.delay]
         return min(others) / max(best, 1e-300) - 1.0 if others else None
 
+    def decisive(self, margin: float = DECISIVE) -> bool:
+        """Whether every other delay and structure explains the efforts at least ``margin`` worse (a
+        servo with velocity feed-forward nearly trades one period of delay for k P of its damping, so
+        its efforts may not tell the delays apart where its motion does)."""
+        return all(m is None or m >= margin for m in (self.margin("delay"), self.margin("structure")))
+
     def to_dict(self, joints) -> dict:
         return {
             "structure": self.structure,
             "delay_periods": self.delay,
             "structure_margin": self.margin("structure"),
             "delay_margin": self.margin("delay"),
+            "decisive": self.decisive(),
             "joints": {
                 name: {
                     "stiffness_N m/rad": float(self.stiffness[k]),
@@ -196,22 +204,17 @@ def determined(ef: EffortFit, shares: dict) -> np.ndarray:
     return ok
 
 
-def problems(ef: EffortFit, cal, shares: dict, delays, delay_margin: float, structure_margin: float) -> list[str]:
+def problems(ef: EffortFit, cal, shares: dict, delays) -> list[str]:
     """Why the efforts' reading cannot be stood behind, or contradicts ``cal`` (a ``fit.Calibration``),
-    one phrase each: the delay at the end of the scan, another delay or structure explaining the efforts
-    within the margins, another delay or structure than ``cal``'s, joints whose gains the efforts do not
-    fix, or a stiffness or damping both readings determine off by more than its share in ``shares``."""
+    one phrase each: where the efforts are decisive (:meth:`EffortFit.decisive`), their delay at the end
+    of the scan or another delay or structure than ``cal``'s; joints whose gains the efforts do not fix;
+    a stiffness or damping both readings determine off by more than its share in ``shares``."""
     out = []
     delays = [int(d) for d in delays]
-    if len(delays) > 1 and ef.delay == max(delays):
+    if ef.decisive() and len(delays) > 1 and ef.delay == max(delays):
         out.append(f"the joint efforts' delay, {ef.delay} periods, is the last one scanned: the arm may lag more "
                    f"(scan further: --delays 0:{ef.delay + 4})")  # fmt: skip
-    for over, margin in (("delay", delay_margin), ("structure", structure_margin)):
-        m = ef.margin(over)
-        if m is not None and m < margin:
-            out.append(f"another {over} explains the joint efforts within {m:.1%} of the {ef.structure} servo "
-                       f"at delay {ef.delay}")  # fmt: skip
-    if ef.delay != cal.delay or ef.structure != cal.structure:
+    if ef.decisive() and (ef.delay != cal.delay or ef.structure != cal.structure):
         out.append(
             f"the joint efforts say the {ef.structure} servo at delay {ef.delay}, the motion the {cal.structure} "
             f"one at delay {cal.delay}"

@@ -331,8 +331,11 @@ def calibrate(
         # the joints' torques read the delay and the structure directly (a linear fit, every candidate, in
         # a second): the motion is fitted at theirs, and the gains they fix are checked against it
         ef = _efforts.fit_efforts(model, rec, scanned, names)
-        delays, names = [ef.delay], [ef.structure]
-        say(f"joint efforts: the {ef.structure} servo at delay {ef.delay} ({time.perf_counter() - start:.1f} s)")
+        if ef.decisive():
+            delays, names = [ef.delay], [ef.structure]
+        say(f"joint efforts: the {ef.structure} servo at delay {ef.delay}"
+            f"{'' if ef.decisive() else ' (not decisive: the motion decides)'} "
+            f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
     step = float(model.mj_model.opt.timestep)
     fine_step = timestep or replay_step(model)
     # each structure: the delay scanned (joint by joint, on the model's own step: the delay shows at any
@@ -429,9 +432,14 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     recording has joint efforts, a delay, structure or gain they contradict."""
     out = []
     ef = getattr(cal, "efforts", None)
-    if ef is not None:  # the efforts chose the delay and the structure: their margins, and their agreement
-        out.extend(_efforts.problems(ef, cal, DETERMINED, delays, DELAY_MARGIN, STRUCTURE_MARGIN))
-    elif len(delays) > 1 and cal.delay == max(delays) and max(cal.delay_costs) == cal.delay:
+    if ef is not None:  # where the efforts chose the delay and the structure: their checks, and agreement
+        out.extend(_efforts.problems(ef, cal, DETERMINED, delays))
+    if (
+        (ef is None or not ef.decisive())
+        and len(delays) > 1
+        and cal.delay == max(delays)
+        and max(cal.delay_costs) == cal.delay
+    ):
         out.append(f"the delay found, {cal.delay} periods, is the last one scanned: the arm may lag more "
                    f"(scan further: --delays 0:{cal.delay + 4})")  # fmt: skip
     best = cal.delay_costs[cal.delay]
