@@ -43,6 +43,7 @@ from jaxsync.sim.actuation import TORQUE, Stack
 from jaxsync.sim.rollout import make_rollout
 from jaxsync.sim.scenario import default_scenario, min_duration, short_task
 
+SMOOTH_PEAK_N = 0.002  # N: the settled peak's log-sum-exp temperature (a slope of the peak's smooth form)
 METRICS = ("settled_peak_resultant_N", "grip_force_error_rel", "sync_error_rms_m")
 # elasticity per unit k (and per s, s^2 of the command's feed-forward, 0 by default), not per log value
 SIGNED = ("k_rk", "k_lk", "k_rl", "k_ll", "ff_vel", "ff_acc")
@@ -77,7 +78,7 @@ def metrics_function(
     fn = make_rollout(model, controller, duration, remat=True, passes="tree", **kw)
 
     def one(g, s):
-        m = smooth_metrics(fn(g, s), s)
+        m = smooth_metrics(fn(g, s), s, SMOOTH_PEAK_N)
         return jnp.stack([m[k] for k in METRICS])
 
     def f(g, scenarios):
