@@ -50,7 +50,7 @@ class EffortFit:
     rms: np.ndarray  # N m: each joint's residual torque at the chosen structure and delay
     saturated: np.ndarray  # each joint's share of samples at its torque limit
     costs: dict  # (structure, delay) -> sum over joints of the mean square residual, (N m)^2
-    intervals: dict = dataclasses.field(default_factory=dict)  # field -> (2 n,) 95 % half-widths (halves' gap)
+    intervals: dict = dataclasses.field(default_factory=dict)  # field -> (2 n,) half-widths (fit_efforts)
 
     def margin(self, over: str = "structure") -> float | None:
         """How much worse the best other structure (``over="structure"``) or delay ("delay") explains the
@@ -108,8 +108,8 @@ def bias_forces(replay: Replay, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
 def fit_efforts(model, rec, delays=range(0, 5), structures=None) -> EffortFit:
     """Each structure and delay fitted to ``rec.effort`` (a ``jaxsync.io.bags.Recording`` with efforts)
     joint by joint; the one whose least-squares residual is least chosen, its gains by instrumental
-    variables (:func:`_instrumented`) with 95 % half-widths: the larger of the gap between alternate
-    0.5 s blocks of the recording and the gap to least squares."""
+    variables (:func:`_instrumented`) with half-widths: the larger of the gap between alternate 0.5 s
+    blocks of the recording and the gap to least squares (their coverage is not measured)."""
     if rec.effort is None:
         raise ValueError("the recording carries no joint efforts")
     replay = Replay(model)

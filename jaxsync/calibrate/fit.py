@@ -390,10 +390,11 @@ def calibrate(
     intervals = prob.intervals_of(pd, np.asarray(half))
     from_efforts = ()
     if ef is not None:  # where the motion leaves a joint's gains open and the efforts fix them: theirs
-        fixed = _efforts.determined(ef, DETERMINED)
+        motion = np.ones(len(prob.names), bool)  # the joints whose stiffness and damping the motion fixes
         for field, share in DETERMINED.items():
             value = np.asarray([float(pd[f"{nm} {field}"].value[0]) for nm in prob.names]) * getattr(nominal, field)
-            fixed &= ~(intervals[field] <= share * value)
+            motion &= intervals[field] <= share * value
+        fixed = _efforts.determined(ef, DETERMINED) & ~motion
         for k in np.flatnonzero(fixed):
             for field in FACTORS:
                 factor = float(np.clip(getattr(ef, field)[k] / getattr(nominal, field)[k], *FACTOR_BOUNDS))
