@@ -122,3 +122,23 @@ def test_efforts_read_back_from_a_bag(limited, tmp_path):
     np.testing.assert_array_equal(back.effort, short.effort)
     no_effort = bags.write_recording(tmp_path / "plain", dataclasses.replace(short, effort=None))
     assert bags.read_recording(no_effort, short.joints, min_samples=100).effort is None
+
+
+def test_the_efforts_gains_fill_what_the_motion_leaves_open():
+    """A joint whose stiffness or damping the motion leaves open takes both of the efforts' gains (as
+    factors on the robot file's, with their half-widths); a joint the motion fixes keeps its own."""
+    from types import SimpleNamespace
+
+    names, shares = ("a", "b", "c"), {"stiffness": 0.10, "damping": 0.20}
+    pd = {f"{n} {f}": SimpleNamespace(value=np.array([1.0])) for n in names for f in shares}
+    nominal = replay.Joints(np.full(3, 100.0), np.full(3, 10.0), np.zeros(3), np.zeros(3), np.zeros(3))
+    intervals = {"stiffness": np.array([1.0, 1.0, 50.0]), "damping": np.array([0.5, 5.0, 0.5])}
+    half = {"stiffness": np.full(3, 2.0), "damping": np.full(3, 0.4)}
+    ef = efforts.EffortFit("feedforward", 1, np.array([90.0, 120.0, 80.0]), np.array([9.0, 12.0, 8.0]),
+                           np.zeros(3), np.zeros(3), {}, half)  # fmt: skip
+    taken = efforts.take_open_gains(ef, pd, names, nominal, intervals, shares, (0.1, 10.0))
+    assert taken == ("b", "c")
+    assert pd["a stiffness"].value[0] == 1.0 and pd["a damping"].value[0] == 1.0
+    assert pd["b stiffness"].value[0] == pytest.approx(1.2) and pd["b damping"].value[0] == pytest.approx(1.2)
+    assert pd["c stiffness"].value[0] == pytest.approx(0.8)
+    assert intervals["stiffness"].tolist() == [1.0, 2.0, 2.0] and intervals["damping"].tolist() == [0.5, 0.4, 0.4]

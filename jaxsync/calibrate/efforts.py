@@ -204,6 +204,24 @@ def determined(ef: EffortFit, shares: dict) -> np.ndarray:
     return ok
 
 
+def take_open_gains(ef: EffortFit, pd, names, nominal, intervals: dict, shares: dict, bounds) -> tuple:
+    """Where the motion's fit leaves a joint's stiffness or damping open (its half-width in ``intervals``
+    over its share) and the efforts fix both, the efforts' gains into ``pd`` (the toolbox's parameters,
+    factors on ``nominal`` within ``bounds``) and their half-widths into ``intervals``, in place. Returns
+    the names of those joints."""
+    motion = np.ones(len(names), bool)  # the joints whose stiffness and damping the motion fixes
+    for field, share in shares.items():
+        value = np.asarray([float(pd[f"{nm} {field}"].value[0]) for nm in names]) * getattr(nominal, field)
+        motion &= intervals[field] <= share * value
+    fixed = determined(ef, shares) & ~motion
+    for k in np.flatnonzero(fixed):
+        for field in shares:
+            pd[f"{names[k]} {field}"].value[0] = float(np.clip(getattr(ef, field)[k] / getattr(nominal, field)[k],
+                                                               *bounds))  # fmt: skip
+            intervals[field][k] = ef.intervals[field][k]
+    return tuple(names[k] for k in np.flatnonzero(fixed))
+
+
 def problems(ef: EffortFit, cal, shares: dict, delays) -> list[str]:
     """Why the efforts' reading cannot be stood behind, or contradicts ``cal`` (a ``fit.Calibration``),
     one phrase each: where the efforts are decisive (:meth:`EffortFit.decisive`), their delay at the end

@@ -390,17 +390,7 @@ def calibrate(
     intervals = prob.intervals_of(pd, np.asarray(half))
     from_efforts = ()
     if ef is not None:  # where the motion leaves a joint's gains open and the efforts fix them: theirs
-        motion = np.ones(len(prob.names), bool)  # the joints whose stiffness and damping the motion fixes
-        for field, share in DETERMINED.items():
-            value = np.asarray([float(pd[f"{nm} {field}"].value[0]) for nm in prob.names]) * getattr(nominal, field)
-            motion &= intervals[field] <= share * value
-        fixed = _efforts.determined(ef, DETERMINED) & ~motion
-        for k in np.flatnonzero(fixed):
-            for field in FACTORS:
-                factor = float(np.clip(getattr(ef, field)[k] / getattr(nominal, field)[k], *FACTOR_BOUNDS))
-                pd[f"{prob.names[k]} {field}"].value[0] = factor
-                intervals[field][k] = ef.intervals[field][k]
-        from_efforts = tuple(prob.names[k] for k in np.flatnonzero(fixed))
+        from_efforts = _efforts.take_open_gains(ef, pd, prob.names, nominal, intervals, DETERMINED, FACTOR_BOUNDS)
         if from_efforts:
             say(f"gains of {len(from_efforts)} joint(s) the motion leaves open taken from the efforts")
     before = prob.tracking(pd0)[0]
