@@ -16,18 +16,30 @@ jaxsync's position stack assumes by default). A command stamped at t acts ``dela
 its velocity is its difference with the one before over the period. The
 joint's own damping, friction loss and armature stay MuJoCo's.
 
-Also a test robot with joint torque limits and friction loss as published
-arm models carry them: Menagerie's Franka FR3 (``franka_fr3/fr3.xml``):
-actuatorfrcrange +-87 N m on joints 1-4 and +-12 N m on joints 5-7, friction
-loss 1.137 N m on joints 1-4 and 0.763, 0.44, 0.248 N m on joints 5-7,
-armature 0.195 and 0.074 kg m^2, and its servos' kp 4500, 4500, 3500, 3500,
-2000, 2000, 2000 N m/rad with kv a tenth of each, here on the iiwa-like
-test arm's kinematics (the figures only, no model file copied).
+Also two test robots with joint torque limits and friction loss as published
+arm models carry them (the figures only, no model file copied;
+:data:`LIMITED`):
+
+- ``fr3``: Menagerie's Franka FR3 (``franka_fr3/fr3.xml``):
+  actuatorfrcrange +-87 N m on joints 1-4 and +-12 N m on joints 5-7,
+  friction loss 1.137 N m on joints 1-4 and 0.763, 0.44, 0.248 N m on
+  joints 5-7, armature 0.195 and 0.074 kg m^2, and its servos' kp 4500,
+  4500, 3500, 3500, 2000, 2000, 2000 N m/rad with kv a tenth of each, on the
+  iiwa-like test arm's kinematics;
+- ``ur5e``: the UR5e-like test arm with Menagerie's UR5e
+  (``universal_robots_ur5e/ur5e.xml``, commit 1b428b0): the maximum joint
+  torques it cites from Universal Robots, +-150 N m on joints 1-3 and
+  +-28 N m on joints 4-6, as the joints' torque limits; its servos' kp 3500
+  on joints 1-3 and 3000 on joints 4-6; its damping, 200 and 15 N m s/rad
+  (a joint damping there), as the servo's; armature 0.1 kg m^2; and, since
+  that file has none, the friction loss Menagerie's UFactory xArm7
+  (``ufactory_xarm7/xarm7.xml``, commit 4f04d62) gives its joints, 1 N m.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import pathlib
 
 import mujoco
@@ -35,34 +47,70 @@ import numpy as np
 import yaml
 
 ROBOTS = pathlib.Path(__file__).resolve().parent.parent / "mjcf" / "robots"
-FR3_LIMITS = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
-FR3_FRICTIONLOSS = (1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248)
-FR3_ARMATURE = (0.195, 0.195, 0.195, 0.195, 0.074, 0.074, 0.074)
-FR3_KP = (4500.0, 4500.0, 3500.0, 3500.0, 2000.0, 2000.0, 2000.0)
-FR3_KV = tuple(k / 10 for k in FR3_KP)
+
+
+@dataclasses.dataclass(frozen=True)
+class Figures:
+    """A published arm's joint figures, per joint, on one of the shipped test arms."""
+
+    arm: str  # the test arm's MJCF in mjcf/robots
+    pair: str  # the robot file that places it twice
+    joints: tuple[str, ...]
+    limits: tuple[float, ...]  # N m
+    frictionloss: tuple[float, ...]  # N m
+    armature: tuple[float, ...]  # kg m^2
+    kp: tuple[float, ...]  # N m/rad
+    kv: tuple[float, ...]  # N m s/rad
+
+
+_IIWA_JOINTS = tuple(f"joint{k}" for k in range(1, 8))
+_UR5E_JOINTS = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+_FR3_KP = (4500.0, 4500.0, 3500.0, 3500.0, 2000.0, 2000.0, 2000.0)
+LIMITED = {
+    "fr3": Figures(
+        "iiwa14_like_arm.xml", "iiwa14_twice.yaml", _IIWA_JOINTS,
+        limits=(87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0),
+        frictionloss=(1.137, 1.137, 1.137, 1.137, 0.763, 0.44, 0.248),
+        armature=(0.195, 0.195, 0.195, 0.195, 0.074, 0.074, 0.074),
+        kp=_FR3_KP, kv=tuple(k / 10 for k in _FR3_KP),
+    ),
+    "ur5e": Figures(
+        "ur5e_like_arm.xml", "ur5e_twice.yaml", _UR5E_JOINTS,
+        limits=(150.0, 150.0, 150.0, 28.0, 28.0, 28.0),
+        frictionloss=(1.0,) * 6,
+        armature=(0.1,) * 6,
+        kp=(3500.0, 3500.0, 3500.0, 3000.0, 3000.0, 3000.0),
+        kv=(200.0, 200.0, 200.0, 15.0, 15.0, 15.0),
+    ),
+}  # fmt: skip
+FR3 = LIMITED["fr3"]
+FR3_LIMITS, FR3_FRICTIONLOSS, FR3_ARMATURE, FR3_KP, FR3_KV = FR3.limits, FR3.frictionloss, FR3.armature, FR3.kp, FR3.kv
 # (w, f) of the servo law above
 STRUCTURES = {"as_written": (0.0, 0.0), "weight_compensated": (1.0, 0.0), "feedforward": (1.0, 1.0)}
 
 
-def limited_robot(folder: pathlib.Path) -> pathlib.Path:
-    """A robot file (and its arm MJCF) in ``folder``: the iiwa-like arm twice with the FR3's joint torque
-    limits as ``actuatorfrcrange``, friction loss and armature, and its servo gains stated."""
-    spec = mujoco.MjSpec.from_file(str(ROBOTS / "iiwa14_like_arm.xml"))
+def limited_robot(folder: pathlib.Path, figures: str = "fr3") -> pathlib.Path:
+    """A robot file (and its arm MJCF) in ``folder``: a test arm twice with a published arm's joint
+    torque limits (``actuatorfrcrange``), friction loss and armature, and its servo gains stated
+    (``figures``: a key of :data:`LIMITED`)."""
+    fig = LIMITED[figures]
+    spec = mujoco.MjSpec.from_file(str(ROBOTS / fig.arm))
     for act in list(spec.actuators):
         spec.delete(act)  # the servo is stated in the robot file
-    for k, lim in enumerate(FR3_LIMITS, start=1):
-        joint = spec.joint(f"joint{k}")
+    for k, name in enumerate(fig.joints):
+        joint = spec.joint(name)
         joint.actfrclimited = mujoco.mjtLimited.mjLIMITED_TRUE
-        joint.actfrcrange = [-lim, lim]
-        joint.frictionloss = FR3_FRICTIONLOSS[k - 1]
-        joint.armature = FR3_ARMATURE[k - 1]
-    (folder / "limited_arm.xml").write_text(spec.to_xml())
-    doc = yaml.safe_load((ROBOTS / "iiwa14_twice.yaml").read_text())
-    doc["name"] = "limited_pair"
+        joint.actfrcrange = [-fig.limits[k], fig.limits[k]]
+        joint.frictionloss = fig.frictionloss[k]
+        joint.armature = fig.armature[k]
+    (folder / f"limited_{figures}_arm.xml").write_text(spec.to_xml())
+    doc = yaml.safe_load((ROBOTS / fig.pair).read_text())
+    doc["name"] = f"limited_{figures}_pair"
     for arm in doc["arms"].values():
-        arm["model"] = "limited_arm.xml"
-    doc["servo"] = {"stiffness": list(FR3_KP), "damping": list(FR3_KV)}
-    path = folder / "limited_pair.yaml"
+        arm["model"] = f"limited_{figures}_arm.xml"
+        arm.pop("torque_limits", None)  # the MJCF's joints carry them
+    doc["servo"] = {"stiffness": list(fig.kp), "damping": list(fig.kv)}
+    path = folder / f"limited_{figures}_pair.yaml"
     path.write_text(yaml.safe_dump(doc))
     return path
 

@@ -1,9 +1,10 @@
 """The servo read from recorded joint efforts, on recordings jaxsync's model did not make.
 
 The recordings come from ``independent_servo`` (MuJoCo C, the servo law
-written from its definition, RK4 at 0.25 ms) on a robot with the FR3's joint
-torque limits, friction loss and armature; the servo gains are moved from
-the robot file's, the positions, velocities and efforts carry noise.
+written from its definition, RK4 at 0.25 ms) on robots with the FR3's or
+the UR5e's joint torque limits, friction loss and armature; the servo gains
+are moved from the robot file's, the positions, velocities and efforts
+carry noise.
 """
 
 from __future__ import annotations
@@ -28,7 +29,12 @@ def limited(tmp_path_factory):
     return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"))), visual=False)
 
 
-def _recording(limited, structure, delay, speed=0.5, seed=0):
+@pytest.fixture(scope="module")
+def limited_ur5e(tmp_path_factory):
+    return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"), "ur5e")), visual=False)
+
+
+def _recording(limited, structure, delay, speed=0.5, seed=0, figures="fr3"):
     r = replay.Replay(limited)
     q0 = np.asarray(limited.keyframe_qpos("grasp"))
     qadr, _ = ind.arm_joints(limited.mj_model)
@@ -37,7 +43,7 @@ def _recording(limited, structure, delay, speed=0.5, seed=0):
     nominal = r.nominal()
     kp = nominal.stiffness * rng.uniform(0.6, 1.5, nominal.stiffness.shape)
     kv = nominal.damping * rng.uniform(0.6, 1.5, nominal.damping.shape)
-    lim = np.tile(ind.FR3_LIMITS, 2)
+    lim = np.tile(ind.LIMITED[figures].limits, 2)
     t, q, dq, tau = ind.record(limited.mj_model, q0, kp, kv, lim, ct, cmds, delay, structure=structure, efforts=True)
     q, dq = ind.noisy(q, dq, NOISE_Q, NOISE_DQ, seed=seed + 20)
     tau = tau + NOISE_TAU * np.random.default_rng(seed + 30).standard_normal(tau.shape)
@@ -61,6 +67,21 @@ def test_the_efforts_give_the_structure_the_delay_and_the_gains(limited, structu
     assert fixed.sum() >= len(fixed) - 2, ef.intervals
     assert k_err[fixed].max() < 0.10 and b_err[fixed].max() < 0.20
     assert np.array_equal(ef.saturated > 0, (np.abs(tau) >= efforts.SATURATED * lim).any(axis=0))
+
+
+@pytest.mark.parametrize("structure,delay,fixed_at_least", [("as_written", 3, 12), ("feedforward", 0, 6)])
+def test_the_efforts_give_them_on_a_second_robot(limited_ur5e, structure, delay, fixed_at_least):
+    """Six joints, the UR5e's torque limits and servo gains, another friction loss, at 1.2 rad/s
+    (above its shoulders' limit / damping). With feed-forward the servo hardly lags, and some
+    dampings stay open: where the efforts say a gain is fixed, it is right."""
+    rec, kp, kv, tau, lim = _recording(limited_ur5e, structure, delay, speed=1.2, figures="ur5e")
+    ef = efforts.fit_efforts(limited_ur5e, rec, delays=range(0, 5))
+    assert (ef.structure, ef.delay) == (structure, delay), ef.costs
+    assert ef.margin("structure") > 0.5 and ef.margin("delay") > 0.5
+    fixed = efforts.determined(ef, {"stiffness": 0.10, "damping": 0.20})
+    assert fixed.sum() >= fixed_at_least, ef.intervals
+    k_err, b_err = np.abs(ef.stiffness / kp - 1), np.abs(ef.damping / kv - 1)
+    assert k_err[fixed].max() < 0.10 and b_err[fixed].max() < 0.20, (np.round(k_err, 3), np.round(b_err, 3))
 
 
 def test_samples_at_the_torque_limit_are_left_out_and_counted(limited):

@@ -1,10 +1,11 @@
 """A joint torque limit clips the torque the servo would apply, nothing else.
 
 The recordings come from ``independent_servo`` (MuJoCo C, the servo written
-from its definition, another step and integrator): on a robot with joint
-torque limits and friction loss as a published arm has them, the position
-stack's replay with the true parameters reproduces a recording at the
-excitation's speeds to a fraction of a milliradian.
+from its definition, another step and integrator): on two robots with joint
+torque limits and friction loss as published arms have them (the FR3's
+figures and the UR5e's), the position stack's replay with the true
+parameters reproduces a recording at speeds where a clipped feed-forward
+would brake to a fraction of a milliradian.
 """
 
 from __future__ import annotations
@@ -20,41 +21,55 @@ from jaxsync.physics.servo import STRUCTURES
 from jaxsync.sim import actuation as _actuation
 
 PERIOD, DELAY, DURATION = 0.002, 2, 4.0
+# joint speeds (rad/s) above limit / damping on some joint of each robot, where a feed-forward
+# clipped with the servo's torque would brake: the FR3's wrists 12 / 200 = 0.06 rad/s at the
+# excitation's cap; the UR5e's shoulder and elbow 150 / 200 = 0.75 rad/s
+SPEED = {"fr3": 0.5, "ur5e": 1.2}
+
+
+@pytest.fixture(scope="module", params=sorted(ind.LIMITED))
+def limited_robot(tmp_path_factory, request):
+    path = ind.limited_robot(tmp_path_factory.mktemp("limited"), request.param)
+    return request.param, load_model(str(path), visual=False)
 
 
 @pytest.fixture(scope="module")
-def limited(tmp_path_factory):
-    return load_model(str(ind.limited_robot(tmp_path_factory.mktemp("limited"))), visual=False)
+def limited(limited_robot):
+    return limited_robot[1]
 
 
 @pytest.fixture(scope="module", params=sorted(STRUCTURES))
-def fast_recording(limited, request):
-    """Both arms moving at up to 0.5 rad/s (the excitation's speed cap), far above the FR3 wrist's
-    limit / damping = 12 / 200 = 0.06 rad/s, where a clipped feed-forward would brake; recorded
-    in each servo structure and replayed in the same."""
+def fast_recording(limited_robot, request):
+    """Both arms moving faster than limit / damping on some joint, where a clipped feed-forward
+    would brake; recorded in each servo structure and replayed in the same."""
+    figures, limited = limited_robot
     structure = request.param
     r = replay.Replay(limited, structure=STRUCTURES[structure])
     qadr, _ = ind.arm_joints(limited.mj_model)
     assert np.array_equal(qadr, r.pc.qpos_adr)
     q0 = np.asarray(limited.keyframe_qpos("grasp"))
-    ct, cmds = ind.commands(q0[qadr], PERIOD, DURATION, speed=0.5)
+    ct, cmds = ind.commands(q0[qadr], PERIOD, DURATION, speed=SPEED[figures])
     truth = r.nominal()
-    lim = np.tile(ind.FR3_LIMITS, 2)
+    lim = np.tile(ind.LIMITED[figures].limits, 2)
     t, q, dq = ind.record(
         limited.mj_model, q0, truth.stiffness, truth.damping, lim, ct, cmds, DELAY, structure=structure
     )
+    assert (np.abs(dq).max(axis=0) > lim / truth.damping).any()  # the speeds where a clipped feed-forward brakes
     return r, truth, ct, cmds, t, q, dq, structure
 
 
-def test_the_limited_robot_is_what_it_says(limited):
+def test_the_limited_robot_is_what_it_says(limited_robot):
+    figures, limited = limited_robot
+    fig = ind.LIMITED[figures]
     m = limited.mj_model
     _, dofs = ind.arm_joints(m)
     jids = m.dof_jntid[dofs]
     assert m.jnt_actfrclimited[jids].all()
-    assert np.allclose(np.abs(m.jnt_actfrcrange[jids]).max(axis=1), np.tile(ind.FR3_LIMITS, 2))
-    assert np.allclose(m.dof_frictionloss[dofs], np.tile(ind.FR3_FRICTIONLOSS, 2))
+    assert np.allclose(np.abs(m.jnt_actfrcrange[jids]).max(axis=1), np.tile(fig.limits, 2))
+    assert np.allclose(m.dof_frictionloss[dofs], np.tile(fig.frictionloss, 2))
+    assert np.allclose(m.dof_armature[dofs], np.tile(fig.armature, 2))
     pc = _actuation.position_consts(limited)
-    assert np.allclose(pc.stiffness, np.tile(ind.FR3_KP, 2)) and np.allclose(pc.damping, np.tile(ind.FR3_KV, 2))
+    assert np.allclose(pc.stiffness, np.tile(fig.kp, 2)) and np.allclose(pc.damping, np.tile(fig.kv, 2))
 
 
 def test_the_position_stack_opens_the_joints_force_range(limited):
@@ -69,7 +84,6 @@ def test_the_position_stack_opens_the_joints_force_range(limited):
 
 def test_the_replay_reproduces_a_fast_recording_with_torque_limits(fast_recording):
     r, truth, ct, cmds, t, q, dq, _ = fast_recording
-    assert np.abs(dq).max() > 0.4  # the speeds where a clipped feed-forward brakes
     state = r.state(cmds[0], np.zeros(q.shape[1]), 0.0)
     _, qr, _ = r.run(truth, state, int(round(DURATION / r.timestep)), ct, cmds, DELAY, PERIOD)
     every = int(round(PERIOD / r.timestep))
