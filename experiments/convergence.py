@@ -54,7 +54,17 @@ def _start(args):
     return jaxsync.load_model(), base
 
 
+def _forget_curvature() -> None:
+    """L-BFGS as it ran before it carried its curvature pairs to a fresh batch (the comparison's other arm)."""
+    from jaxsync.optimize.tuning import methods
+
+    get = methods.get
+    methods.get = lambda name, **o: get(name, **({"renewal_memory": False} | o) if name == "lbfgs" else o)
+
+
 def run(args) -> None:
+    if args.forget_curvature:
+        _forget_curvature()
     model, base = _start(args)
     cfg = TuneConfig(iterations=args.iterations, plateau_tol=args.plateau_tol, weights=parse_weights(args.weight),
                      seed=args.seed)  # fmt: skip
@@ -136,6 +146,8 @@ def main(argv=None) -> int:
     r.add_argument("--out", default="results/convergence")
     r.add_argument("--weight", action="append", metavar="NAME=VALUE", help="a cost weight, as jaxsync tune's")
     r.add_argument("--seed", type=int, default=0, help="the training seed (0)")
+    r.add_argument("--forget-curvature", action="store_true",
+                   help="each fresh L-BFGS batch starts from steepest descent, not the last batch's curvature")  # fmt: skip
     e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
     e.add_argument("--start", choices=["default", "perturbed"], required=True)
     e.add_argument("--perturb", type=float, default=1e-6)

@@ -984,6 +984,41 @@ def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
     np.testing.assert_allclose(m2.incumbent(state2), centres[0], atol=1e-6)
 
 
+def test_lbfgs_carries_its_curvature_to_a_fresh_batch():
+    """On an ill-conditioned quadratic whose centre moves with the batch, the next batch starts
+    from the last batch's curvature pairs (kept through a checkpoint) and converges there in
+    fewer steps than starting over from steepest descent."""
+    scales = np.array([1.0, 30.0, 900.0])
+    # a minimum no float lands on (the gradient never exactly 0): 0.5 x.Hx - b.x + (x.x)^2 / 100
+    centres = [np.array([0.21, 0.13, -0.37]), np.array([0.53, -0.11, -0.23])]
+    current = {"c": centres[0]}
+
+    def vg(x):
+        b = scales * current["c"]
+        return float(0.5 * x @ (scales * x) - b @ x + (x @ x) ** 2 / 100), scales * x - b + 0.04 * (x @ x) * x
+
+    def renew(k):
+        current["c"] = centres[k]
+
+    def steps_on_second_batch(memory: bool) -> tuple[int, dict]:
+        m = LBFGS(renewals=1, renewal_memory=memory)
+        current["c"] = centres[0]
+        oracle, state, after, first = Oracle(value_and_grad=vg, renew=renew), m.init(np.ones(3)), None, None
+        for i in range(200):
+            state, row = m.step(state, oracle)
+            if row.get("renewed") == 1:
+                state, after, first = m.from_data(m.to_data(state)), i, state
+            if row.get("converged"):
+                np.testing.assert_allclose(vg(m.incumbent(state))[1], 0.0, atol=1e-6)  # on the second batch's minimum
+                return i - after, first
+        raise AssertionError("did not converge")
+
+    kept, renewed = steps_on_second_batch(True)
+    forgotten, renewed_without = steps_on_second_batch(False)
+    assert renewed["s"] and not renewed_without["s"]  # the pairs the fresh batch starts from
+    assert kept < forgotten, (kept, forgotten)
+
+
 def test_lbfgs_tunes_on_the_shared_program_and_checkpoints_its_state(model, tuning_program, tmp_path):
     """jaxsync tune --method lbfgs on tune's own (full-task, exact) gradient program:
     two iterations lower the training cost on its fixed batch, every accepted step

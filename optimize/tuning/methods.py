@@ -161,6 +161,9 @@ class LBFGS:
     shrink: float = 0.3
     max_trials: int = 6
     renewals: int = 4  # fresh training batches after converging on one (where the oracle can renew)
+    # a fresh batch starts from the curvature pairs of the last (the same cost on other scenarios: a
+    # close Hessian); without them each batch starts over from a short steepest-descent step
+    renewal_memory: bool = True
     needs = ("value_and_grad",)
 
     def init(self, x0, seed: int = 0) -> dict:
@@ -226,13 +229,18 @@ class LBFGS:
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0, "batch": batch}
         row["trials"] = self.max_trials
         if not state.get("stalled", False):
-            # no acceptable step: stay, forget the curvature (the next step is a short steepest descent)
-            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "backtracked": True}, row
+            # no acceptable step: stay, forget the curvature (the next step is a short steepest descent),
+            # kept for a fresh batch
+            kept = {"kept_s": list(state["s"]), "kept_y": list(state["y"])} if self.renewal_memory else {}
+            return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "backtracked": True,
+                    **kept}, row  # fmt: skip
         # the second time in a row: converged on this batch
         if oracle.renew is not None and batch < self.renewals:
             oracle.use(batch + 1)
             row["renewed"] = batch + 1
-            return {"x": x, "f": None, "g": None, "s": [], "y": [], "batch": batch + 1, "stalled": False}, row
+            s_hist, y_hist = state.get("kept_s", []), state.get("kept_y", [])
+            return {"x": x, "f": None, "g": None, "s": list(s_hist), "y": list(y_hist), "batch": batch + 1,
+                    "stalled": False}, row  # fmt: skip
         row["converged"] = 1
         return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "converged": True}, row
 
@@ -248,6 +256,7 @@ class LBFGS:
 
     def from_data(self, data) -> dict:
         out = {**data, "s": list(data["s"]), "y": list(data["y"])}
+        out = {**out, **{k: list(data[k]) for k in ("kept_s", "kept_y") if k in data}}
         out = {**out, "batch": int(out.get("batch", 0)), "stalled": bool(out.get("stalled", False))}
         out = {**out, "converged": bool(out.get("converged", False))}
         return {**out, "backtracked": bool(out.get("backtracked", False))}
