@@ -301,7 +301,7 @@ def calibrate(
     structures=None,
     window: float = 0.5,
     timestep: float | None = None,
-    scan_iters: int = 4,
+    scan_iters: int = 2,
     final_iters: int = 2,
     progress=None,
 ) -> tuple[Calibration, Problem, object, object, object]:
