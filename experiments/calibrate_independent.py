@@ -58,7 +58,7 @@ def case(
     shape = {k: v for k, v in (("amplitude", amplitude), ("speed", speed)) if v is not None}
     ex = excite.excitation(model, duration=duration, **shape)
     q0 = np.asarray(model.keyframe_qpos("grasp"))
-    lim = np.tile(ind.FR3_LIMITS, 2)
+    lim = np.tile(ind.LIMITED["fr3"].limits, 2)
     eff = noise_tau is not None
     if generator == "actuators":
         out = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,

@@ -146,8 +146,11 @@ def main(argv=None) -> int:
     r.add_argument("--out", default="results/convergence")
     r.add_argument("--weight", action="append", metavar="NAME=VALUE", help="a cost weight, as jaxsync tune's")
     r.add_argument("--seed", type=int, default=0, help="the training seed (0)")
-    r.add_argument("--forget-curvature", action="store_true",
-                   help="each fresh L-BFGS batch starts from steepest descent, not the last batch's curvature")  # fmt: skip
+    r.add_argument(
+        "--forget-curvature",
+        action="store_true",
+        help="each fresh L-BFGS batch starts from steepest descent, not the last batch's curvature",
+    )
     e = sub.add_parser("extend", help="continue a copy of the longer run to --to iterations")
     e.add_argument("--start", choices=["default", "perturbed"], required=True)
     e.add_argument("--perturb", type=float, default=1e-6)

@@ -83,8 +83,6 @@ LIMITED = {
         kv=(200.0, 200.0, 200.0, 15.0, 15.0, 15.0),
     ),
 }  # fmt: skip
-FR3 = LIMITED["fr3"]
-FR3_LIMITS, FR3_FRICTIONLOSS, FR3_ARMATURE, FR3_KP, FR3_KV = FR3.limits, FR3.frictionloss, FR3.armature, FR3.kp, FR3.kv
 # (w, f) of the servo law above
 STRUCTURES = {"as_written": (0.0, 0.0), "weight_compensated": (1.0, 0.0), "feedforward": (1.0, 1.0)}
 

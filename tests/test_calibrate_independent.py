@@ -52,6 +52,8 @@ def test_calibrate_is_right_or_refuses(tmp_path, figures, structure, delay, iden
     err = {"stiffness": np.abs(cal.fitted.stiffness / kp - 1), "damping": np.abs(cal.fitted.damping / kv - 1)}
     wrong = {k: np.round(v, 3) for k, v in err.items() if v.max() > TOLERANCE[k]}
     answered_right = not wrong and (cal.structure, cal.delay) == (structure, delay)
-    assert cal.problems or answered_right, f"a wrong calibration stood behind: {cal.structure}, delay {cal.delay}, {wrong}"
+    assert cal.problems or answered_right, (
+        f"a wrong calibration stood behind: {cal.structure}, delay {cal.delay}, {wrong}"
+    )
     if identified:
         assert (cal.structure, cal.delay) == (structure, delay)

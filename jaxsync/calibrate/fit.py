@@ -301,7 +301,7 @@ def calibrate(
     structures=None,
     window: float = 0.5,
     timestep: float | None = None,
-    scan_iters: int = 2,
+    fine_iters: int = 2,
     final_iters: int = 2,
     progress=None,
 ) -> tuple[Calibration, Problem, object, object, object]:
@@ -372,7 +372,7 @@ def calibrate(
     prob = fine
     pd = fitted[best]
     if fine is not coarse:
-        _, pd = _joint_by_joint(fine, pd, fields, best, scan_iters)
+        _, pd = _joint_by_joint(fine, pd, fields, best, fine_iters)
         say(f"{chosen}, delay {best}: joint-by-joint fit at a {fine.replay.timestep * 1000:g} ms step "
             f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
     pd, result = prob.fit(pd, max_iters=final_iters)
