@@ -18,6 +18,7 @@ with its margin on held-out windows.
 from __future__ import annotations
 
 import argparse
+import json
 import pathlib
 import sys
 import tempfile
@@ -49,6 +50,7 @@ def case(
     noise_tau: float | None = None,
     amplitude: float | None = None,
     speed: float | None = None,
+    figures: str = "fr3",
 ):
     nominal = Replay(model).nominal()
     rng = np.random.default_rng(seed)
@@ -58,7 +60,7 @@ def case(
     shape = {k: v for k, v in (("amplitude", amplitude), ("speed", speed)) if v is not None}
     ex = excite.excitation(model, duration=duration, **shape)
     q0 = np.asarray(model.keyframe_qpos("grasp"))
-    lim = np.tile(ind.LIMITED["fr3"].limits, 2)
+    lim = np.tile(ind.LIMITED[figures].limits, 2)
     eff = noise_tau is not None
     if generator == "actuators":
         out = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,
@@ -87,7 +89,34 @@ def case(
             strict=False,
         ):
             print(f"  {name}: stiffness {a:+.3f} (claimed +-{c:.3f}), damping {b:+.3f}, rms {1e3 * d:.3f} mrad")
+
+    def per_joint(values, truth):
+        return [float(v) for v in np.asarray(values) / truth]
+
+    parts = {f"{part}_{field}": per_joint(cal.interval_parts[part][field], truth)
+             for part in cal.interval_parts for field, truth in (("stiffness", kp), ("damping", kv))}  # fmt: skip
+    detail = {
+        "joints": list(cal.joints),
+        "stiffness_err": [float(v) for v in cal.fitted.stiffness / kp - 1],
+        "damping_err": [float(v) for v in cal.fitted.damping / kv - 1],
+        "stiffness_half": per_joint(cal.intervals["stiffness"], kp),
+        "damping_half": per_joint(cal.intervals["damping"], kv),
+        **parts,
+        "from_efforts": list(cal.from_efforts),
+        **(
+            {
+                "efforts_stiffness_err": [float(v) for v in cal.efforts.stiffness / kp - 1],
+                "efforts_damping_err": [float(v) for v in cal.efforts.damping / kv - 1],
+                "efforts_stiffness_half": per_joint(cal.efforts.intervals["stiffness"], kp),
+                "efforts_damping_half": per_joint(cal.efforts.intervals["damping"], kv),
+            }
+            if cal.efforts is not None
+            else {}
+        ),
+        "problems": list(cal.problems),
+    }
     return {
+        "figures": figures,
         "structure": structure,
         "delay": delay,
         "found": cal.delay,
@@ -111,7 +140,48 @@ def case(
             if cal.efforts is not None
             else {}
         ),
-    }
+    }, detail
+
+
+# the half-widths calibrate states (the largest of the motion's four, or the efforts' where their gains
+# were taken) and each of the four alone (Calibration.interval_parts)
+PARTS = ("jacobian", "windows", "halves", "open_step")
+RULES = {"stated": "{field}_half", "largest of the four": "largest_{field}", **{p: p + "_{field}" for p in PARTS}}
+
+
+def coverage(path: str) -> None:
+    """How often each 95 % half-width held the truth, over every stiffness and damping of every case in
+    ``path`` (the motion's fit; gains taken from the efforts are the efforts' own), and over those within
+    what calibrate stands behind (10 % stiffness, 20 % damping)."""
+    rows = [json.loads(line) for line in open(path)]
+    for r in rows:
+        for field in ("stiffness", "damping"):
+            r.setdefault(f"windows_{field}", r.get(f"clustered_{field}"))
+            present = [r[f"{part}_{field}"] for part in PARTS if r.get(f"{part}_{field}") is not None]
+            r[f"largest_{field}"] = np.fmax.reduce(np.asarray(present, float)).tolist()
+    share = {"stiffness": 0.10, "damping": 0.20}
+    print(f"{len(rows)} cases, {sum(len(r['joints']) for r in rows)} joints")
+    print("| half-width | covers (all) | covers (within 10 % / 20 %) | median half / error |")
+    print("|---|---|---|---|")
+    for rule, key in RULES.items():
+        hit, n, hit_in, n_in, ratio = 0, 0, 0, 0, []
+        for r in rows:
+            for field in share:
+                if r.get(key.format(field=field)) is None:
+                    continue
+                err = np.abs(np.asarray(r[f"{field}_err"]))
+                half = np.asarray(r[key.format(field=field)], float)
+                taken = np.isin(r["joints"], r["from_efforts"])
+                if rule != "stated":  # the motion's own intervals: not where the efforts' gains were taken
+                    err, half = err[~taken], half[~taken]
+                ok = err <= half
+                hit, n = hit + ok.sum(), n + ok.size
+                inside = half <= share[field]
+                hit_in, n_in = hit_in + ok[inside].sum(), n_in + inside.sum()
+                ratio += list(half / np.maximum(err, 1e-12))
+        if n:
+            print(f"| {rule} | {hit / n:.0%} ({hit}/{n}) | {hit_in / max(n_in, 1):.0%} ({hit_in}/{n_in}) | "
+                  f"{np.median(ratio):.2g} |")  # fmt: skip
 
 
 def main() -> None:
@@ -127,6 +197,8 @@ def main() -> None:
     p.add_argument("--amplitude", type=float, default=None, help="the excitation's amplitude, rad (excite's)")
     p.add_argument("--speed", type=float, default=None, help="the excitation's speed cap, rad/s (excite's)")
     p.add_argument("--verbose", action="store_true", help="every joint's errors")
+    p.add_argument("--figures", default="fr3", help=f"the test robots' figures, comma-separated: {list(ind.LIMITED)}")
+    p.add_argument("--jsonl", default=None, help="append each case's row and per-joint errors and half-widths here")
     p.add_argument("--timestep", type=float, default=None, help="the fit's replay step, s (default: calibrate's)")
     p.add_argument(
         "--generator",
@@ -134,11 +206,20 @@ def main() -> None:
         default="actuators",
         help="the robot: MuJoCo's actuators under implicitfast, or the servo law as a force under RK4",
     )
+    p.add_argument("--coverage", action="store_true", help="read --jsonl and print each interval's coverage")
     args = p.parse_args()
-    model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()))), visual=False)
+    if args.coverage:
+        coverage(args.jsonl)
+        return
+    for figures in args.figures.split(","):
+        run_figures(args, figures)
+
+
+def run_figures(args, figures: str) -> None:
+    model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()), figures)), visual=False)
     for structure in args.structures.split(","):
         for delay in (int(d) for d in args.delays.split(",")):
-            r = case(
+            r, detail = case(
                 model,
                 structure,
                 delay,
@@ -152,7 +233,11 @@ def main() -> None:
                 args.noise_tau,
                 args.amplitude,
                 args.speed,
+                figures,
             )
+            if args.jsonl:
+                with open(args.jsonl, "a") as fh:
+                    fh.write(json.dumps({**r, **detail}) + "\n")
             print(" | ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in r.items()), flush=True)
 
 

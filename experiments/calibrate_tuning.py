@@ -23,12 +23,16 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import independent_servo as ind  # noqa: E402  (the tests' independent generator and published figures)
 
 from jaxsync.calibrate import excite, replay
 from jaxsync.calibrate.jobs import calibrate_job
@@ -41,9 +45,9 @@ from jaxsync.runtime.xla import set_xla_flags
 ROBOTS = Path(__file__).resolve().parents[1] / "mjcf" / "robots"
 
 
-def _robot_file(path: Path, doc: dict, arm_file: str) -> Path:
+def _robot_file(path: Path, doc: dict, arm_file: str, arm_dir: Path = ROBOTS) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy(ROBOTS / arm_file, path.parent / arm_file)
+    shutil.copy(arm_dir / arm_file, path.parent / arm_file)
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
@@ -94,6 +98,13 @@ def main() -> None:
     p.add_argument(
         "--resume", action="store_true", help="continue the tuning runs in --out (e.g. with more --iterations)"
     )
+    p.add_argument(
+        "--figures", choices=sorted(ind.LIMITED), default=None,
+        help="instead of the UR5e-like pair: the test arm with this published arm's torque limits, friction loss "
+        "and servo (tests/independent_servo.py), recorded by MuJoCo's own actuators with joint efforts",
+    )  # fmt: skip
+    p.add_argument("--structure", choices=sorted(ind.STRUCTURES), default="feedforward",
+                   help="the true servo's structure (feedforward)")  # fmt: skip
     p.add_argument("--method", default="lbfgs", help="the tuner's method (jaxsync tune --method)")
     p.add_argument("--lr", default=None, help="a first-order method's learning rate (jaxsync tune --lr)")
     p.add_argument(
@@ -118,9 +129,15 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     enable_compilation_cache()
     out = Path(args.out)
-    doc = yaml.safe_load((ROBOTS / "ur5e_twice.yaml").read_text())
+    if args.figures:  # the published figures' test robot, its arm MJCF written beside it
+        arm_dir = out / "arm"
+        arm_dir.mkdir(parents=True, exist_ok=True)
+        base_file = ind.limited_robot(arm_dir, args.figures)
+    else:
+        arm_dir, base_file = ROBOTS, ROBOTS / "ur5e_twice.yaml"
+    doc = yaml.safe_load(base_file.read_text())
     arm_file = doc["arms"]["right"]["model"]
-    model = load_model(str(ROBOTS / "ur5e_twice.yaml"), visual=False)
+    model = load_model(str(base_file), visual=False)
     nom = replay.Replay(model).nominal()
     rng = np.random.default_rng(args.seed)
     n = len(nom.stiffness)
@@ -129,9 +146,14 @@ def main() -> None:
     )
     half = n // 2
     true_doc = dict(doc)
+    w, f = ind.STRUCTURES[args.structure]
     true_doc["servo"] = {
-        arm: {"stiffness": truth.stiffness[sl].tolist(), "damping": truth.damping[sl].tolist()}
-        for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
+        "weight_compensation": bool(w),
+        "velocity_feedforward": bool(f),
+        **{
+            arm: {"stiffness": truth.stiffness[sl].tolist(), "damping": truth.damping[sl].tolist()}
+            for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
+        },
     }
     true_doc["delay"] = {"periods": 2, "control_rate": 500}
     true_file = out / "true" / "robot.yaml"
@@ -154,21 +176,33 @@ def main() -> None:
         return
     if true_file.exists() and cal_file.exists():  # the pair calibrated before: tune again only
         if args.perturb_size is not None and not pert_file.exists():
-            _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
+            _perturb(true_file, pert_file, args.perturb_size, rng, arm_file, arm_dir)
         _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
         _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
         return
-    _robot_file(true_file, true_doc, arm_file)
+    _robot_file(true_file, true_doc, arm_file, arm_dir)
     ex = excite.excitation(model)
-    t, q, dq = replay.record(model, truth, ex.times, ex.commands, 2, timestep=0.0005, integrator="implicitfast",
-                             noise_q=1e-5, noise_dq=5e-4, seed=args.seed)  # fmt: skip
-    bag = bags.write_recording(out / "recording", bags.Recording(ex.joints, t, q, dq, ex.times, ex.commands))
+    if args.figures:  # MuJoCo's own actuators (implicitfast, 0.25 ms), nothing of jaxsync's servo or replay
+        q0 = np.asarray(model.keyframe_qpos("grasp"))
+        t, q, dq, tau = ind.record_actuators(model.robot.spec, q0, truth.stiffness, truth.damping, ex.times,
+                                             ex.commands, 2, structure=args.structure, efforts=True)  # fmt: skip
+        q, dq = ind.noisy(q, dq, 1e-4, 5e-3, seed=args.seed + 1)
+        tau = tau + 0.05 * np.random.default_rng(args.seed + 2).standard_normal(tau.shape)
+        rec = bags.Recording(ex.joints, t, q, dq, ex.times, ex.commands, effort=tau)
+    else:
+        t, q, dq = replay.record(model, truth, ex.times, ex.commands, 2, timestep=0.0005, integrator="implicitfast",
+                                 noise_q=1e-5, noise_dq=5e-4, seed=args.seed)  # fmt: skip
+        rec = bags.Recording(ex.joints, t, q, dq, ex.times, ex.commands)
+    bag = bags.write_recording(out / "recording", rec)
     start = time.perf_counter()
-    cal = calibrate_job(out / "calibration", model, bag, report=False)["calibration"]
+    # a refused calibration is tuned on as written (--force): how much its errors cost is the question
+    cal = calibrate_job(out / "calibration", model, bag, report=False, force=True)["calibration"]
+    if cal.problems:
+        print("calibrate refused (written with --force): " + "; ".join(cal.problems), flush=True)
     print(f"calibrated in {time.perf_counter() - start:.0f} s: delay {cal.delay}, largest stiffness error "
           f"{100 * np.abs(cal.fitted.stiffness / truth.stiffness - 1).max():.2f} %", flush=True)  # fmt: skip
     cal_doc = dict(doc) | yaml.safe_load((out / "calibration" / "calibration.yaml").read_text())
-    _robot_file(cal_file, cal_doc, arm_file)
+    _robot_file(cal_file, cal_doc, arm_file, arm_dir)
     # the same size of model change as the calibration's, in random directions
     worst = max(
         np.abs(cal.fitted.stiffness / truth.stiffness - 1).max(), np.abs(cal.fitted.damping / truth.damping - 1).max()
@@ -177,14 +211,17 @@ def main() -> None:
                           damping=truth.damping * (1 + rng.uniform(-worst, worst, n)))  # fmt: skip
     pert_doc = dict(true_doc)
     pert_doc["servo"] = {
-        arm: {"stiffness": moved.stiffness[sl].tolist(), "damping": moved.damping[sl].tolist()}
-        for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
+        **true_doc["servo"],  # the structure's flags
+        **{
+            arm: {"stiffness": moved.stiffness[sl].tolist(), "damping": moved.damping[sl].tolist()}
+            for arm, sl in (("right", slice(0, half)), ("left", slice(half, n)))
+        },
     }
     if args.perturb_size is None:
-        _robot_file(pert_file, pert_doc, arm_file)
+        _robot_file(pert_file, pert_doc, arm_file, arm_dir)
         print(f"perturbed stack: every servo gain moved by up to {100 * worst:.2f} %", flush=True)
     else:
-        _perturb(true_file, pert_file, args.perturb_size, rng, arm_file)
+        _perturb(true_file, pert_file, args.perturb_size, rng, arm_file, arm_dir)
     _tune([true_file, cal_file] + ([pert_file] if args.perturbed else []), args, tag)
     _report(out, true_file, cal_file, gains, args.controller, tag, args.heldout, pert)
 
@@ -231,14 +268,16 @@ def _cell(v, base) -> str:
     return f"{v:.5f} N" + ("" if base is None else f" ({v / base:.2f}x)")
 
 
-def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str) -> None:
+def _perturb(true_file: Path, pert_file: Path, size: float, rng, arm_file: str, arm_dir: Path = ROBOTS) -> None:
     """The true robot file with each servo gain moved at random by up to ``size`` (relative)."""
     doc = yaml.safe_load(true_file.read_text())
     doc["servo"] = {
         arm: {key: (np.asarray(v) * (1 + rng.uniform(-size, size, len(v)))).tolist() for key, v in gains.items()}
+        if isinstance(gains, dict)
+        else gains  # the structure's flags
         for arm, gains in doc["servo"].items()
     }
-    _robot_file(pert_file, doc, arm_file)
+    _robot_file(pert_file, doc, arm_file, arm_dir)
     print(f"perturbed stack: every servo gain moved by up to {100 * size:.2g} %", flush=True)
 
 

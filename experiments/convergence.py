@@ -11,7 +11,8 @@ One start per process (two processes use the two cores):
 L-BFGS) until it converges, with the validation plateau ``--plateau-tol``
 on, or to its cap (``--iterations``), from the
 default gains (``default``) or from every gain x (1 + ``--perturb``)
-(``perturbed``); then continues a copy of that run past its stop with the
+(``perturbed``), or from the default gains on the paper model with every
+body's mass and inertia x (1 + ``--perturb``) (``model``); then continues a copy of that run past its stop with the
 criterion off for ``--extend`` more iterations (the longer run), and writes
 both summaries; ``extend`` continues a copy of the longer run to ``--to``
 iterations. ``report`` says, for each start, how far the longer run moved
@@ -22,6 +23,7 @@ ended apart (held-out settled peak), at the stop and after the longer run.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import shutil
@@ -51,7 +53,26 @@ def _start(args):
     base = default_gains()
     if args.start == "perturbed":
         base = jax.tree_util.tree_map(lambda x: x * (1 + args.perturb), base)
-    return jaxsync.load_model(), base
+    model = jaxsync.load_model()
+    if args.start == "model":
+        model = _heavier(model, args.perturb)
+    return model, base
+
+
+def _heavier(model, rel: float):
+    """The same model with every body's mass and inertia x (1 + ``rel``): a change of the model far below
+    anything a user knows it to."""
+    import dataclasses
+
+    from mujoco import mjx
+
+    from jaxsync.physics import step as _physics
+
+    m = copy.deepcopy(model.mj_model)
+    m.body_mass[:] *= 1 + rel
+    m.body_inertia[:] *= 1 + rel
+    mx = mjx.put_model(m, device=_physics.local_device(), impl="jax")
+    return dataclasses.replace(model, mj_model=m, mjx_model=mx)
 
 
 def _forget_curvature() -> None:
@@ -110,7 +131,7 @@ def _row(s: dict) -> dict:
 
 def report(args) -> None:
     rows = {}
-    for start in ("default", "perturbed"):
+    for start in ("default", "perturbed", "model"):
         kinds = ["", "_longer"] + sorted(d[len(start) :] for d in os.listdir(args.out) if d.startswith(start + "_")
                                          and d[len(start) + 1 :].isdigit())  # fmt: skip
         for kind in kinds:
@@ -126,9 +147,10 @@ def report(args) -> None:
                 "heldout": b["heldout_N"] / a["heldout_N"],
             }
     for kind in sorted({k[len("default") :] for k in rows if k.startswith("default")}):
-        a, b = rows.get("default" + kind), rows.get("perturbed" + kind)
-        if a and b:
-            out[f"perturbed / default{kind or ' (at the stop)'}"] = b["heldout_N"] / a["heldout_N"]
+        for other in ("perturbed", "model"):
+            a, b = rows.get("default" + kind), rows.get(other + kind)
+            if a and b:
+                out[f"{other} / default{kind or ' (at the stop)'}"] = b["heldout_N"] / a["heldout_N"]
     print(json.dumps(out, indent=1))
     with open(os.path.join(args.out, "report.json"), "w") as f:
         json.dump(out, f, indent=1)
@@ -138,8 +160,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="what", required=True)
     r = sub.add_parser("run")
-    r.add_argument("--start", choices=["default", "perturbed"], required=True)
-    r.add_argument("--perturb", type=float, default=1e-6, help="relative change of every starting gain (1e-6)")
+    r.add_argument("--start", choices=["default", "perturbed", "model"], required=True)
+    r.add_argument("--perturb", type=float, default=1e-6,
+                   help="relative change of every starting gain, or (model) every mass and inertia (1e-6)")  # fmt: skip
     r.add_argument("--iterations", type=int, default=200, help="the cap of the first run (200)")
     r.add_argument("--plateau-tol", type=float, default=0.02, help="the first run's plateau (0.02; 0: L-BFGS's own)")
     r.add_argument("--extend", type=int, default=60, help="iterations the longer run adds past the stop (60)")

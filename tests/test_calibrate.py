@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from jaxsync._errors import ConfigError
-from jaxsync.calibrate import excite, fit, replay, sensor
+from jaxsync.calibrate import excite, fit, replay, sensor, uncertainty
 from jaxsync.calibrate.replay import Joints
 from jaxsync.cli import main
 from jaxsync.io import bags
@@ -453,7 +453,51 @@ def test_the_noise_floor_is_the_samples_own_noise():
     rng = np.random.default_rng(3)
     for sigma in (1e-5, 1e-4):
         q = np.repeat(motion, 3, axis=1) + sigma * rng.standard_normal((len(t), 3))
-        np.testing.assert_allclose(fit.noise_floor(q), sigma, rtol=0.1)
+        np.testing.assert_allclose(uncertainty.noise_floor(q), sigma, rtol=0.1)
+
+
+def _clustered_fit(rng, shared: float, delta=(0.0, 0.0)):
+    """A linear least-squares fit over 40 windows of 50 samples, its residual (at the optimum moved by
+    ``delta``) and Jacobian: parameter 0 moves every window, parameter 1 five of them, each mostly by one
+    level per window (a smooth motion); each window's samples share an error of standard deviation
+    ``shared`` on top of white noise of 0.1."""
+    x = rng.standard_normal((40, 1, 2)) + 0.3 * rng.standard_normal((40, 50, 2))
+    x[5:, :, 1] = 0.0
+    y = x @ np.array([1.0, -2.0]) + shared * rng.standard_normal((40, 1)) + 0.1 * rng.standard_normal((40, 50))
+    jac = x.reshape(-1, 2)
+    theta = np.linalg.lstsq(jac, y.ravel(), rcond=None)[0]
+    residuals = list((x @ (theta + np.asarray(delta)) - y).reshape(40, 50))
+    return theta - np.array([1.0, -2.0]), residuals, jac
+
+
+def test_the_windows_intervals_hold_where_a_window_shares_its_error():
+    """Where each window's samples share an error, the white-noise (Jacobian) interval covers the truth in
+    about a third of the draws; the windows' sandwich covers it near its 95 %, also for a parameter that
+    only five windows move; with white noise alone it is no wider than it must be (under twice the
+    Jacobian's)."""
+    rng = np.random.default_rng(4)
+    hits, white = np.zeros(2), np.zeros(2)
+    for _ in range(300):
+        err, residuals, jac = _clustered_fit(rng, shared=1.0)
+        half, se, step = uncertainty.clustered_intervals(residuals, jac)
+        r = np.concatenate(residuals)
+        s2 = r @ r / (r.size - 2)
+        jac_half = 1.96 * np.sqrt(s2 * np.diag(np.linalg.inv(jac.T @ jac)))
+        hits += np.abs(err) <= half
+        white += np.abs(err) <= jac_half
+        np.testing.assert_allclose(step, 0.0, atol=1e-9)  # at the optimum nothing is left open
+    assert np.all(hits / 300 >= 0.90) and np.all(hits / 300 <= 0.995), hits / 300
+    assert np.all(white / 300 < 0.6), white / 300
+    _, residuals, jac = _clustered_fit(rng, shared=0.0)
+    r = np.concatenate(residuals)
+    jac_half = 1.96 * np.sqrt(r @ r / (r.size - 2) * np.diag(np.linalg.inv(jac.T @ jac)))
+    assert np.all(uncertainty.clustered_intervals(residuals, jac)[0] < 2.0 * jac_half * np.array([1.0, 2.5]))
+
+
+def test_the_open_step_is_what_the_fit_left():
+    """Away from the optimum by delta, the Gauss-Newton step still open is |delta|."""
+    _, residuals, jac = _clustered_fit(np.random.default_rng(5), shared=0.3, delta=(0.01, -0.2))
+    np.testing.assert_allclose(uncertainty.clustered_intervals(residuals, jac)[2], [0.01, 0.2], rtol=1e-9)
 
 
 def _calibration(**kw):

@@ -33,6 +33,7 @@ from jaxsync._errors import ConfigError
 from jaxsync.calibrate import efforts as _efforts
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
 from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
+from jaxsync.calibrate.uncertainty import clustered_intervals, noise_floor
 from jaxsync.calibrate.windows import halved as _halved
 from jaxsync.calibrate.windows import split as _split
 from jaxsync.calibrate.windows import subset as _subset
@@ -86,6 +87,9 @@ class Calibration:
     structure_costs: dict = dataclasses.field(default_factory=dict)  # structure -> held-out cost
     efforts: object = None  # the servo the recording's joint efforts say (efforts.EffortFit), where it has them
     from_efforts: tuple = ()  # the joints whose gains come from the efforts (the motion leaves them open)
+    # the motion's half-widths' parts (the largest is stated), name -> field -> (2 n,): "jacobian", "windows",
+    # "halves", "open_step" (see calibrate) and "windows_se", the windows' standard error
+    interval_parts: dict = dataclasses.field(default_factory=dict)
 
     @property
     def structure_margin(self) -> float | None:
@@ -377,16 +381,23 @@ def calibrate(
             f"({time.perf_counter() - start:.1f} s)")  # fmt: skip
     pd, result = prob.fit(pd, max_iters=final_iters)
     say(f"delay {best}: all {pd.size} parameters together ({time.perf_counter() - start:.1f} s)")
-    half = np.full(pd.size, np.nan)
+    half = np.full(pd.size, np.inf)  # without a Jacobian no parameter has an interval
+    windows = (np.full(pd.size, np.nan),) * 3
     if result is not None and result.jac is not None:
         res, _, _ = prob.residual_fn(pd.as_vector(), pd)
-        _, half = prob.sysid.calculate_intervals(res, np.asarray(result.jac))
-    # the Jacobian's intervals see the noise, not a valley of gains that explain the recording alike: each
-    # half of the windows fitted again from the result, and the halves' disagreement taken where larger
+        jac = np.asarray(result.jac)
+        half = np.nan_to_num(np.asarray(prob.sysid.calculate_intervals(res, jac)[1], float), nan=np.inf)
+        windows = clustered_intervals(res, jac)
+    # the Jacobian's intervals see white noise only: not a model error the windows share, not a valley of
+    # gains that explain the recording alike, not a fit that stopped short. Each has its own width: the
+    # windows' sandwich, the disagreement of each half of the windows fitted again from the result, and
+    # the Gauss-Newton step still open; the largest is stated
     halves = [_joint_by_joint(_halved(prob, k), pd, fields, best, HALF_ITERS)[1] for k in (0, 1)]
     spread = np.abs(halves[0].as_vector() - halves[1].as_vector())
-    half = np.fmax(np.nan_to_num(np.asarray(half, float), nan=np.inf), spread) if np.size(half) else spread
     say(f"delay {best}: each half of the windows fitted again ({time.perf_counter() - start:.1f} s)")
+    parts = {"jacobian": half, "windows": windows[0], "halves": spread, "open_step": windows[2]}
+    half = np.fmax.reduce(list(parts.values()))
+    parts = {k: prob.intervals_of(pd, v) for k, v in (*parts.items(), ("windows_se", windows[1]))}
     intervals = prob.intervals_of(pd, np.asarray(half))
     from_efforts = ()
     if ef is not None:  # where the motion leaves a joint's gains open and the efforts fix them: theirs
@@ -401,19 +412,10 @@ def calibrate(
         intervals=intervals, rms_before=before, rms_after=after, motion=motion,
         delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
         windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q), structure=chosen,
-        structure_costs=held_costs, efforts=ef, from_efforts=from_efforts,
+        structure_costs=held_costs, efforts=ef, from_efforts=from_efforts, interval_parts=parts,
     )  # fmt: skip
     cal.problems = tuple(problems(cal, scanned, pd))
     return cal, prob, pd0, pd, result
-
-
-def noise_floor(q: np.ndarray) -> np.ndarray:
-    """(J,) each joint's white position noise, rad, from its samples' third differences (whose variance is
-    20 sigma^2; a smooth motion's share is (h^3 dddq)^2, far below at a few hundred Hz), median-based so
-    that the steps of the motion do not count."""
-    d3 = np.diff(np.asarray(q, float), 3, axis=0)
-    mad = np.median(np.abs(d3 - np.median(d3, axis=0)), axis=0)
-    return 1.4826 * mad / np.sqrt(20.0)
 
 
 def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
