@@ -25,8 +25,8 @@ import jax
 import numpy as np
 
 from jaxsync.calibrate import excite, replay
-from jaxsync.calibrate.fit import replay_step
 from jaxsync.calibrate.jobs import calibrate_job
+from jaxsync.calibrate.replay import replay_step
 from jaxsync.io import bags
 from jaxsync.physics.model import load_model
 from jaxsync.runtime.cache import enable_compilation_cache

@@ -103,6 +103,8 @@ def case(
         "damping_half": per_joint(cal.intervals["damping"], kv),
         **parts,
         "from_efforts": list(cal.from_efforts),
+        "delay_costs": {str(d): float(c) for d, c in cal.delay_costs.items()},
+        "structure_costs": {k: float(c) for k, c in cal.structure_costs.items()},
         **(
             {
                 "efforts_stiffness_err": [float(v) for v in cal.efforts.stiffness / kp - 1],

@@ -61,12 +61,23 @@ def test_the_efforts_give_the_structure_the_delay_and_the_gains(limited, structu
     assert k_err.max() < 0.10 and b_err.max() < 0.20, (np.round(k_err, 3), np.round(b_err, 3))
     # told apart by far: the next structure and delay explain the efforts much worse
     assert ef.margin("structure") > 0.5 and ef.margin("delay") > 0.5
+    assert ef.delay_of(structure) == delay
     # every joint moved well above its noise: the efforts fix nearly every gain, and where they say so
     # they are right
     fixed = efforts.determined(ef, {"stiffness": 0.10, "damping": 0.20})
     assert fixed.sum() >= len(fixed) - 2, ef.intervals
     assert k_err[fixed].max() < 0.10 and b_err[fixed].max() < 0.20
     assert np.array_equal(ef.saturated > 0, (np.abs(tau) >= efforts.SATURATED * lim).any(axis=0))
+
+
+def test_the_efforts_fix_a_structures_delay_only_by_a_margin_inside_the_scan():
+    """A structure's delay is the efforts' where its next-best delay is 30 % worse, not where it is closer,
+    nor where the cost still falls at the last delay scanned (feed-forward trades delay for damping)."""
+    costs = {("a", 0): 2.0, ("a", 1): 1.0, ("a", 2): 1.5, ("b", 0): 3.0, ("b", 1): 2.9, ("b", 2): 2.0}
+    ef = efforts.EffortFit("a", 1, np.ones(2), np.ones(2), np.ones(2), np.zeros(2), costs)
+    assert ef.delay_of("a") == 1 and ef.delay_of("b") is None
+    assert dataclasses.replace(ef, costs=costs | {("a", 2): 1.2}).delay_of("a") is None
+    assert dataclasses.replace(ef, costs={("a", 1): 1.0}).delay_of("a") is None
 
 
 @pytest.mark.parametrize("structure,delay,fixed_at_least", [("as_written", 3, 12), ("feedforward", 0, 6)])

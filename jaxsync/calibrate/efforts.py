@@ -62,6 +62,17 @@ class EffortFit:
             others = [c for (s, d), c in self.costs.items() if s == self.structure and d != self.delay]
         return min(others) / max(best, 1e-300) - 1.0 if others else None
 
+    def delay_of(self, structure: str, margin: float = DECISIVE) -> int | None:
+        """The delay the efforts give ``structure``, where its next-best delay explains them at least
+        ``margin`` worse and it is not the last one scanned; None elsewhere (a servo with velocity
+        feed-forward trades delay against damping, and its efforts' cost may fall to the end of the scan)."""
+        own = {d: c for (s, d), c in self.costs.items() if s == structure}
+        if len(own) < 2:
+            return None
+        best = min(own, key=own.get)
+        runner = min(c for d, c in own.items() if d != best)
+        return best if best != max(own) and runner >= (1 + margin) * own[best] else None
+
     def decisive(self, margin: float = DECISIVE) -> bool:
         """Whether every other delay and structure explains the efforts at least ``margin`` worse (a
         servo with velocity feed-forward nearly trades one period of delay for k P of its damping, so

@@ -7,17 +7,17 @@ optionally its joint damping, friction loss and armature), the residual its
 from the recorded state, rolled out by :mod:`jaxsync.calibrate.replay` (the
 position stack's own servo and delay) as the toolbox's custom rollout; the
 fit its bounded least squares with MuJoCo's finite-difference Jacobians
-(``optimize``), the intervals ``calculate_intervals``, the HTML report
-``default_report``.
+(``optimize``), the intervals ``calculate_intervals`` and
+:mod:`jaxsync.calibrate.uncertainty`, the HTML report ``default_report``.
 
-The delay is whole control periods: at each candidate the continuous
-parameters are fitted joint by joint (each joint's windows, both arms'
-parameters of that joint: four at a time) on the model's own physics step,
-and the candidates compared on every window. At the best one the gains are
-fitted again on a replay step fine enough for the servo (:func:`replay_step`),
-joint by joint and then all together. The fit's rollouts are MuJoCo's own
-actuators in ``mujoco.rollout`` (:class:`jaxsync.calibrate.replay.NativeReplay`);
-the tracking errors reported run the position stack's servo code itself.
+The delay is whole control periods: at each candidate the parameters are
+fitted joint by joint (each joint's windows, both arms' parameters of that
+joint) on the model's own step, the candidates compared on every window.
+At the best one the gains are fitted again on a step fine enough for the
+servo (:func:`replay_step`), joint by joint, then all together. The fit's
+rollouts are MuJoCo's own actuators in ``mujoco.rollout``
+(:class:`jaxsync.calibrate.replay.NativeReplay`); the tracking errors
+reported run the position stack's servo code itself.
 """
 
 from __future__ import annotations
@@ -32,12 +32,12 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.calibrate import efforts as _efforts
 from jaxsync.calibrate.excite import bag_joint_names, check_symmetric
-from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay
+from jaxsync.calibrate.replay import FIELDS, Joints, NativeReplay, replay_step
 from jaxsync.calibrate.uncertainty import clustered_intervals, noise_floor
 from jaxsync.calibrate.windows import halved as _halved
 from jaxsync.calibrate.windows import split as _split
 from jaxsync.calibrate.windows import subset as _subset
-from jaxsync.physics.servo import STRUCTURES, joint_inertia, servo_of
+from jaxsync.physics.servo import STRUCTURES
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
 SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
@@ -353,7 +353,10 @@ def calibrate(
         if len(names) == 1 or held is None:
             train = coarse
         costs, fitted = {}, {}
-        for delay in delays:
+        fixed = ef.delay_of(name) if ef is not None and len(delays) > 1 else None
+        if fixed is not None:
+            say(f"{name}: the joint efforts give delay {fixed} (the next delay at least {_efforts.DECISIVE:.0%} worse)")
+        for delay in delays if fixed is None else [fixed]:
             rising = len(costs) >= 2 and costs[max(costs)] > 2.0 * min(costs.values())
             if rising and max(costs) > min(costs, key=costs.get):
                 break  # past the best delay and well above it: the cost rises from here on
@@ -470,16 +473,6 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
             out.append(f"the recording does not determine the {field} of {len(loose)} joint(s) to {share:.0%} "
                        f"(worst {j}: {width})")  # fmt: skip
     return out
-
-
-def replay_step(model, wh: float = 0.1) -> float:
-    """The replay's physics step: the model's, divided until the stiffest servo joint's w h <= ``wh``
-    (a 25 Hz servo is fast for a 2 ms explicit step: fitted there, its gains come out tens of percent
-    off; docs/calibrate.md)."""
-
-    w = float(np.sqrt(servo_of(model).stiffness / joint_inertia(model)).max())
-    step = float(model.mj_model.opt.timestep)
-    return step / max(1, int(np.ceil(w * step / wh)))
 
 
 def _joint_by_joint(prob: Problem, pd, fields, delay: int, iters: int):

@@ -22,7 +22,7 @@ import os
 import mujoco
 import numpy as np
 
-from jaxsync.physics.servo import servo_of
+from jaxsync.physics.servo import joint_inertia, servo_of
 from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import closed_loop as _closed_loop
 
@@ -271,3 +271,13 @@ class NativeReplay:
         out, _ = rollout.rollout(models, self.datas, np.asarray(states), np.asarray(controls), persistent_pool=True)
         nq = self.m.nq
         return [(t, s[:, 1 + self.qadr], s[:, 1 + nq + self.dofs]) for t, s in zip(times, out, strict=True)]
+
+
+def replay_step(model, wh: float = 0.1) -> float:
+    """The replay's physics step: the model's, divided until the stiffest servo joint's w h <= ``wh``
+    (a 25 Hz servo is fast for a 2 ms explicit step: fitted there, its gains come out tens of percent
+    off; docs/calibrate.md)."""
+
+    w = float(np.sqrt(servo_of(model).stiffness / joint_inertia(model)).max())
+    step = float(model.mj_model.opt.timestep)
+    return step / max(1, int(np.ceil(w * step / wh)))
