@@ -145,10 +145,10 @@ def case(
     }, detail
 
 
-# the half-widths calibrate states (the largest of the motion's four, or the efforts' where their gains
-# were taken) and each of the four alone (Calibration.interval_parts)
-PARTS = ("jacobian", "windows", "halves", "open_step")
-RULES = {"stated": "{field}_half", "largest of the four": "largest_{field}", **{p: p + "_{field}" for p in PARTS}}
+# the half-widths calibrate states (the largest of the motion's parts, or the efforts' where their gains
+# were taken) and each part alone (Calibration.interval_parts)
+PARTS = ("jacobian", "windows", "halves", "open_step", "step")
+RULES = {"stated": "{field}_half", "largest of the parts": "largest_{field}", **{p: p + "_{field}" for p in PARTS}}
 
 
 def coverage(path: str) -> None:

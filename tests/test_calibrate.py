@@ -268,6 +268,11 @@ def test_calibrate_finds_the_delay_and_the_servo(ur5e, truth, bag, tmp_path, cap
     err_fit = np.abs(fitted / truth.stiffness - 1)
     err_nom = np.abs(nom.stiffness / truth.stiffness - 1)
     assert err_fit.max() < 0.05 and err_nom.max() > 0.15, (err_fit, err_nom)
+    # each stated half-width is the largest of its parts, and it holds the truth
+    for v, k_true in zip(res["joints"].values(), truth.stiffness, strict=True):
+        parts = [v[f"stiffness_interval95_{p}"] for p in ("jacobian", "windows", "halves", "open_step", "step")]
+        assert v["stiffness_interval95"] == pytest.approx(max(parts)) and v["stiffness_interval95_windows_se"] > 0
+        assert abs(v["stiffness_N m/rad"] - k_true) <= v["stiffness_interval95"], v
     before = np.array([v["rms_before_rad"] for v in res["joints"].values()])
     after = np.array([v["rms_after_rad"] for v in res["joints"].values()])
     assert after.max() < 2e-5 and after.mean() < 0.8 * before.mean(), (before, after)  # the noise: 1e-5 rad

@@ -50,6 +50,9 @@ SCAN_ITERS = 2  # per joint and delay on the model's step: enough to tell the de
 # 1.5e-6 of a parameter's value (0.09 % of the spread where it exceeds 1e-4 of the value), in 2.2 s
 # against 15.4 s (2026-12-06)
 HALF_ITERS = 2
+# the replay step's bias, about linear in the step (tests/test_calibrate.py's stiffnesses: +2.3-4.5 % at 0.5 ms,
+# -1.1-1.9 % at 0.125 ms): each joint fitted again on half the step, twice the move taken
+STEP_ITERS = 1
 POOR_FIT = 0.1  # an RMS error over this share of the joint's own motion: the model does not explain it
 # what calibrate stands behind (Calibration.problems): a residual within this many times the recording's own
 # noise, no other delay within this share of the best's cost, gains off their bounds by this share, and 95 %
@@ -88,7 +91,7 @@ class Calibration:
     efforts: object = None  # the servo the recording's joint efforts say (efforts.EffortFit), where it has them
     from_efforts: tuple = ()  # the joints whose gains come from the efforts (the motion leaves them open)
     # the motion's half-widths' parts (the largest is stated), name -> field -> (2 n,): "jacobian", "windows",
-    # "halves", "open_step" (see calibrate) and "windows_se", the windows' standard error
+    # "halves", "open_step", "step" (see calibrate) and "windows_se", the windows' standard error
     interval_parts: dict = dataclasses.field(default_factory=dict)
 
     @property
@@ -392,13 +395,17 @@ def calibrate(
         half = np.nan_to_num(np.asarray(prob.sysid.calculate_intervals(res, jac)[1], float), nan=np.inf)
         windows = clustered_intervals(res, jac)
     # the Jacobian's intervals see white noise only: not a model error the windows share, not a valley of
-    # gains that explain the recording alike, not a fit that stopped short. Each has its own width: the
-    # windows' sandwich, the disagreement of each half of the windows fitted again from the result, and
-    # the Gauss-Newton step still open; the largest is stated
+    # gains that explain the recording alike, not a fit that stopped short, not the replay step's bias. Each
+    # has its own width: the windows' sandwich, the disagreement of each half of the windows fitted again
+    # from the result, the Gauss-Newton step still open, the move on half the step; the largest is stated
     halves = [_joint_by_joint(_halved(prob, k), pd, fields, best, HALF_ITERS)[1] for k in (0, 1)]
     spread = np.abs(halves[0].as_vector() - halves[1].as_vector())
     say(f"delay {best}: each half of the windows fitted again ({time.perf_counter() - start:.1f} s)")
-    parts = {"jacobian": half, "windows": windows[0], "halves": spread, "open_step": windows[2]}
+    finer = Problem(model, rec, window, prob.replay.timestep / 2, structure=STRUCTURES[chosen])
+    finer.parameters(nominal, fields)
+    stepped = 2.0 * np.abs(pd.as_vector() - _joint_by_joint(finer, pd, fields, best, STEP_ITERS)[1].as_vector())
+    say(f"delay {best}: each joint fitted again on half the step ({time.perf_counter() - start:.1f} s)")
+    parts = {"jacobian": half, "windows": windows[0], "halves": spread, "open_step": windows[2], "step": stepped}
     half = np.fmax.reduce(list(parts.values()))
     parts = {k: prob.intervals_of(pd, v) for k, v in (*parts.items(), ("windows_se", windows[1]))}
     intervals = prob.intervals_of(pd, np.asarray(half))

@@ -193,6 +193,12 @@ def calibrate_job(
                         f"{f}_interval95": float(cal.intervals.get(f, np.full(len(cal.joints), np.nan))[k])
                         for f in cal.fields
                     },
+                    **{  # what each stated half-width is the largest of (the motion's; Calibration.interval_parts)
+                        f"{f}_interval95_{part}": float(parts[f][k])
+                        for part, parts in cal.interval_parts.items()
+                        for f in cal.fields
+                        if f in parts
+                    },
                     "rms_before_rad": float(cal.rms_before[k]),
                     "rms_after_rad": float(cal.rms_after[k]),
                     "motion_rms_rad": float(cal.motion[k]),
