@@ -186,6 +186,47 @@ def coverage(path: str) -> None:
                   f"{np.median(ratio):.2g} |")  # fmt: skip
 
 
+SHORT = (  # a refusal's phrases (fit.problems, efforts.problems), shortened for the table
+    (r"efforts do not fix the gains of (\d+)", "efforts leave {} joints open"),
+    (r"does not determine the stiffness of (\d+) joint\(s\) to 10% \(worst [^:]+: ([^)]+)\)", "{} stiffnesses {}"),
+    (r"does not determine the damping of (\d+) joint\(s\) to 20% \(worst [^:]+: ([^)]+)\)", "{} dampings {}"),
+    (r"delays \[([^]]+)\] explain the recording", "delay {} as good"),
+    (r"is the last one scanned", "delay at the scan's end"),
+    (r"leaves (\d+) joint\(s\) over", "{} residuals over the noise"),
+    (r"(\d+) gain\(s\) sit on their bounds", "{} gains on a bound"),
+    (r"servo explains the held-out windows within", "structures alike"),
+    (r"the joint efforts say", "efforts disagree"),
+)
+
+
+def table(paths: list[str]) -> None:
+    """Every case in ``paths`` (jsonl) as a markdown row."""
+    import re  # noqa: PLC0415 -- the table only
+
+    print("| robot | structure | delay | found | structure found (margin) | worst stiffness / damping error | "
+          "intervals holding the truth | result | seconds |")  # fmt: skip
+    print("|---" * 9 + "|")
+    for path in paths:
+        for line in open(path):
+            r = json.loads(line)
+            held = sum(int(abs(e) <= h) for f in ("stiffness", "damping")
+                       for e, h in zip(r[f"{f}_err"], r[f"{f}_half"], strict=True))  # fmt: skip
+            why = []
+            for problem in r["problems"]:
+                for pattern, text in SHORT:
+                    m = re.search(pattern, problem)
+                    if m:
+                        why.append(text.format(*m.groups()))
+                        break
+                else:
+                    why.append(problem[:40])
+            result = "answered" if not r["problems"] else "refused: " + "; ".join(why)
+            print(f"| {r['figures']} | {r['structure'].replace('_', ' ')} | {r['delay']} | {r['found']} | "
+                  f"{r['found_structure'].replace('_', ' ')} ({1 + r['structure_margin']:.3g}×) | "
+                  f"{100 * r['stiffness_err_max']:.1f} / {100 * r['damping_err_max']:.1f} % | "
+                  f"{held}/{2 * len(r['joints'])} | {result} | {r['seconds']:.0f} |")  # fmt: skip
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--structures", default=",".join(ind.STRUCTURES))
@@ -209,9 +250,13 @@ def main() -> None:
         help="the robot: MuJoCo's actuators under implicitfast, or the servo law as a force under RK4",
     )
     p.add_argument("--coverage", action="store_true", help="read --jsonl and print each interval's coverage")
+    p.add_argument("--table", action="store_true", help="read --jsonl (comma-separated) and print every case")
     args = p.parse_args()
     if args.coverage:
         coverage(args.jsonl)
+        return
+    if args.table:
+        table(args.jsonl.split(","))
         return
     for figures in args.figures.split(","):
         run_figures(args, figures)
