@@ -221,8 +221,10 @@ def table(paths: list[str]) -> None:
                 else:
                     why.append(problem[:40])
             result = "answered" if not r["problems"] else "refused: " + "; ".join(why)
+            margin = r["structure_margin"]
+            margin = "the efforts'" if margin != margin else f"{1 + margin:.3g}×"  # NaN: the efforts chose alone
             print(f"| {r['figures']} | {r['structure'].replace('_', ' ')} | {r['delay']} | {r['found']} | "
-                  f"{r['found_structure'].replace('_', ' ')} ({1 + r['structure_margin']:.3g}×) | "
+                  f"{r['found_structure'].replace('_', ' ')} ({margin}) | "
                   f"{100 * r['stiffness_err_max']:.1f} / {100 * r['damping_err_max']:.1f} % | "
                   f"{held}/{2 * len(r['joints'])} | {result} | {r['seconds']:.0f} |")  # fmt: skip
 

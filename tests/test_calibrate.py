@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from jaxsync._errors import ConfigError
-from jaxsync.calibrate import excite, fit, replay, sensor, uncertainty
+from jaxsync.calibrate import efforts, excite, fit, replay, sensor, uncertainty
 from jaxsync.calibrate.replay import Joints
 from jaxsync.cli import main
 from jaxsync.io import bags
@@ -537,7 +537,14 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
     assert said == [
         "the recording does not determine the stiffness of 1 joint(s) to 10% (worst b: +-12%)",
         "the recording does not determine the damping of 1 joint(s) to 20% (worst b: no interval)",
+        "the delay found (2 periods) was fitted with those gains: not stood behind either",
     ]
+    # where the joint efforts fix the delay, it is theirs, not the gains'
+    ef = efforts.EffortFit("feedforward", 2, np.ones(2), np.ones(2), np.ones(2), np.zeros(2),
+                           {("feedforward", d): c for d, c in ((1, 3.0), (2, 1.0), (3, 2.0))},
+                           {"stiffness": np.full(2, 0.01), "damping": np.full(2, 0.01)})  # fmt: skip
+    with_efforts = dataclasses.replace(loose, efforts=ef)
+    assert not any("delay found" in p for p in fit.problems(with_efforts, [0, 1, 2, 3, 4], pd))
     costs = {"as_written": 104.0, "weight_compensated": 300.0, "feedforward": 100.0}
     close = fit.problems(_calibration(structure="feedforward", structure_costs=costs), [0, 1, 2, 3, 4], pd)
     assert close == [

@@ -45,10 +45,8 @@ FACTOR_BOUNDS = (0.1, 10.0)  # stiffness and damping, as factors on the position
 ABSOLUTE_BOUNDS = {"joint_damping": (0.0, 100.0), "frictionloss": (0.0, 20.0), "armature": (0.0, 5.0)}
 FACTORS = ("stiffness", "damping")
 SCAN_ITERS = 2  # per joint and delay on the model's step: enough to tell the delays apart
-# per joint for each half of the windows, from the whole fit's result: on the UR5e-like recording of
-# tests/test_calibrate.py the halves' spread after 2 iterations differed from that after 4 by at most
-# 1.5e-6 of a parameter's value (0.09 % of the spread where it exceeds 1e-4 of the value), in 2.2 s
-# against 15.4 s (2026-12-06)
+# per joint for each half of the windows, from the result (tests/test_calibrate.py's recording: the halves'
+# spread after 2 iterations within 1.5e-6 of a value of that after 4, in 2.2 s against 15.4 s)
 HALF_ITERS = 2
 # the replay step's bias, about linear in the step (tests/test_calibrate.py's stiffnesses: +2.3-4.5 % at 0.5 ms,
 # -1.1-1.9 % at 0.125 ms): each joint fitted again on half the step, twice the move taken
@@ -90,8 +88,7 @@ class Calibration:
     structure_costs: dict = dataclasses.field(default_factory=dict)  # structure -> held-out cost
     efforts: object = None  # the servo the recording's joint efforts say (efforts.EffortFit), where it has them
     from_efforts: tuple = ()  # the joints whose gains come from the efforts (the motion leaves them open)
-    # the motion's half-widths' parts (the largest is stated), name -> field -> (2 n,): "jacobian", "windows",
-    # "halves", "open_step", "step" (see calibrate) and "windows_se", the windows' standard error
+    # the half-widths' parts, name -> field -> (2 n,): the stated is the largest (calibrate); "windows_se" too
     interval_parts: dict = dataclasses.field(default_factory=dict)
 
     @property
@@ -429,10 +426,9 @@ def calibrate(
 
 
 def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
-    """Why ``cal`` cannot be trusted, one phrase each (none: it can): a delay at the end of the scan or
-    another delay explaining the recording nearly as well, a gain on its bound, a residual over
-    ``NOISE_MULTIPLE`` times the recording's noise, a gain the recording does not determine, and where the
-    recording has joint efforts, a delay, structure or gain they contradict."""
+    """Why ``cal`` cannot be trusted, one phrase each (none: it can): the delay at the scan's end or another
+    nearly as good, a gain on its bound, a residual over ``NOISE_MULTIPLE`` times the noise, a gain (and so
+    the delay fitted with it) the recording does not determine, a delay, structure or gain the efforts deny."""
     out = []
     ef = getattr(cal, "efforts", None)
     if ef is not None:  # where the efforts chose the delay and the structure: their checks, and agreement
@@ -471,14 +467,18 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
         out.append(f"the fitted servo leaves {len(worse)} joint(s) over {NOISE_MULTIPLE:g} times the recording's "
                    f"noise (worst {j}: {e * 1e3:.3g} mrad RMS against {n * 1e3:.2g} mrad of noise): the servo law "
                    "or the delay does not describe this arm")  # fmt: skip
+    open_gains = False
     for field, share in DETERMINED.items():
         rel = cal.intervals.get(field, np.zeros(len(cal.joints))) / getattr(cal.fitted, field)
         loose = [(j, r) for j, r in zip(cal.joints, rel, strict=True) if not np.isfinite(r) or r > share]
+        open_gains = open_gains or bool(loose)
         if loose:
             j, r = max(loose, key=lambda w: w[1] if np.isfinite(w[1]) else np.inf)
             width = f"+-{r:.0%}" if np.isfinite(r) else "no interval"
             out.append(f"the recording does not determine the {field} of {len(loose)} joint(s) to {share:.0%} "
                        f"(worst {j}: {width})")  # fmt: skip
+    if open_gains and (ef is None or not (ef.decisive() or ef.delay_of(cal.structure) is not None)):
+        out.append(f"the delay found ({cal.delay} periods) was fitted with those gains: not stood behind either")
     return out
 
 
