@@ -196,6 +196,8 @@ SHORT = (  # a refusal's phrases (fit.problems, efforts.problems), shortened for
     (r"(\d+) gain\(s\) sit on their bounds", "{} gains on a bound"),
     (r"servo explains the held-out windows within", "structures alike"),
     (r"the joint efforts say", "efforts disagree"),
+    (r"efforts and the motion disagree on the (\w+) of (\d+)", "efforts deny the {} of {} joints"),
+    (r"the delay found \((\d+) periods\) was fitted", "delay {} with them"),
 )
 
 
