@@ -391,10 +391,9 @@ def calibrate(
         jac = np.asarray(result.jac)
         half = np.nan_to_num(np.asarray(prob.sysid.calculate_intervals(res, jac)[1], float), nan=np.inf)
         windows = clustered_intervals(res, jac)
-    # the Jacobian's intervals see white noise only: not a model error the windows share, not a valley of
-    # gains that explain the recording alike, not a fit that stopped short, not the replay step's bias. Each
-    # has its own width: the windows' sandwich, the disagreement of each half of the windows fitted again
-    # from the result, the Gauss-Newton step still open, the move on half the step; the largest is stated
+    # the Jacobian's intervals see white noise only, not a model error the windows share (their sandwich), a
+    # valley of gains (each half of the windows fitted again), a fit stopped short (the Gauss-Newton step
+    # still open) or the replay step's bias (each joint fitted on half the step): the largest is stated
     halves = [_joint_by_joint(_halved(prob, k), pd, fields, best, HALF_ITERS)[1] for k in (0, 1)]
     spread = np.abs(halves[0].as_vector() - halves[1].as_vector())
     say(f"delay {best}: each half of the windows fitted again ({time.perf_counter() - start:.1f} s)")
