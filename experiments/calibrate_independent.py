@@ -158,7 +158,6 @@ def coverage(path: str) -> None:
     rows = [json.loads(line) for line in open(path)]
     for r in rows:
         for field in ("stiffness", "damping"):
-            r.setdefault(f"windows_{field}", r.get(f"clustered_{field}"))
             present = [r[f"{part}_{field}"] for part in PARTS if r.get(f"{part}_{field}") is not None]
             r[f"largest_{field}"] = np.fmax.reduce(np.asarray(present, float)).tolist()
     share = {"stiffness": 0.10, "damping": 0.20}

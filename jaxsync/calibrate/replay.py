@@ -276,8 +276,7 @@ class NativeReplay:
 def replay_step(model, wh: float = 0.1) -> float:
     """The replay's physics step: the model's, divided until the stiffest servo joint's w h <= ``wh``
     (a 25 Hz servo is fast for a 2 ms explicit step: fitted there, its gains come out tens of percent
-    off; docs/calibrate.md)."""
-
+    off; docs/calibrate-accuracy.md)."""
     w = float(np.sqrt(servo_of(model).stiffness / joint_inertia(model)).max())
     step = float(model.mj_model.opt.timestep)
     return step / max(1, int(np.ceil(w * step / wh)))
