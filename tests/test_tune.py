@@ -287,6 +287,11 @@ def test_select_iterate_keeps_the_grip_error():
     runs = [v(0, 0.010, 0.005), v(5, 0.004, 0.006), v(10, 0.006, 0.005), v(15, 0.003, 0.004, dropped=1)]
     assert select_iterate(runs)["iteration"] == 10  # 5 is lower but worsens the grip; 15 dropped an object
     assert select_iterate(runs[:2])["iteration"] == 0  # nothing better allowed: the start
+    # a floor lets a run continued from tuned gains trade grip error below it for a lower peak
+    assert select_iterate(runs, grip_floor=0.006)["iteration"] == 5
+    assert select_iterate(runs, grip_floor=0.0055)["iteration"] == 10  # 5's 0.6 % is above the floor
+    with pytest.raises(jaxsync.ConfigError, match="grip_floor must be a relative grip error"):
+        TuneConfig(grip_floor=1.5).validate()
 
 
 def test_tune_cli_rejects_bad_input(tmp_path, capsys):

@@ -213,6 +213,9 @@ class Loop:
     # last plateau_validations validations (0, the default: off; docs/convergence.md says why)
     plateau_tol: float = 0.0
     plateau_validations: int = 4
+    # an iterate may be selected when its grip error is no worse than the start's or at most this
+    # (relative; 0, the default: the start's); for runs continued from tuned gains
+    grip_floor: float = 0.0
 
     def validate(self) -> None:
         for name in ("iterations", "checkpoint_every", "max_bad_steps", "plateau_validations"):
@@ -222,6 +225,12 @@ class Loop:
             raise ConfigError(
                 f"plateau_tol must be a relative change in [0, 1) (0: run to the cap), got {self.plateau_tol}",
                 inputs=("plateau_tol",),
+            )
+        if not 0 <= self.grip_floor < 1:
+            raise ConfigError(
+                f"grip_floor must be a relative grip error in [0, 1) (0: no worse than the start's), "
+                f"got {self.grip_floor}",
+                inputs=("grip_floor",),
             )
         if self.validate_every < 0:
             raise ConfigError(

@@ -406,7 +406,7 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
     return summary
 
 
-_EXTENDABLE = ("iterations", "plateau_tol", "plateau_validations")
+_EXTENDABLE = ("iterations", "plateau_tol", "plateau_validations", "grip_floor")
 """The settings a resumed run may change: how long it runs, not what it computes."""
 
 

@@ -273,9 +273,11 @@ def tune(
     try:
         start = state.iteration
         if every and not state.validation:
-            state = validated(state._replace(iteration=0), validate, spec, base, say)._replace(iteration=start)
+            state = validated(state._replace(iteration=0), validate, spec, base, say, loop.grip_floor)
+            state = state._replace(iteration=start)
         elif every and (start % every == 0 or start == iterations) and state.validation[-1]["iteration"] != start:
-            state = validated(state, validate, spec, base, say)  # interrupted between a step and its validation
+            # interrupted between a step and its validation
+            state = validated(state, validate, spec, base, say, loop.grip_floor)
         forward = make_loss(model, base, cfg, differentiated=False)  # CMA-ES's populations only evaluate the loss
         fresh = lambda k: training_batch(batch_cfg, k, train_base)  # noqa: E731
         oracle = _MethodOracle(forward, get_value_and_grad, state.theta, fresh(0), cfg, n_total, fresh)
@@ -305,7 +307,7 @@ def tune(
             last = converged or i + 1 == iterations
             lost = flat = False
             if every and ((i + 1) % every == 0 or last):
-                state = validated(state, validate, spec, base, say)
+                state = validated(state, validate, spec, base, say, loop.grip_floor)
                 lost = not last and lost_everywhere(state.validation)
                 held = not lost and not converged and plateau()
                 flat = held and not last
@@ -342,7 +344,7 @@ def tune(
     finally:
         bar.close()
     last = spec.to_gains(state.theta, base)
-    selected = select_iterate(list(state.validation))
+    selected = select_iterate(list(state.validation), loop.grip_floor)
     gains = spec.to_gains(state.kept[selected["iteration"]], base) if selected is not None else last
     record = convergence_record(reason, state, cfg, time.perf_counter() - t_start)
     if reason == "cap":

@@ -18,10 +18,12 @@ from jaxsync.optimize.tuning import checkpoint
 from jaxsync.optimize.tuning.params import TuneSpec
 
 
-def select_iterate(validation: list[dict]) -> dict | None:
+def select_iterate(validation: list[dict], grip_floor: float = 0.0) -> dict | None:
     """The validated iterate with the lowest settled peak resultant whose grip
     error is not worse than the start's (the first entry, which therefore always
-    qualifies), that dropped nothing and chattered in no scenario more than the
+    qualifies) or at most ``grip_floor`` (relative: a run continued from tuned
+    gains, whose grip error is already far below what matters, may trade a
+    little of it), that dropped nothing and chattered in no scenario more than the
     start did (``jaxsync.sim.metrics.CHATTER_THRESHOLD_N``). Where the tuning
     bounds compliance, only iterates within the bounds (``within_bounds``)
     are chosen from; when none is (the start outside them too), the one that
@@ -30,7 +32,7 @@ def select_iterate(validation: list[dict]) -> dict | None:
     "dropped", "nonfinite", "chattering", ...}."""
     if not validation:
         return None
-    grip0 = validation[0]["grip_force_error_rel"]
+    grip0 = max(validation[0]["grip_force_error_rel"], grip_floor)
     chatter0 = validation[0].get("chattering", 0)
     ok = [
         v
@@ -213,12 +215,12 @@ def save_state(path: str | None, state: TuneState, fingerprint, method, schedule
         checkpoint.save(path, d)
 
 
-def validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log) -> TuneState:
+def validated(state: TuneState, validate: Callable, spec: TuneSpec, base, log, grip_floor: float = 0.0) -> TuneState:
     """Evaluate the current iterate; keep its parameters while it may be selected."""
     i = state.iteration
     r = {"iteration": i, **validate(spec.to_gains(state.theta, base))}
     validation = (*state.validation, r)
-    best = select_iterate(list(validation))["iteration"]
+    best = select_iterate(list(validation), grip_floor)["iteration"]
     kept = {k: v for k, v in {**state.kept, i: state.theta}.items() if k == best}
     peak, grip = r["settled_peak_resultant_N"], r["grip_force_error_rel"]
     log(
