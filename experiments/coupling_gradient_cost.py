@@ -4,8 +4,8 @@ The tuning cost's value_and_grad through one rollout of the short task (2 s,
 the position stack, a delay of ``--delay`` periods, rematerialised scan, the
 tree passes: what ``jaxsync tune`` differentiates), batch 1, float64, for
 ``ros2_admittance`` (the rule alone) and ``ros2_coupled`` with every channel
-of the family on (gains and filters away from their defaults, so that no
-branch is constant). The gradient is taken with respect to the whole gain
+of the largest family on (gains, filters and the full 6x6 blocks away from
+their defaults, so that no branch is constant). The gradient is taken with respect to the whole gain
 pytree either way. Forward and gradient of both are timed alternately,
 best of ``--repeats``, so that a change in load hits both alike; the
 figure is the family's gradient time over the rule's. Writes JSON.
@@ -47,6 +47,7 @@ def main() -> None:
     family = rule._replace(
         **{f: jnp.asarray(rng.uniform(-0.2, 0.2, (2, 6))) for f in C.GAIN_FIELDS},
         **{f: jnp.asarray(rng.uniform(0.5, 0.95, (2, 6))) for f in C.FILTER_FIELDS},
+        cpl_block=jnp.asarray(rng.uniform(-0.05, 0.05, (4, 2, 6, 6)) * (1.0 - np.eye(6))),
     )
     cases = {"ros2_admittance": rule, "ros2_coupled": family}
     fns = {}

@@ -116,8 +116,9 @@ def _numpy_family(g, value, rate, delta, e, e_dot, eps, rots):
         o, ov = np.zeros(6), np.zeros(6)
         for c, (gain, filt) in enumerate(zip(_coupling.GAIN_FIELDS, _coupling.FILTER_FIELDS, strict=True)):
             a, cg = np.asarray(getattr(g, filt))[i], np.asarray(getattr(g, gain))[i]
-            o += cg * (a * u[c] + (1 - a) * value[c, i])
-            ov += cg * (a * du[c] + (1 - a) * rate[c, i])
+            full = np.diag(cg) + np.asarray(g.cpl_block)[c, i]  # the channel's 6x6 block, its gain the diagonal
+            o += full @ (a * u[c] + (1 - a) * value[c, i])
+            ov += full @ (a * du[c] + (1 - a) * rate[c, i])
         out.append(np.concatenate([rot @ o[:3], rot @ o[3:]]))
         out_vel.append(np.concatenate([rot @ ov[:3], rot @ ov[3:]]))
     return np.stack(out), np.stack(out_vel)
@@ -129,6 +130,7 @@ def _family_case(seed=0):
     g = g._replace(
         **{f: jnp.asarray(rng.uniform(-1.5, 1.5, (2, 6))) for f in _coupling.GAIN_FIELDS},
         **{f: jnp.asarray(rng.uniform(0.1, 1.0, (2, 6))) for f in _coupling.FILTER_FIELDS},
+        cpl_block=jnp.asarray(rng.uniform(-1.0, 1.0, (4, 2, 6, 6)) * (1.0 - np.eye(6))),
     )
     arms = (_arm(rng), _arm(rng))
     ref = jaxsync.Reference(
@@ -189,7 +191,7 @@ def test_the_familys_gradient_is_the_finite_differences():
     w = jnp.asarray(np.random.default_rng(2).normal(size=14))
     grad = jax.grad(lambda t: command(t) @ w)(theta)
     for f in _coupling.FIELDS:
-        for idx in [(0, 2), (1, 4)]:
+        for idx in [(1, 0, 2, 4), (3, 1, 4, 0)] if f == _coupling.BLOCK_FIELD else [(0, 2), (1, 4)]:
             h = 1e-6
             up = dict(theta, **{f: theta[f].at[idx].add(h)})
             down = dict(theta, **{f: theta[f].at[idx].add(-h)})
@@ -226,12 +228,26 @@ def test_the_tuner_maps_the_family_into_its_bounds():
     far = spec.to_gains({k: v + 50.0 for k, v in theta.items()}, g)
     assert float(np.max(np.asarray(far.cpl_rel))) <= _coupling.GAIN_MAX
     assert float(np.max(np.asarray(far.cpl_rel_a))) <= 1.0
+    assert float(np.max(np.asarray(far.cpl_block))) == pytest.approx(_coupling.GAIN_MAX)
+    np.testing.assert_array_equal(np.diagonal(np.asarray(far.cpl_block), axis1=-2, axis2=-1), 0.0)  # off it only
     jaxsync.control.gains.validate(far)
-    assert spec.size() == 8 * 12
+    assert spec.size() == 8 * 12 + 4 * 2 * 30
+    shared = TuneSpec(tuned=(_coupling.BLOCK_FIELD,))
+    moved = shared.to_gains({_coupling.BLOCK_FIELD: shared.init(g)[_coupling.BLOCK_FIELD] + 0.1}, g)
+    np.testing.assert_array_equal(np.asarray(moved.cpl_block)[:, 0], np.asarray(moved.cpl_block)[:, 1])
+    assert shared.size() == 4 * 30
+    with pytest.raises(ConfigError, match="no isotropic form"):
+        TuneSpec(tuned=(_coupling.BLOCK_FIELD,), isotropic=True)
+    with pytest.raises(ConfigError, match="its diagonal must be 0"):
+        jaxsync.control.gains.validate(g._replace(cpl_block=jnp.ones((4, 2, 6, 6))))
 
 
-def test_an_export_that_would_drop_the_coupling_refuses(tmp_path):
-    g = jaxsync.default_gains(None, "torque")._replace(cpl_force=jnp.full((2, 6), 0.5))
+@pytest.mark.parametrize("field", ["cpl_force", "cpl_block"])
+def test_an_export_that_would_drop_the_coupling_refuses(tmp_path, field):
+    g = jaxsync.default_gains(None, "torque")
+    g = g._replace(
+        **{field: jnp.full(np.shape(getattr(g, field)), 0.5) * (1.0 - np.eye(6) if field == "cpl_block" else 1.0)}
+    )
     with pytest.raises(ConfigError, match="coupling family"):
         jaxsync.export_gains(g, "ros2-admittance", str(tmp_path / "x"), force=True)
     assert not (tmp_path / "x").exists()

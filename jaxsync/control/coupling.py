@@ -21,10 +21,12 @@ passes the input through):
              arm's force error about as far as arm i's rule yields to its
              own within T.
 
-The offset is o_i = R_i sum_c (c ⊙ y_c), its rate R_i sum_c (c ⊙ y'_c) (the
-rates of the own and other channels are the rule offsets' rates J dq dot,
-filtered alike; rel and force carry none). Where it enters (``PLACEMENTS``,
-the controller's name says which: ``jaxsync.control.names.FAMILY``):
+The offset is o_i = R_i sum_c (c ⊙ y_c + X_c y_c), its rate alike with y'_c
+(the full 6x6 block of a channel per arm: the gain c its diagonal,
+``cpl_block`` X_c its off-diagonal part, 0 by default; the rates of the own
+and other channels are the rule offsets' rates J dq dot, filtered alike;
+rel and force carry none). Where it enters (``PLACEMENTS``, the
+controller's name says which: ``jaxsync.control.names.FAMILY``):
 
   ``reference`` (``ros2_coupled``): the target of arm i's reference joints is the plan plus
              o_i, so the command is q_ref + dq_i: once the reference has
@@ -51,7 +53,12 @@ import jax.numpy as jnp
 CHANNELS = ("rel", "own", "other", "force")
 GAIN_FIELDS = tuple(f"cpl_{c}" for c in CHANNELS)
 FILTER_FIELDS = tuple(f"cpl_{c}_a" for c in CHANNELS)
-FIELDS = GAIN_FIELDS + FILTER_FIELDS
+BLOCK_FIELD = "cpl_block"
+"""(4, 2, 6, 6): each channel's off-diagonal pad-frame block per arm (channels
+as ``CHANNELS``, rows right then left); the diagonal is the channel's gain
+``cpl_<channel>``, so the block's own diagonal must be 0."""
+FIELDS = GAIN_FIELDS + FILTER_FIELDS + (BLOCK_FIELD,)
+OFF_DIAGONAL = 1.0 - jnp.eye(6)
 PLACEMENTS = ("reference", "direct")
 FORCE_TIME = 0.1
 """s: the time over which the force channel's scale is arm i's admittance (the
@@ -118,8 +125,9 @@ def step(gains, state: CouplingState, u, u_dot, pad_rot):
     c = jnp.stack([getattr(gains, f) for f in GAIN_FIELDS])
     value = a * u + (1.0 - a) * state.value
     rate = a * u_dot + (1.0 - a) * state.rate
-    o = jnp.sum(c * value, axis=0)
-    o_dot = jnp.sum(c * rate, axis=0)
+    x = getattr(gains, BLOCK_FIELD) * OFF_DIAGONAL
+    o = jnp.sum(c * value, axis=0) + jnp.einsum("cirk,cik->ir", x, value)
+    o_dot = jnp.sum(c * rate, axis=0) + jnp.einsum("cirk,cik->ir", x, rate)
     off = jnp.stack([from_pad(pad_rot[i], o[i]) for i in range(2)])
     off_vel = jnp.stack([from_pad(pad_rot[i], o_dot[i]) for i in range(2)])
     return off, off_vel, CouplingState(value=value, rate=rate)
@@ -142,4 +150,5 @@ def of_synchronous(gains):
         cpl_own_a=one,
         cpl_other_a=one,
         cpl_force_a=one,
+        cpl_block=jnp.zeros_like(gains.cpl_block),
     )

@@ -51,7 +51,9 @@ class Gains(NamedTuple):
       offset, the other arm's, and the other arm's wrench error over the
       arm's own admittance;
     cpl_rel_a, cpl_own_a, cpl_other_a, cpl_force_a: each channel's
-      first-order filter coefficient, (0, 1] (1: unfiltered).
+      first-order filter coefficient, (0, 1] (1: unfiltered);
+    cpl_block: (4, 2, 6, 6), each channel's full pad-frame block per arm
+      off its diagonal (the diagonal is the channel's gain; 0: diagonal).
     """
 
     imp_mass: jax.Array
@@ -80,6 +82,7 @@ class Gains(NamedTuple):
     cpl_own_a: jax.Array
     cpl_other_a: jax.Array
     cpl_force_a: jax.Array
+    cpl_block: jax.Array
 
 
 # the gains each controller reads besides the shared joint-space law's (kp_pos, kd_pos, kp_null, kd_null)
@@ -172,6 +175,7 @@ def default_gains(model=None, actuation: str = "torque", controller: str | None 
         # no coupling: ros2_coupled starts as the rule alone
         **{f: np.zeros((2, 6)) for f in _coupling.GAIN_FIELDS},
         **{f: np.ones((2, 6)) for f in _coupling.FILTER_FIELDS},
+        cpl_block=np.zeros((len(_coupling.CHANNELS), 2, 6, 6)),
     )
     return strongly_typed(g)
 
@@ -343,6 +347,7 @@ _BOUNDS = {
     "ff_acc": (-FF_ACC_MAX, FF_ACC_MAX, True),
     **{f: (-_coupling.GAIN_MAX, _coupling.GAIN_MAX, True) for f in _coupling.GAIN_FIELDS},
     **{f: (0.0, 1.0, False) for f in _coupling.FILTER_FIELDS},
+    _coupling.BLOCK_FIELD: (-_coupling.GAIN_MAX, _coupling.GAIN_MAX, True),
 }
 
 
@@ -361,6 +366,12 @@ def validate(g: Gains) -> Gains:
         if not np.all(ok):
             rng = f"[{lo}, {hi}]" if closed else f"({lo}, {hi}]"
             raise ConfigError(f"gain '{name}' must lie in {rng}, got {value.tolist()}")
+    block = np.asarray(getattr(g, _coupling.BLOCK_FIELD), dtype=float)
+    if np.any(np.diagonal(block, axis1=-2, axis2=-1) != 0.0):
+        raise ConfigError(
+            f"gain '{_coupling.BLOCK_FIELD}' is each channel's block off its diagonal: its diagonal must be 0 "
+            f"(the diagonal is the channel's own gain, {', '.join(_coupling.GAIN_FIELDS)})"
+        )
     return g
 
 

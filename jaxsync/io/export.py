@@ -81,6 +81,10 @@ _FAMILY_INPUTS = ("the absolute errors' difference", "its own rule offset", "the
 for _c, _what in zip(_gains.FAMILY_FIELDS, _FAMILY_INPUTS, strict=False):  # the coupling family (ros2_coupled)
     MEANING[_c] = (f"coupling family: each arm's gain on {_what}, pad frame", "1 (|c| <= 2)")
     MEANING[_c + "_a"] = (f"coupling family: the first-order filter on {_what}", "1 (0 < a <= 1)")
+MEANING["cpl_block"] = (
+    "coupling family: each channel's 6x6 pad-frame block off its diagonal, per arm (channels rel, own, other, force)",
+    "1 (|x| <= 2)",
+)
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null", "ff_vel", "ff_acc")
 # the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
 BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")

@@ -22,6 +22,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
+from jaxsync.control.coupling import BLOCK_FIELD
 from jaxsync.control.coupling import FILTER_FIELDS as FAMILY_FILTERS
 from jaxsync.control.coupling import GAIN_FIELDS as FAMILY_GAINS
 from jaxsync.control.gains import COUPLING_FIELDS, Gains
@@ -119,8 +120,8 @@ def export_gains(
     if fmt == "ros2-admittance" and _family(g):
         raise ConfigError(
             "ros2-admittance: these gains set the coupling family of the ros2_coupled controllers (a cpl_rel, "
-            "cpl_own, cpl_other or cpl_force not 0, or a filter cpl_*_a not 1), which has no ros2_control form: "
-            "the two admittance files alone would run the rule uncoupled. Export them as yaml or json "
+            "cpl_own, cpl_other, cpl_force or cpl_block not 0, or a filter cpl_*_a not 1), which has no ros2_control "
+            "form: the two admittance files alone would run the rule uncoupled. Export them as yaml or json "
             "(docs/coupling.md)",
             inputs=("gains",),
         )
@@ -250,12 +251,12 @@ def _coupled(g) -> bool:
 
 
 def _family(g) -> bool:
-    """Any phase's coupling family not at its defaults (``jaxsync.control.coupling``): a gain not 0, a filter
-    not 1."""
+    """Any phase's coupling family not at its defaults (``jaxsync.control.coupling``): a gain or a block
+    entry not 0, a filter not 1."""
     return any(
         bool(np.any(np.asarray(getattr(p, k)) != (1.0 if k in FAMILY_FILTERS else 0.0)))
         for _, p in _phases(g)
-        for k in FAMILY_GAINS + FAMILY_FILTERS
+        for k in FAMILY_GAINS + FAMILY_FILTERS + (BLOCK_FIELD,)
     )
 
 

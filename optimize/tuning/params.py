@@ -13,7 +13,10 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
 
 - the coupling family's gains (ros2_coupled: cpl_rel, cpl_own, cpl_other,
   cpl_force) = GAIN_MAX tanh(theta), 0 at theta 0; its filters (cpl_*_a) =
-  A_MIN + (1 - A_MIN) sigmoid(theta), starting at most at A_START_MAX.
+  A_MIN + (1 - A_MIN) sigmoid(theta), starting at most at A_START_MAX;
+  their full 6x6 blocks off the diagonal (cpl_block, by name) = GAIN_MAX
+  tanh(theta) off the diagonal: (4, 6, 6) shared by the arms, (4, 2, 6, 6)
+  per arm, never isotropic.
 
 Impedance parameters are shared by both arms or per arm (``per_arm``), and
 per axis (6 values: the pad frame's x, y, z and rotations about them) or
@@ -63,8 +66,9 @@ SERVO_ADDED = LOOP + ("ff_acc",)
 # channel's gain c = GAIN_MAX tanh(theta), each filter a = A_MIN + (1 - A_MIN) sigmoid(theta)
 FAMILY_GAINS = _coupling.GAIN_FIELDS
 FAMILY_FILTERS = _coupling.FILTER_FIELDS
+FAMILY_BLOCK = _coupling.BLOCK_FIELD
 A_MIN, A_START_MAX = 1e-3, 0.95  # a filter starts at most at 0.95, where its gradient is not yet 0
-TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED + FAMILY_GAINS + FAMILY_FILTERS
+TUNABLE = SYNC + IMPEDANCE + OBJECT + FORCE + LOOP + FEED + FAMILY_GAINS + FAMILY_FILTERS + (FAMILY_BLOCK,)
 DEFAULT_TUNED = ("k_rk", "k_lk", "k_rl", "k_ll", "imp_mass", "imp_stiffness", "imp_damping_ratio")
 # what `jaxsync tune --controller NAME` tunes unless told
 DEFAULT_TUNED_FOR = {
@@ -129,6 +133,12 @@ class TuneSpec:
             raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}", inputs=("spec",))
         if not self.tuned:
             raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE), inputs=("spec", "frozen"))
+        if FAMILY_BLOCK in self.tuned and self.isotropic:
+            raise ConfigError(
+                f"{FAMILY_BLOCK} couples the pad frame's axes with each other: it has no isotropic form; tune it "
+                "without --isotropic",
+                inputs=("spec",),
+            )
 
     def for_model(self, controller: str, model, actuation: str) -> TuneSpec:
         """This spec on ``model``'s ``actuation`` stack: a controller's
@@ -249,6 +259,10 @@ class TuneSpec:
             elif name in FAMILY_GAINS:
                 ratio = self._reduce(getattr(base, name)) / _coupling.GAIN_MAX
                 theta[name] = jnp.asarray(np.arctanh(np.clip(ratio, -0.999, 0.999)))
+            elif name == FAMILY_BLOCK:
+                x = np.asarray(getattr(base, name), dtype=float)
+                x = x if self.per_arm else x.mean(axis=1)
+                theta[name] = jnp.asarray(np.arctanh(np.clip(x / _coupling.GAIN_MAX, -0.999, 0.999)))
             elif name in FAMILY_FILTERS:
                 a = np.clip(self._reduce(getattr(base, name)), 2 * A_MIN, A_START_MAX)
                 theta[name] = jnp.asarray(_logit((a - A_MIN) / (1.0 - A_MIN)))
@@ -298,6 +312,9 @@ class TuneSpec:
         for name in FAMILY_GAINS:
             if name in theta:
                 g[name] = self._expand(_coupling.GAIN_MAX * jnp.tanh(theta[name]))
+        if FAMILY_BLOCK in theta:
+            x = _coupling.GAIN_MAX * jnp.tanh(theta[FAMILY_BLOCK]) * _coupling.OFF_DIAGONAL
+            g[FAMILY_BLOCK] = x if self.per_arm else jnp.broadcast_to(x[:, None], (len(_coupling.CHANNELS), 2, 6, 6))
         for name in FAMILY_FILTERS:
             if name in theta:
                 g[name] = self._expand(A_MIN + (1.0 - A_MIN) * jax.nn.sigmoid(theta[name]))
@@ -337,7 +354,17 @@ class TuneSpec:
         """How many scalars are tuned."""
         arms = 2 if self.per_arm else 1
         axes = 2 if self.isotropic else 6
-        n = sum(1 if name in SYNC + LOOP + FEED else axes if name in VECTORS else arms * axes for name in self.tuned)
+        block = len(_coupling.CHANNELS) * arms * 30  # off the diagonal
+        n = sum(
+            1
+            if name in SYNC + LOOP + FEED
+            else axes
+            if name in VECTORS
+            else block
+            if name == FAMILY_BLOCK
+            else arms * axes
+            for name in self.tuned
+        )
         return n * (len(_schedule.PHASES) if self.schedule else 1)
 
     def describe(self) -> dict:
@@ -351,7 +378,7 @@ class TuneSpec:
             "k_range": [-1, 1],
             **(
                 {"coupling_gain_range": [-_coupling.GAIN_MAX, _coupling.GAIN_MAX], "coupling_filter_range": [A_MIN, 1]}
-                if set(FAMILY_GAINS + FAMILY_FILTERS) & set(self.tuned)
+                if set(FAMILY_GAINS + FAMILY_FILTERS + (FAMILY_BLOCK,)) & set(self.tuned)
                 else {}
             ),
             **(
