@@ -29,6 +29,11 @@ Where the study also tuned ``ros2_synchronous`` (the paper's coupling on the
 rule), each row also gives coupled / synchronous with its interval. Runs go
 to L-BFGS's convergence or the cap (``--iterations``, 300).
 
+Which channel does what: the coupled run's selected gains are scored again
+on the held-out set with each channel's gain (and block) set to 0 in turn,
+``without_<channel>_over_rule`` (1 where the channel was left at 0).
+``--reuse`` reads both runs from ``--out`` instead of tuning them.
+
     python experiments/coupling_on_the_rule.py --study results/study_coupling --out results/cor
 """
 
@@ -43,9 +48,12 @@ import jax
 import numpy as np
 
 import jaxsync
+from jaxsync.control import coupling as C
 from jaxsync.io import gains_file
 from jaxsync.optimize.studies import study as S
+from jaxsync.optimize.tuning import loss as L
 from jaxsync.optimize.tuning import pipeline as P
+from jaxsync.optimize.tuning import scenarios as SC
 from jaxsync.optimize.tuning.cost import CostWeights
 from jaxsync.optimize.tuning.params import FAMILY_GAINS, TuneSpec
 
@@ -87,6 +95,7 @@ def main() -> None:
         help="the coupled run starts from its defaults on the study's seed, beside the study's own rule run",
     )
     p.add_argument("--skip-rule", action="store_true", help="reuse the rule runs already in --out")
+    p.add_argument("--reuse", action="store_true", help="reuse both runs already in --out (the channels scored anew)")
     p.add_argument("--out", default="results/coupling_on_the_rule")
     args = p.parse_args()
     jaxsync.set_xla_flags()
@@ -130,7 +139,7 @@ def main() -> None:
                 tuned = args.tune.split(",") if args.tune else FAMILY_GAINS if args.family_only else None
                 if label == "coupled" and tuned:
                     tcfg = tcfg.replace(problem=dataclasses.replace(tcfg.problem, spec=TuneSpec(tuned=tuple(tuned))))
-                if label == "rule" and args.skip_rule:
+                if (label == "rule" and args.skip_rule) or args.reuse:
                     with open(os.path.join(out, "summary.json")) as f:
                         done[label] = json.load(f)
                     continue
@@ -138,6 +147,9 @@ def main() -> None:
                     model, start, tcfg, out=out, restart=True, mujoco_check=False, log=lambda m: None
                 ).to_dict()
             r, lo, hi = _ratio(_peaks(done["coupled"]), _peaks(done["rule"]))
+            coupled_out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", "coupled")
+            without = _without_each_channel(model, cfg.tune_config(args.family, seed, bounds), coupled_out)
+            rule_mean = float(np.nanmean(_peaks(done["rule"])))
             sync_run = os.path.join(S.run_dir(args.study, "ros2_synchronous", factor, seed), "summary.json")
             sync = {}
             if os.path.exists(sync_run):
@@ -176,6 +188,8 @@ def main() -> None:
                 "coupled_over_rule": r,
                 "ci95": [lo, hi],
                 **sync,
+                **{f"without_{c}_over_rule": v / rule_mean if v is not None else None for c, (v, _) in without.items()},
+                **{f"without_{c}_dropped": d for c, (_, d) in without.items()},
             }
             rows.append(row)
             print(json.dumps(row), flush=True)
@@ -205,6 +219,26 @@ def main() -> None:
     with open(os.path.join(args.out, "coupling_on_the_rule.json"), "w") as f:
         json.dump(result, f, indent=1)
     print("pooled coupled / rule:", pooled)
+
+
+def _without_each_channel(model, tcfg, coupled_out: str) -> dict:
+    """Per channel, (held-out mean settled peak, drops) of the coupled run's gains with that channel's gain
+    and block at 0; (None, 0) where the channel was 0 already."""
+    g = gains_file.load(os.path.join(coupled_out, "gains.json"))
+    options = tcfg.stack().rollout_options(model)
+    evaluate = L.make_evaluator(model, tcfg.training.eval_duration, tcfg.problem.controller, **options)
+    held = SC.heldout_scenarios(tcfg)
+    block = np.asarray(g.cpl_block)
+    out = {}
+    for k, (channel, gain) in enumerate(zip(C.CHANNELS, C.GAIN_FIELDS, strict=True)):
+        if not np.any(np.asarray(getattr(g, gain))) and not np.any(block[k]):
+            out[channel] = (None, 0)
+            continue
+        keep = (np.arange(len(C.CHANNELS)) != k)[:, None, None, None]
+        cut = g._replace(**{gain: np.zeros_like(np.asarray(getattr(g, gain)))}, cpl_block=block * keep)
+        s = L.eval_summary(evaluate(cut, held))
+        out[channel] = (s["settled_peak_resultant_N"], s["dropped"])
+    return out
 
 
 def _load(path: str) -> dict:
