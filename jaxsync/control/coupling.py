@@ -49,6 +49,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 CHANNELS = ("rel", "own", "other", "force")
 GAIN_FIELDS = tuple(f"cpl_{c}" for c in CHANNELS)
@@ -58,7 +59,7 @@ BLOCK_FIELD = "cpl_block"
 as ``CHANNELS``, rows right then left); the diagonal is the channel's gain
 ``cpl_<channel>``, so the block's own diagonal must be 0."""
 FIELDS = GAIN_FIELDS + FILTER_FIELDS + (BLOCK_FIELD,)
-OFF_DIAGONAL = 1.0 - jnp.eye(6)
+OFF_DIAGONAL = 1.0 - np.eye(6)  # NumPy: importing jaxsync must not start JAX's backend
 PLACEMENTS = ("reference", "direct")
 FORCE_TIME = 0.1
 """s: the time over which the force channel's scale is arm i's admittance (the
