@@ -18,15 +18,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from gradient_cost import time_alternately  # experiments/: the same timing harness
 
 import jaxsync
 from jaxsync.control import coupling as C
-from jaxsync.optimize.tuning.cost import CostWeights, cost
 
 
 def main() -> None:
@@ -50,33 +49,11 @@ def main() -> None:
         cpl_block=jnp.asarray(rng.uniform(-0.05, 0.05, (4, 2, 6, 6)) * (1.0 - np.eye(6))),
     )
     cases = {"ros2_admittance": rule, "ros2_coupled": family}
-    fns = {}
-    for name, g in cases.items():
-        roll = jaxsync.make_rollout(model, name, args.duration, remat=True, passes="tree", actuation="position")
-
-        def loss(gains, s, roll=roll):
-            return cost(roll(gains, s), s, CostWeights())
-
-        t0 = time.perf_counter()
-        fwd = jax.jit(loss)
-        jax.block_until_ready(fwd(g, s))
-        t1 = time.perf_counter()
-        grad = jax.jit(jax.value_and_grad(loss))
-        jax.block_until_ready(grad(g, s))
-        t2 = time.perf_counter()
-        fns[name] = (fwd, grad)
-        print(f"{name}: first forward call {t1 - t0:.1f} s, first gradient call {t2 - t1:.1f} s", flush=True)
-    times = {name: {"forward": [], "gradient": []} for name in fns}
-    for _ in range(args.repeats):
-        for name, (fwd, grad) in fns.items():
-            g = cases[name]
-            t0 = time.perf_counter()
-            jax.block_until_ready(fwd(g, s))
-            t1 = time.perf_counter()
-            jax.block_until_ready(grad(g, s))
-            t2 = time.perf_counter()
-            times[name]["forward"].append(t1 - t0)
-            times[name]["gradient"].append(t2 - t1)
+    rolls = {
+        name: jaxsync.make_rollout(model, name, args.duration, remat=True, passes="tree", actuation="position")
+        for name in cases
+    }
+    fns, times = time_alternately(rolls, cases, s, args.repeats)
     result = {
         "robot": args.robot,
         "duration_s": args.duration,

@@ -27,6 +27,40 @@ import jaxsync
 from jaxsync.optimize.tuning.cost import CostWeights, cost
 
 
+def time_alternately(rolls: dict, gains: dict, s, repeats: int) -> tuple[dict, dict]:
+    """Per name: the tuning cost of ``rolls[name](gains[name], s)`` and its value_and_grad, jitted and
+    called once each (the compile, printed), then both timed for every name in turn, ``repeats`` rounds,
+    so that a change in load hits all alike. Returns ({name: (forward, gradient)}, {name: {"forward":
+    [s, ...], "gradient": [s, ...]}})."""
+    fns = {}
+    for name, roll in rolls.items():
+
+        def loss(gains, s, roll=roll):
+            return cost(roll(gains, s), s, CostWeights())
+
+        g = gains[name]
+        t0 = time.perf_counter()
+        fwd = jax.jit(loss)
+        jax.block_until_ready(fwd(g, s))
+        t1 = time.perf_counter()
+        grad = jax.jit(jax.value_and_grad(loss))
+        jax.block_until_ready(grad(g, s))
+        t2 = time.perf_counter()
+        fns[name] = (fwd, grad)
+        print(f"{name}: first forward call {t1 - t0:.1f} s, first gradient call {t2 - t1:.1f} s", flush=True)
+    times = {name: {"forward": [], "gradient": []} for name in fns}
+    for _ in range(repeats):
+        for name, (fwd, grad) in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fwd(gains[name], s))
+            t1 = time.perf_counter()
+            jax.block_until_ready(grad(gains[name], s))
+            t2 = time.perf_counter()
+            times[name]["forward"].append(t1 - t0)
+            times[name]["gradient"].append(t2 - t1)
+    return fns, times
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=5)
@@ -41,34 +75,11 @@ def main() -> None:
         "unrolled (1-iteration solves, truncated every 100 steps)": (jaxsync.load_model(solver="unrolled"), 100),
         "implicit (converged solve, implicit adjoint, exact)": (jaxsync.load_model(), None),
     }
-    fns = {}
-    for name, (model, trunc) in paths.items():
-        roll = jaxsync.make_rollout(
-            model, "synchronous", args.duration, remat=True, passes="tree", truncate_every=trunc
-        )
-
-        def loss(gains, s, roll=roll):
-            return cost(roll(gains, s), s, CostWeights())
-
-        t0 = time.perf_counter()
-        fwd = jax.jit(loss)
-        jax.block_until_ready(fwd(g, s))
-        t1 = time.perf_counter()
-        grad = jax.jit(jax.value_and_grad(loss))
-        jax.block_until_ready(grad(g, s))
-        t2 = time.perf_counter()
-        fns[name] = (fwd, grad)
-        print(f"{name}: first forward call {t1 - t0:.1f} s, first gradient call {t2 - t1:.1f} s", flush=True)
-    times = {name: {"forward": [], "gradient": []} for name in fns}
-    for _ in range(args.repeats):
-        for name, (fwd, grad) in fns.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(fwd(g, s))
-            t1 = time.perf_counter()
-            jax.block_until_ready(grad(g, s))
-            t2 = time.perf_counter()
-            times[name]["forward"].append(t1 - t0)
-            times[name]["gradient"].append(t2 - t1)
+    rolls = {
+        name: jaxsync.make_rollout(model, "synchronous", args.duration, remat=True, passes="tree", truncate_every=trunc)
+        for name, (model, trunc) in paths.items()
+    }
+    fns, times = time_alternately(rolls, dict.fromkeys(rolls, g), s, args.repeats)
     result = {"duration_s": args.duration, "repeats": args.repeats, "load_average": os.getloadavg(), "paths": {}}
     for name, t in times.items():
         f, gr = min(t["forward"]), min(t["gradient"])

@@ -95,12 +95,13 @@ def test_the_pinned_jaxlib_knows_every_flag_and_a_made_up_one_is_unknown():
     assert not _xla.flag_known("xla_cpu_use_fusion_emitters", [])
 
 
-def test_importing_jaxsync_does_not_start_jaxs_backend():
+def test_importing_jaxsync_does_not_start_jaxs_backend(tmp_path):
     """set_xla_flags() must run before the backend starts; a module that builds
     a jax array at import time would start it and the flags would be lost."""
     code = (
         "import jax._src.xla_bridge as xb, jaxsync, jaxsync.optimize.tuning.pipeline, jaxsync.cli;"
         "print(len(xb._backends))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True)
-    assert out.stdout.strip() == "0", out.stdout + out.stderr
+    # run outside the checkout, so that the package imported is the installed one
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert out.returncode == 0 and out.stdout.strip() == "0", out.stdout + out.stderr

@@ -7,16 +7,14 @@ Formats (:data:`FORMATS`):
   the pad frame's x, y, z, rx, ry, rz); a gain schedule as one such block per
   task phase. :func:`load` (and so ``jaxsync compare --gains``) reads them
   back to the same gains.
-- ``ros2-admittance``: one parameter file per arm in the schema of
-  ros2_controllers' ``admittance_controller`` (``<name>: ros__parameters:``
-  with ``admittance.selected_axes``, ``mass``, ``damping_ratio``,
-  ``stiffness``, the control and sensor frames), converted to its conventions
-  (axis order x, y, z, rx, ry, rz of the control frame, damping as the ratio
-  zeta = D / (2 sqrt(M K))), and ``synchronisation.yaml`` with what the paper
-  adds and the admittance controller has no parameter for (k_rk, k_lk, k_rl,
-  k_ll, the inner position loop and the null-space gains), for a dual-arm
-  controller to read. A schedule is exported one folder per phase (the
-  admittance controller has none); :func:`load` reads such a folder back.
+- ``ros2-admittance``: one parameter file per arm in the schema of ros2_controllers'
+  ``admittance_controller`` (``<name>: ros__parameters:`` with ``admittance.selected_axes``,
+  ``mass``, ``damping_ratio``, ``stiffness``, the control and sensor frames), converted to its
+  conventions (axis order x, y, z, rx, ry, rz of the control frame, damping as the ratio zeta = D /
+  (2 sqrt(M K))), and ``synchronisation.yaml`` with what the paper adds and the admittance
+  controller has no parameter for (k_rk, k_lk, k_rl, k_ll, the inner position loop and the
+  null-space gains), for a dual-arm controller to read. A schedule is exported one folder per phase
+  (the admittance controller has none); :func:`load` reads such a folder back.
 
 Example:
   >>> paths = export(jaxsync.default_gains(), "yaml", "results/export")  # doctest: +SKIP
@@ -81,10 +79,7 @@ _FAMILY_INPUTS = ("the absolute errors' difference", "its own rule offset", "the
 for _c, _what in zip(_gains.FAMILY_FIELDS, _FAMILY_INPUTS, strict=False):  # the coupling family (ros2_coupled)
     MEANING[_c] = (f"coupling family: each arm's gain on {_what}, pad frame", "1 (|c| <= 2)")
     MEANING[_c + "_a"] = (f"coupling family: the first-order filter on {_what}", "1 (0 < a <= 1)")
-MEANING["cpl_block"] = (
-    "coupling family: each channel's 6x6 pad-frame block off its diagonal, per arm (channels rel, own, other, force)",
-    "1 (|x| <= 2)",
-)
+MEANING["cpl_block"] = ("coupling family: each channel's 6x6 pad-frame block off its diagonal, per arm", "1 (|x| <= 2)")
 SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null", "ff_vel", "ff_acc")
 # the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
 BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")
