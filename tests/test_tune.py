@@ -1224,3 +1224,18 @@ def test_tuned_gains_are_checked_on_mujoco_c(model, rollouts, shared_rollout, mo
     per["mujoco_after"] = [double(r) for r in per["mujoco_after"]]
     off = _crosscheck.sim_to_sim_verdict(per, 1, TEST_DURATION)
     assert not off["agree"] and "WARNING" in mujoco_text(off) and "below MJX's" in mujoco_text(off)
+
+
+def test_a_checkpoint_from_before_a_gain_existed_resumes_where_that_gain_is_at_its_default():
+    now = {"batch": 2, "gains_start": _gains.to_dict(_gains.default_gains())}
+    before = {"batch": 2, "gains_start": {k: v for k, v in now["gains_start"].items() if k != "cpl_block"}}
+    assert tune_state._gains_added_since(before, now) == now  # the run ran the gain at its default
+    moved = {
+        **now,
+        "gains_start": {
+            **now["gains_start"],
+            "cpl_block": (np.asarray(now["gains_start"]["cpl_block"]) + 0.1).tolist(),
+        },
+    }
+    assert tune_state._gains_added_since(before, moved) != moved  # not the default: another run
+    assert tune_state._gains_added_since({**before, "batch": 4}, now) != now  # other settings still differ

@@ -165,6 +165,19 @@ def _differences(saved: dict | None, given: dict) -> list[str]:
     ]
 
 
+def _gains_added_since(saved: dict | None, given: dict | None) -> dict | None:
+    """``saved`` (a checkpoint's fingerprint) with each gain its starting gains lack, a gain jaxsync
+    added since, at the value ``given`` holds when that is the gain's default: the run behaved so."""
+    if not saved or not given or not isinstance(saved.get("gains_start"), dict):
+        return saved
+    start, now = saved["gains_start"], given.get("gains_start") or {}
+    if "schedule" in start or "schedule" in now:
+        return saved
+    default = _gains.to_dict(_gains.default_gains())
+    added = {k: v for k, v in now.items() if k not in start and v == default.get(k)}
+    return {**saved, "gains_start": {**start, **added}} if added else saved
+
+
 def resumed_state(
     path: str, fingerprint, spec: TuneSpec, base, method, schedule_iterations: int | None = None
 ) -> TuneState:
@@ -174,8 +187,9 @@ def resumed_state(
     of another length would not end where an uninterrupted one ends, and is
     refused."""
     saved = checkpoint.load(path)
-    if fingerprint is not None and saved.get("fingerprint") != fingerprint:
-        diff = "; ".join(_differences(saved.get("fingerprint"), fingerprint))
+    was_run = _gains_added_since(saved.get("fingerprint"), fingerprint)
+    if fingerprint is not None and was_run != fingerprint:
+        diff = "; ".join(_differences(was_run, fingerprint))
         raise ConfigError(
             f"{path} was written by a run with other settings ({diff}): resume it with those, or restart",
             inputs=("resume", "restart"),
