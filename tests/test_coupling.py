@@ -3,7 +3,7 @@ coupling``, controllers ros2_coupled and ros2_coupled_direct): its special
 cases are the rule alone and ros2_synchronous in the closed loop, each
 period computes the documented per-axis pad-frame law (checked against a
 NumPy transcription), its gradient is the finite difference's, the
-compliance probe sees it, and an export that would drop it refuses.
+compliance probe sees it, and it exports with its placement.
 
 The closed-loop runs use MuJoCo C (the control step compiles alone)."""
 
@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import yaml
 from conftest import TEST_DURATION, fast_scenario
 
 import jaxsync
@@ -20,6 +21,8 @@ from jaxsync._errors import ConfigError
 from jaxsync.control import coupling as _coupling
 from jaxsync.control import ros2_loop as _ros2_loop
 from jaxsync.control.compliance import stiffness_at_pad
+from jaxsync.control.names import FAMILY
+from jaxsync.io import gains_file
 from jaxsync.optimize.tuning.params import TuneSpec
 from jaxsync.physics.sensing import ArmState
 
@@ -242,14 +245,53 @@ def test_the_tuner_maps_the_family_into_its_bounds():
         jaxsync.control.gains.validate(g._replace(cpl_block=jnp.ones((4, 2, 6, 6))))
 
 
-@pytest.mark.parametrize("field", ["cpl_force", "cpl_block"])
-def test_an_export_that_would_drop_the_coupling_refuses(tmp_path, field):
-    g = jaxsync.default_gains(None, "torque")
-    g = g._replace(
-        **{field: jnp.full(np.shape(getattr(g, field)), 0.5) * (1.0 - np.eye(6) if field == "cpl_block" else 1.0)}
-    )
-    with pytest.raises(ConfigError, match="coupling family"):
-        jaxsync.export_gains(g, "ros2-admittance", str(tmp_path / "x"), force=True)
+def _every_digit_family(g, seed=3):
+    """``g`` with every family entry set to values that use every digit (blocks off their diagonal)."""
+    rng = np.random.default_rng(seed)
+    out = {f: rng.uniform(-0.5, 0.5, (2, 6)) for f in _coupling.GAIN_FIELDS}
+    out.update({f: rng.uniform(0.2, 1.0, (2, 6)) for f in _coupling.FILTER_FIELDS})
+    out[_coupling.BLOCK_FIELD] = rng.uniform(-0.2, 0.2, (4, 2, 6, 6)) * _coupling.OFF_DIAGONAL
+    return g._replace(**{k: jnp.asarray(v) for k, v in out.items()})
+
+
+def test_the_family_exports_with_its_placement_and_reads_back_bit_for_bit(model, tmp_path):
+    """Without a family controller named, the family is refused (the two admittance files alone would run the
+    rule uncoupled); named, synchronisation.yaml carries the controller, its placement and every entry, and
+    the folder reads back to the same gains, bit for bit, naming the controller."""
+    g = _every_digit_family(jaxsync.default_gains(model, "position", "ros2_coupled"))
+    for controller in (None, "ros2_admittance"):
+        with pytest.raises(ConfigError, match="coupling family"):
+            jaxsync.export_gains(g, "ros2-admittance", str(tmp_path / "x"), controller=controller)
     assert not (tmp_path / "x").exists()
-    done = jaxsync.export_gains(g, "yaml", str(tmp_path / "y"))
-    assert done.same
+    for controller, placement in FAMILY.items():
+        out = tmp_path / controller
+        done = jaxsync.export_gains(g, "ros2-admittance", str(out), controller=controller)
+        assert done.same
+        sync = yaml.safe_load((out / "synchronisation.yaml").read_text())["dual_arm_synchronisation"]["ros__parameters"]
+        assert (sync["schema_version"], sync["controller"], sync["coupling_placement"]) == (3, controller, placement)
+        np.testing.assert_array_equal(sync["cpl_other_left"], np.asarray(g.cpl_other)[1])
+        np.testing.assert_array_equal(np.reshape(sync["cpl_block_force_right"], (6, 6)), np.asarray(g.cpl_block)[3, 0])
+        back = gains_file.load(str(out))
+        for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(g), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert gains_file.controller_of(str(out)) == controller
+    # what was read back re-simulates the identical trajectory (MuJoCo C, the family's own step)
+    s = fast_scenario(delay=float(DELAY))
+    back = gains_file.load(str(tmp_path / "ros2_coupled"))
+    roll = lambda x: jaxsync.rollout(  # noqa: E731
+        model, x, s, controller="ros2_coupled", duration=TEST_DURATION, actuation="position", backend="mujoco"
+    )
+    a, b = _leaves(roll(g)), _leaves(roll(back))
+    assert np.isfinite(a[0]).all()
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    # a hand-edited placement that is not the controller's, or an entry cut short, is named
+    text = (tmp_path / "ros2_coupled" / "synchronisation.yaml").read_text()
+    for old, new in (
+        ("coupling_placement: reference", "coupling_placement: direct"),
+        ("cpl_rel_right: [", "cpl_rel_right: [1.0, "),
+    ):
+        (tmp_path / "ros2_coupled" / "synchronisation.yaml").write_text(text.replace(old, new))
+        with pytest.raises(ConfigError, match="coupling_placement|cpl_rel_right must be a list of 6"):
+            gains_file.load(str(tmp_path / "ros2_coupled"))
+    assert jaxsync.export_gains(g, "yaml", str(tmp_path / "y")).same

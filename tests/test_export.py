@@ -96,7 +96,7 @@ def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_wi
     _export.export(g, "ros2-admittance", str(tmp_path))
     path = tmp_path / "synchronisation.yaml"
     sync = yaml.safe_load(path.read_text())["dual_arm_synchronisation"]["ros__parameters"]
-    assert sync["schema_version"] == _export.SYNC_SCHEMA == 2
+    assert sync["schema_version"] == _export.SYNC_SCHEMA == 3
     documented = open(os.path.join(os.path.dirname(__file__), "..", "docs", "export.md")).read()
     for key in sync:
         assert f"`{key}`" in documented, f"synchronisation.yaml key {key} is not documented in docs/export.md"
@@ -116,12 +116,12 @@ def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_wi
     # schema 1 had no feed-forward: such a file reads it as none
     path.write_text(
         "\n".join(x for x in written.splitlines() if not x.lstrip().startswith(("ff_vel", "ff_acc"))).replace(
-            "schema_version: 2", "schema_version: 1"
+            "schema_version: 3", "schema_version: 1"
         )
     )
     assert float(gains_file.load(tmp_path).ff_acc) == 0.0 == float(gains_file.load(tmp_path).ff_vel)
-    for version, message in ((3, "schema_version 3 is not one this jaxsync reads"), ("one", "'one'")):
-        path.write_text(written.replace("schema_version: 2", f"schema_version: {version}"))
+    for version, message in ((4, "schema_version 4 is not one this jaxsync reads"), ("one", "'one'")):
+        path.write_text(written.replace("schema_version: 3", f"schema_version: {version}"))
         with pytest.raises(ConfigError, match=message):
             gains_file.load(tmp_path)
 

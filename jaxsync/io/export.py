@@ -35,6 +35,7 @@ from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
 from jaxsync.control.joint_space import COMMAND_ALPHA
 from jaxsync.io import results as _results
+from jaxsync.io import sync_file as _sync
 from jaxsync.io.ros2_target import (  # noqa: F401  (jaxsync.io.export's public names)
     ARMS,
     COMMAND_INTERFACES,
@@ -80,9 +81,7 @@ for _c, _what in zip(_gains.FAMILY_FIELDS, _FAMILY_INPUTS, strict=False):  # the
     MEANING[_c] = (f"coupling family: each arm's gain on {_what}, pad frame", "1 (|c| <= 2)")
     MEANING[_c + "_a"] = (f"coupling family: the first-order filter on {_what}", "1 (0 < a <= 1)")
 MEANING["cpl_block"] = ("coupling family: each channel's 6x6 pad-frame block off its diagonal, per arm", "1 (|x| <= 2)")
-SYNC_FIELDS = ("k_rk", "k_lk", "k_rl", "k_ll", "kp_pos", "kd_pos", "kp_null", "kd_null", "ff_vel", "ff_acc")
-# the baselines' gains (jaxsync.control.baselines): no ros2 controller reads them; kept so the files read back whole
-BASELINE_FIELDS = ("obj_mass", "obj_damping", "obj_stiffness", "force_p", "force_i")
+SYNC_FIELDS, BASELINE_FIELDS = _sync.FIELDS, _sync.BASELINE_FIELDS
 HEADER = "jaxsync_gains"
 ADMITTANCE_SOURCE = (
     "ros2_controllers admittance_controller, src/admittance_controller_parameters.yaml "
@@ -296,49 +295,13 @@ def _admittance_yaml(g: Gains, arm: int, controller: str, phase: str | None, tar
     return "\n".join(lines) + "\n"
 
 
-SYNC_SCHEMA = 2  # synchronisation.yaml's schema version (docs/export.md, "synchronisation.yaml"); 2: ff_vel, ff_acc
-SYNC_NODE = "dual_arm_synchronisation"
+SYNC_SCHEMA, SYNC_NODE = _sync.SCHEMA, _sync.NODE  # synchronisation.yaml (jaxsync.io.sync_file)
 
 
-def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target, warnings=()) -> str:
-    lines = [
-        *(f"# {w}" for w in warnings),
-        f"# jaxsync synchronisation.yaml, schema {SYNC_SCHEMA} (docs/export.md names every key): what the paper's"
-        + (f" synchronous controller adds (task phase '{phase}')" if phase else " synchronous controller adds"),
-        "# to the two admittance controllers of admittance_right.yaml and admittance_left.yaml, for a dual-arm",
-        "# controller to read (docs/deploy.md gives its update): relative-error factors k_rk, k_lk (eq. 13),",
-        "# compliant-offset factors k_rl, k_ll (eq. 17), the joint-command loop kp_pos, kd_pos, kp_null, kd_null",
-        "# and the joint command's feed-forward of the plan ff_vel, ff_acc.",
-        f"{SYNC_NODE}:",
-        "  ros__parameters:",
-        f"    schema_version: {SYNC_SCHEMA}",
-        f"    ros_distro: {target.distro}",
-        f"    update_rate: {target.update_rate}  # Hz",
-        f"    controllers: [{', '.join(f'admittance_controller_{n}' for n in ARMS)}]  # right, left",
-        f"    admittance_files: [{', '.join(f'admittance_{n}.yaml' for n in ARMS)}]",
-    ]
-    for name in SYNC_FIELDS:
-        symbol, unit = MEANING[name]
-        lines.append(f"    {name}: {float(np.asarray(getattr(g, name))).__repr__()}  # {symbol} [{unit}]")
-    lines.append(
-        f"    alpha: {COMMAND_ALPHA!r}  # the joint command's damped least squares, (J^T J + alpha I)^-1 J^T,"
-        " the planned twist refined once"
-    )
-    lines.append("    # for each control-frame axis of admittance_<arm>.yaml, the jaxsync pad-frame axis it carries")
-    for arm, name in enumerate(ARMS):
-        lines.append(f"    pad_axes_{name}: {list(target.arms[arm].axes)}")
-    lines.append("    # for each entry of admittance_<arm>.yaml's mass, the pad-frame axis whose mass it is")
-    for arm, name in enumerate(ARMS):
-        lines.append(f"    mass_axes_{name}: {list(mass_axes(target.arms[arm], target.distro))}")
-    lines.append("    # the damping D (pad-frame axes) each damping_ratio was formed from, as tuned: read back")
-    lines.append("    # where the ratio still gives it to rounding, so that the files re-simulate bit for bit")
-    for arm, name in enumerate(ARMS):
-        lines.append(f"    damping_{name}: {_yaml_list(np.asarray(g.imp_damping, dtype=float)[arm])}")
-    lines.append("    # the baselines' gains (docs/controller.md): no ros2 controller reads them; jaxsync does")
-    for name in BASELINE_FIELDS:
-        values = [float(x) for x in np.asarray(getattr(g, name), dtype=float)]
-        lines.append(f"    {name}: {values!r}")
-    return "\n".join(lines) + "\n"
+def _sync_yaml(g: Gains, phase: str | None, target: Ros2Target, controller: str, warnings=()) -> str:
+    axes = {f"pad_axes_{n}": target.arms[a].axes for a, n in enumerate(ARMS)}
+    axes.update({f"mass_axes_{n}": mass_axes(target.arms[a], target.distro) for a, n in enumerate(ARMS)})
+    return _sync.text(g, phase, target, controller, MEANING, axes, warnings)
 
 
 def _numbers(v) -> str:
@@ -374,7 +337,7 @@ def pad_links_urdf(target: Ros2Target) -> str:
     return "\n".join([*lines, "</robot>"]) + "\n"
 
 
-def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=(), sync_warnings=()) -> list[str]:
+def _ros2(g: Gains, out: str, phase, target: Ros2Target, controller: str, warnings=(), sync_warnings=()) -> list[str]:
     check_admittance(g, phase)
     _results.ensure_writable_dir(out)
     paths = []
@@ -387,7 +350,7 @@ def _ros2(g: Gains, out: str, phase: str | None, target: Ros2Target, warnings=()
         _results.atomic_write_text(path, text)
         paths.append(path)
     path = os.path.join(out, "synchronisation.yaml")
-    _results.atomic_write_text(path, _sync_yaml(g, phase, target, sync_warnings))
+    _results.atomic_write_text(path, _sync_yaml(g, phase, target, controller, sync_warnings))
     return [*paths, path]
 
 
@@ -421,12 +384,7 @@ def _ros2_load(folder: str) -> Gains:
         sync = doc[SYNC_NODE]["ros__parameters"]
     except (KeyError, TypeError):
         raise ConfigError(f"{path}: expected {SYNC_NODE}: ros__parameters:") from None
-    version = sync.get("schema_version", 0)  # 0: written before the schema had a version
-    if not isinstance(version, int) or not 0 <= version <= SYNC_SCHEMA:
-        raise ConfigError(
-            f"{path}: schema_version {version!r} is not one this jaxsync reads (0 to {SYNC_SCHEMA}): "
-            "a newer jaxsync wrote it"
-        )
+    _sync.version(sync, path)
     fields = {}
     for name, (m, zeta, k) in zip(ARMS, per_arm, strict=True):
         axes = _axes(sync, f"pad_axes_{name}", list(range(6)), path)
@@ -441,6 +399,7 @@ def _ros2_load(folder: str) -> Gains:
         fields.setdefault("imp_damping", []).append(d)
     d = {k: np.stack(v).tolist() for k, v in fields.items()}
     d.update({k: sync[k] for k in SYNC_FIELDS + BASELINE_FIELDS if k in sync})
+    d.update(_sync.family_fields(sync, path))
     return _gains.from_dict(d)
 
 
@@ -451,23 +410,27 @@ def _axes(sync: dict, key: str, default, path: str) -> list:
     return axes
 
 
-def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings=(), sync_warnings=()) -> list[str]:
+def export(gains, fmt: str, out: str, target=None, warnings=(), sync_warnings=(), controller=None) -> list[str]:
     """Write ``gains`` (constant or a schedule) in format ``fmt`` to folder ``out``; the paths written.
     ``target``: the robot the ros2-admittance files are for (``ros2_target``; the paper model's by default);
-    ``warnings``: lines each admittance file opens with; ``sync_warnings``: synchronisation.yaml's."""
+    ``warnings``: lines each admittance file opens with; ``sync_warnings``: synchronisation.yaml's;
+    ``controller``: the one synchronisation.yaml names (None: ros2_synchronous where the paper's coupling is
+    set, else ros2_admittance; the coupling family's gains need theirs named)."""
     if fmt not in FORMATS:
         raise ConfigError(f"fmt must be one of {list(FORMATS)}, got {fmt!r}", inputs=("fmt",))
     if fmt == "ros2-admittance":
         if target is None:
             target = ros2_target(load_mj_model())
+        controller = _sync.controller_for(gains, controller)
         if isinstance(gains, _schedule.Schedule):
             for i, p in enumerate(_schedule.PHASES):  # every phase checked before anything is written
                 check_admittance(_schedule.phase(gains, i), p)
             paths = []
             for i, p in enumerate(_schedule.PHASES):
-                paths += _ros2(_schedule.phase(gains, i), os.path.join(out, p), p, target, warnings, sync_warnings)
+                phase = _schedule.phase(gains, i)
+                paths += _ros2(phase, os.path.join(out, p), p, target, controller, warnings, sync_warnings)
             return paths
-        return _ros2(gains, out, None, target, warnings, sync_warnings)
+        return _ros2(gains, out, None, target, controller, warnings, sync_warnings)
     _results.ensure_writable_dir(out)
     doc = document(gains)
     path = os.path.join(out, f"gains.{fmt}")
@@ -479,6 +442,18 @@ def export(gains, fmt: str, out: str, target: Ros2Target | None = None, warnings
             path, head + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=120)
         )
     return [path]
+
+
+def controller_of(folder: str) -> str | None:
+    """The controller a ros2-admittance export names (``synchronisation.yaml``'s ``controller``; a schedule's
+    first phase's), None where it names none (schema 2 and before) or ``folder`` is no such export."""
+    for sub in ("", _schedule.PHASES[0]):
+        path = os.path.join(folder, sub, "synchronisation.yaml")
+        if os.path.exists(path):
+            doc = _read_yaml(path)
+            sync = doc.get(SYNC_NODE, {}).get("ros__parameters", {}) if isinstance(doc, dict) else {}
+            return _sync.controller(sync, path) if isinstance(sync, dict) else None
+    return None
 
 
 def load(path: str):

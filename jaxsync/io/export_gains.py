@@ -22,12 +22,11 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.coupling import BLOCK_FIELD
-from jaxsync.control.coupling import FILTER_FIELDS as FAMILY_FILTERS
-from jaxsync.control.coupling import GAIN_FIELDS as FAMILY_GAINS
 from jaxsync.control.gains import COUPLING_FIELDS, Gains
+from jaxsync.control.names import FAMILY
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
+from jaxsync.io import sync_file as _sync
 from jaxsync.physics import robot_names
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
@@ -39,6 +38,7 @@ ROS2_CONTROLLERS = (
     "synchronous",
     "ros2_admittance",
     "ros2_synchronous",
+    *FAMILY,
 )  # the laws a ros2-admittance export runs
 
 
@@ -66,6 +66,7 @@ def export_gains(
     force: bool = False,
     compliance_at: str = "pad",
     ft_filter: float = 1.0,
+    controller: str | None = None,
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -90,11 +91,19 @@ def export_gains(
     deployed controller still does otherwise than the loop simulated it is
     in the notes, with its size. ``ft_filter``: the
     files' ``ft_sensor.filter_coefficient`` (the rule's F/T filter the gains
-    were tuned with, ``Scenario.ft_filter``; 1: unfiltered).
+    were tuned with, ``Scenario.ft_filter``; 1: unfiltered). ``controller``:
+    the one the ros2-admittance files configure (None: the one a gains file
+    was tuned for; gains that set the coupling family must name theirs,
+    ``ros2_coupled`` or ``ros2_coupled_direct``).
     """
     _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
-    tuned_for = gains_file.controller_of(gains) if from_file else None
+    recorded = gains_file.controller_of(gains) if from_file else None
+    if controller is not None and recorded not in (None, controller):
+        raise ConfigError(
+            f"gains {gains} were tuned for the {recorded} controller, not {controller}", inputs=("controller",)
+        )
+    tuned_for = controller or recorded
     if fmt == "ros2-admittance" and tuned_for not in (None, *ROS2_CONTROLLERS):
         raise ConfigError(
             f"gains {gains} was tuned for the {tuned_for} controller, which ros2_controllers' admittance "
@@ -117,14 +126,7 @@ def export_gains(
             )
             target = dataclasses.replace(target, filter_coefficient=_actuation.check_ft_filter(ft_filter, one=True)[0])
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
-    if fmt == "ros2-admittance" and _family(g):
-        raise ConfigError(
-            "ros2-admittance: these gains set the coupling family of the ros2_coupled controllers (a cpl_rel, "
-            "cpl_own, cpl_other, cpl_force or cpl_block not 0, or a filter cpl_*_a not 1), which has no ros2_control "
-            "form: the two admittance files alone would run the rule uncoupled. Export them as yaml or json "
-            "(docs/coupling.md)",
-            inputs=("gains",),
-        )
+    names = _sync.controller_for(g, tuned_for) if fmt == "ros2-admittance" else None
     warnings = []
     if fmt == "ros2-admittance":
         problems = deployed_stability(g, 1.0 / target.update_rate)
@@ -161,7 +163,9 @@ def export_gains(
             "ros2_controllers' admittance controller has none, so the two admittance files alone run without it "
             "(docs/deploy.md gives the step a port adds)"
         )
-    paths = _export.export(g, fmt, out, target, warnings=tuple(warnings), sync_warnings=tuple(coupling))
+    paths = _export.export(
+        g, fmt, out, target, warnings=tuple(warnings), sync_warnings=tuple(coupling), controller=names
+    )
     back = gains_file.load(paths[0] if fmt != "ros2-admittance" else out)
     if from_file:
         origin = str(gains)
@@ -248,16 +252,6 @@ def _phases(gains) -> list[tuple[str | None, Gains]]:
 def _coupled(g) -> bool:
     """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
     return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in COUPLING_FIELDS)
-
-
-def _family(g) -> bool:
-    """Any phase's coupling family not at its defaults (``jaxsync.control.coupling``): a gain or a block
-    entry not 0, a filter not 1."""
-    return any(
-        bool(np.any(np.asarray(getattr(p, k)) != (1.0 if k in FAMILY_FILTERS else 0.0)))
-        for _, p in _phases(g)
-        for k in FAMILY_GAINS + FAMILY_FILTERS + (BLOCK_FIELD,)
-    )
 
 
 def _fed_forward(g) -> bool:

@@ -65,7 +65,10 @@ def _recorded(path: str | os.PathLike, key: str):
 
 def controller_of(path: str | os.PathLike) -> str | None:
     """The controller a gains file was tuned for (``jaxsync tune`` records it
-    beside the gains), None when the file does not say."""
+    beside the gains; a ros2-admittance export names the one it configures),
+    None when the file does not say."""
+    if os.path.isdir(path):
+        return _export.controller_of(str(path))
     return _recorded(path, "controller")
 
 
