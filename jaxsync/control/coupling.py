@@ -123,15 +123,21 @@ def step(gains, state: CouplingState, u, u_dot, pad_rot):
     """One period of the filters and the offset: returns (o (2, 6), its rate
     (2, 6), world frame, the new state)."""
     a = jnp.stack([getattr(gains, f) for f in FILTER_FIELDS])
+    new = CouplingState(value=a * u + (1.0 - a) * state.value, rate=a * u_dot + (1.0 - a) * state.rate)
+    return *offset(gains, new, pad_rot), new
+
+
+def offset(gains, state: CouplingState, pad_rot):
+    """o_i = R_i sum_c (c ⊙ y_c + X_c y_c) and its rate alike with the filtered
+    rates, (2, 6) each, world frame, from the filters' ``state`` and the
+    planned pad rotations ``pad_rot`` (2, 3, 3)."""
     c = jnp.stack([getattr(gains, f) for f in GAIN_FIELDS])
-    value = a * u + (1.0 - a) * state.value
-    rate = a * u_dot + (1.0 - a) * state.rate
     x = getattr(gains, BLOCK_FIELD) * OFF_DIAGONAL
-    o = jnp.sum(c * value, axis=0) + jnp.einsum("cirk,cik->ir", x, value)
-    o_dot = jnp.sum(c * rate, axis=0) + jnp.einsum("cirk,cik->ir", x, rate)
+    o = jnp.sum(c * state.value, axis=0) + jnp.einsum("cirk,cik->ir", x, state.value)
+    o_dot = jnp.sum(c * state.rate, axis=0) + jnp.einsum("cirk,cik->ir", x, state.rate)
     off = jnp.stack([from_pad(pad_rot[i], o[i]) for i in range(2)])
     off_vel = jnp.stack([from_pad(pad_rot[i], o_dot[i]) for i in range(2)])
-    return off, off_vel, CouplingState(value=value, rate=rate)
+    return off, off_vel
 
 
 def of_synchronous(gains):

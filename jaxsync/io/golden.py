@@ -35,9 +35,10 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import controller as _controller
+from jaxsync.control import coupling as _coupling
 from jaxsync.control.gains import Gains
 from jaxsync.control.joint_space import COMMAND_ALPHA
-from jaxsync.control.names import ALL_CONTROLLERS
+from jaxsync.control.names import ALL_CONTROLLERS, FAMILY
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
@@ -73,8 +74,8 @@ STATE_FIELDS = {
     "object.rate": "its rate, object frame, [m/s; rad/s]",
     "force_integral": "task_space's integral of the internal wrench, world frame, [N s; N m s]",
     "ros2.q_ref": "each arm's reference joints, rad: advanced one period by the CLIK toward the plan "
-    "(ros2_synchronous: toward the coupled target, from the rules' last offsets) before the rule runs on them "
-    "(docs/ros2-rule.md)",
+    "(ros2_synchronous: toward the coupled target, from the rules' last offsets; ros2_coupled: toward the plan "
+    "plus the coupling offset o_i) before the rule runs on them (docs/ros2-rule.md, docs/coupling.md)",
     "ros2.rule.joint_pos": "the rule's offset in joint space (the C++ AdmittanceState), rad",
     "ros2.rule.joint_vel": "its rate, rad/s",
     "ros2.rule.joint_acc": "its acceleration, rad/s^2",
@@ -85,6 +86,19 @@ STATE_FIELDS = {
     "(docs/coupling.md), each arm's planned pad frame, [m; rad] (force: over the arm's admittance, docs/coupling.md)",
     "coupling.rate": "their rates (own, other; rel and force 0), [m/s; rad/s]",
 }
+# what a controller's step writes besides its state: column prefix, meaning, frame, unit
+OUTPUT_FIELDS = {
+    "command": "the integrated joint position commands, rad, right arm's joints then left's",
+    "sent": "what the servo gets: command plus the plan's feed-forward (0 for the rule), rad",
+}
+# the coupling family's offset, a function of its state after the step (``jaxsync.control.coupling.offset``)
+FAMILY_OUTPUT_FIELDS = {
+    "coupling_offset": "the coupling offset o_i [arm][axis] from state.coupling, world frame, [m; rad] "
+    "(docs/coupling.md, 'One period, in order'; ros2_coupled: the target of q_ref is the plan plus o_i, "
+    "ros2_coupled_direct: J# o_i is added to q_ref for the rule)",
+    "coupling_offset_rate": "its rate, world frame, [m/s; rad/s]",
+}
+_family_offset = jax.jit(_coupling.offset)  # one program for the recording and the replay: the same digits
 # what a controller's step reads of each arm: (field, meaning)
 ARM_FIELDS = (
     ("q", "joint positions, rad"),
@@ -113,6 +127,16 @@ def _flat(prefix: str, x) -> dict:
 
 def _index(i: tuple) -> str:
     return "".join(f"[{j}]" for j in i)
+
+
+def _output_fields(controller: str) -> dict:
+    return {**OUTPUT_FIELDS, **(FAMILY_OUTPUT_FIELDS if controller in FAMILY else {})}
+
+
+def _family_columns(gains, state, ref) -> dict:
+    """The coupling family's offset and its rate as output columns."""
+    o, o_dot = _family_offset(gains, state.coupling, jnp.asarray(ref.pad_rot))
+    return {**_flat("coupling_offset", o), **_flat("coupling_offset_rate", o_dot)}
 
 
 def _state_columns(prefix: str, state, parts) -> dict:
@@ -147,6 +171,7 @@ def record(model, gains: Gains, scenario, *, controller: str, steps: int, stack:
                 **_flat("command", command),
                 **_flat("sent", sent),
                 **_state_columns("state.", state, parts),
+                **(_family_columns(gains, state, ref) if controller in FAMILY else {}),
             }
         )
 
@@ -204,6 +229,7 @@ def export_golden(
         "state_fields": {
             k: v for k, v in STATE_FIELDS.items() if any(k.split(".")[0] == p for p in STATE_PARTS[controller])
         },
+        "output_fields": _output_fields(controller),
         "alpha": COMMAND_ALPHA,  # the damped least squares' alpha: J# = (J^T J + alpha I)^-1 J^T
         "columns": {"inputs": list(inputs[0]), "outputs": list(outputs[0])},
         "replay": "each row alone: the controller's step on the row's inputs (state_in, command_in) gives the "
@@ -321,6 +347,9 @@ def replay(folder: str) -> float:
             _array(outputs, "sent", (2 * n,), k),
             *(getattr(want_state, p) for p in parts),
         ]
+        if "coupling_offset[0][0]" in outputs:  # the family's offset (files of the family controllers)
+            got += list(_family_offset(gains, state.coupling, jnp.asarray(ref.pad_rot)))
+            want += [_array(outputs, f, (2, 6), k) for f in FAMILY_OUTPUT_FIELDS]
         for x, y in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
             worst = max(worst, float(np.max(np.abs(np.asarray(x) - np.asarray(y)), initial=0.0)))
     return worst
