@@ -127,8 +127,10 @@ def test_bad_requests_are_refused_before_anything_is_written(model, tmp_path, ca
     assert "invalid choice: 'bang_bang'" in capsys.readouterr().err
     assert main(["export", "--format", "yaml", "--steps", "5", "--out", str(tmp_path / "y")]) == 2
     assert "--steps: not for --format yaml" in capsys.readouterr().err
-    assert main(["export", "--format", "ros2-admittance", "--delay", "2", "--out", str(tmp_path / "y")]) == 2
-    assert "--delay: not for --format ros2-admittance" in capsys.readouterr().err
+    assert main(["export", "--format", "ros2-admittance", "--steps", "2", "--out", str(tmp_path / "y")]) == 2
+    assert "--steps: not for --format ros2-admittance" in capsys.readouterr().err
+    assert main(["export", "--format", "yaml", "--delay", "2", "--out", str(tmp_path / "y")]) == 2
+    assert "--delay: not for --format yaml" in capsys.readouterr().err
     assert not (tmp_path / "a").exists() and not (tmp_path / "y").exists()
     assert main(["export", "--format", "golden", "--steps", "3", "--out", str(tmp_path / "g")]) == 0
     said = capsys.readouterr().out

@@ -23,19 +23,19 @@ def run(args) -> int:
         return _golden(args)
     given = (("--steps", args.steps), ("--control-rate", args.control_rate))
     given += (("--controller", None if args.format == "ros2-admittance" else args.controller),)
-    given += (("--delay", None if args.delay in (None, "0") else 1),)
+    given += (("--delay", None if args.delay in (None, "0") or args.format == "ros2-admittance" else 1),)
     given += (("--ft-filter", None if args.ft_filter == "1" or args.format == "ros2-admittance" else 1),)
     if any(v is not None for _, v in given):
         flags = ", ".join(f for f, v in given if v is not None)
-        print(f"jaxsync export: error: {flags}: not for --format {args.format} (--steps, --delay, --control-rate: "
-              "golden only; --controller, --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
+        print(f"jaxsync export: error: {flags}: not for --format {args.format} (--steps, --control-rate: golden "
+              "only; --controller, --delay, --ft-filter: ros2-admittance and golden)", file=sys.stderr)  # fmt: skip
         return 2
     r = export_gains(
         args.gains, args.format, args.out, model=model_source(args), **model_options(args), distro=args.ros_distro,
         command_interfaces=[x.strip() for x in args.command_interfaces.split(",") if x.strip()],
         any_model=args.any_model, actuation=args.actuation or "torque", force=args.force,
         compliance_at=args.compliance_at, ft_filter=parse_ft_filter(args.ft_filter, one=True)[0],
-        controller=args.controller,
+        controller=args.controller, delay=delay_of(args, "position"), log=lambda line: print(line, file=sys.stderr),
     )  # fmt: skip
     print(f"exported {r.kind} from {r.origin} as {args.format}: " + ", ".join(r.paths))
     print("read back: " + ("the same gains, bit for bit" if r.same else "DIFFERENT gains"))
@@ -140,7 +140,11 @@ def add_parser(subparsers):
         "ros2_coupled or ros2_coupled_direct)",
     )
     g.add_argument(
-        "--delay", default=None, metavar="N", help="control periods of command delay (the robot file's, else 0)"
+        "--delay",
+        default=None,
+        metavar="N|LO:HI",
+        help="control periods of command delay (the robot file's, else 0); ros2-admittance: the delays a coupled "
+        "loop is checked at",
     )
     g.add_argument("--control-rate", type=positive(float), default=None, metavar="HZ", help="(the physics rate)")
     p.add_argument("--out", default="results/export", help="output folder (results/export)")

@@ -22,7 +22,7 @@ import numpy as np
 from jaxsync._errors import ConfigError
 from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
-from jaxsync.control.gains import COUPLING_FIELDS, Gains
+from jaxsync.control.gains import Gains
 from jaxsync.control.names import FAMILY
 from jaxsync.io import export as _export
 from jaxsync.io import gains_file
@@ -30,6 +30,7 @@ from jaxsync.io import sync_file as _sync
 from jaxsync.physics import robot_names
 from jaxsync.physics.model import DualArmModel, as_model
 from jaxsync.sim import actuation as _actuation
+from jaxsync.sim import loop_stability as _loop
 from jaxsync.sim import scenario as _scenario
 from jaxsync.sim.scenario import default_scenario
 
@@ -40,6 +41,7 @@ ROS2_CONTROLLERS = (
     "ros2_synchronous",
     *FAMILY,
 )  # the laws a ros2-admittance export runs
+LOOP_CHECKED = ("ros2_synchronous", *FAMILY)  # the files couple the two rules: the loop is checked
 
 
 class Exported(NamedTuple):
@@ -67,6 +69,8 @@ def export_gains(
     compliance_at: str = "pad",
     ft_filter: float = 1.0,
     controller: str | None = None,
+    delay=0,
+    log=None,
 ) -> Exported:
     """Write ``gains`` as ``fmt`` (``jaxsync.io.export.FORMATS``) to ``out``, then read the files back.
 
@@ -94,12 +98,18 @@ def export_gains(
     were tuned with, ``Scenario.ft_filter``; 1: unfiltered). ``controller``:
     the one the ros2-admittance files configure (None: the one a gains file
     was tuned for; gains that set the coupling family must name theirs,
-    ``ros2_coupled`` or ``ros2_coupled_direct``).
+    ``ros2_coupled`` or ``ros2_coupled_direct``). Where the files couple the
+    two rules (ros2_synchronous and the family) with gains tuned for that
+    coupled rule or named so by ``controller``, the coupled loop is checked
+    about the hold at every command ``delay`` (an int or (lo, hi) control
+    periods; ``jaxsync.sim.loop_stability``, every coupling gain x1.5 too)
+    and refused unless stable with that margin (``force``: written with a
+    WARNING); ``log`` (a callable taking a line, or None) hears that it runs.
     """
     _actuation.check(actuation)
     from_file = gains is not None and isinstance(gains, str | os.PathLike)
     recorded = gains_file.controller_of(gains) if from_file else None
-    if controller is not None and recorded not in (None, controller):
+    if controller is not None and recorded in FAMILY and recorded != controller:  # the placement is the tuned one
         raise ConfigError(
             f"gains {gains} were tuned for the {recorded} controller, not {controller}", inputs=("controller",)
         )
@@ -149,13 +159,14 @@ def export_gains(
                 f"ros2_admittance --gains {gains}) or tune with --controller ros2_admittance"
             )
     coupling = []
-    if fmt == "ros2-admittance" and tuned_for != "ros2_synchronous" and _coupled(g):
+    if fmt == "ros2-admittance" and names == "ros2_synchronous" and tuned_for != "ros2_synchronous":
         check = f" --gains {gains}" if from_file else ""
         coupling.append(
             "WARNING: synchronisation.yaml's coupling (k_rk, k_lk, k_rl, k_ll) was not tuned through the admittance "
             "rule it couples, and the rule plus a coupling can run unstably where the rule alone is stable "
             f"(docs/ros2-rule.md): check them together (jaxsync compare --actuation position --controllers "
-            f"ros2_synchronous{check}, with the robot's --robot) or tune with --controller ros2_synchronous"
+            f"ros2_synchronous{check}, with the robot's --robot; or this export with --controller ros2_synchronous, "
+            "which checks the coupled loop's stability) or tune with --controller ros2_synchronous"
         )
     if fmt == "ros2-admittance" and _fed_forward(g):
         coupling.append(
@@ -163,6 +174,20 @@ def export_gains(
             "ros2_controllers' admittance controller has none, so the two admittance files alone run without it "
             "(docs/deploy.md gives the step a port adds)"
         )
+    if fmt == "ros2-admittance" and names in LOOP_CHECKED and tuned_for in LOOP_CHECKED:
+        if log is not None:
+            log(f"checking the {names} loop's stability about the hold (compiles on first use, about a minute)")
+        problems, fine = coupled_loop_stability(loaded, g, names, delay, distro)
+        if problems and not force:
+            raise ConfigError(
+                f"ros2-admittance: {problems[0]}"
+                + (f" (and {len(problems) - 1} more delays or phases)" if len(problems) > 1 else "")
+                + ". The coupling would make the deployed loop unstable or leave it within its margin (stable "
+                "with every coupling gain x1.5 asked): lower the coupling, tune it at these delays, or force it "
+                "(docs/loop-stability.md)",
+                inputs=("gains", "delay", "force"),
+            )
+        coupling += [f"WARNING: {p}" for p in problems] + fine
     paths = _export.export(
         g, fmt, out, target, warnings=tuple(warnings), sync_warnings=tuple(coupling), controller=names
     )
@@ -249,9 +274,17 @@ def _phases(gains) -> list[tuple[str | None, Gains]]:
     return [(None, gains)]
 
 
-def _coupled(g) -> bool:
-    """Any coupling factor of any phase nonzero: synchronisation.yaml couples the two rules."""
-    return any(float(np.max(np.abs(np.asarray(getattr(p, k))))) > 0.0 for _, p in _phases(g) for k in COUPLING_FIELDS)
+def coupled_loop_stability(model, gains, controller: str, delay=0, distro: str = "jazzy") -> tuple[list, list]:
+    """(problems, the rest): :func:`jaxsync.sim.loop_stability.loop_margin`'s phrase for each phase of
+    ``gains`` and each ``delay`` (int or (lo, hi)), split by whether the loop is stable with its margin."""
+    lo, hi = _actuation.check_delay(delay)
+    problems, fine = [], []
+    for phase, g in _phases(gains):
+        for d in range(lo, hi + 1):
+            r = _loop.loop_margin(model, g, controller, delay=d, distro=distro)
+            phrase = r.phrase + (f", phase {phase}" if phase else "")
+            (fine if r.verdict == _loop.VERDICTS[0] else problems).append(phrase)
+    return problems, fine
 
 
 def _fed_forward(g) -> bool:

@@ -63,9 +63,10 @@ def paper_coupling_set(g) -> bool:
 
 
 def controller_for(g, controller: str | None) -> str:
-    """The controller the files name: ``controller`` as given, else ros2_synchronous where the paper's coupling
-    is set and ros2_admittance where not. The coupling family's gains must name a family controller: the
-    family's placement decides what a port runs."""
+    """The controller the files configure: a family controller as given (``controller``: the one the gains
+    were tuned for or named), else ros2_synchronous where the paper's coupling is set (the dual-arm step
+    couples the two rules, whatever law the gains were tuned for) and ros2_admittance where not. Gains that
+    set the coupling family must name a family controller: its placement decides what a port runs."""
     if family_set(g) and controller not in FAMILY:
         got = f"controller {controller!r}" if controller else "no controller"
         raise ConfigError(
@@ -74,7 +75,7 @@ def controller_for(g, controller: str | None) -> str:
             "(jaxsync export --controller)",
             inputs=("controller",),
         )
-    if controller is not None:
+    if controller in FAMILY:
         return controller
     return "ros2_synchronous" if paper_coupling_set(g) else "ros2_admittance"
 
