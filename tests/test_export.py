@@ -97,9 +97,9 @@ def test_synchronisation_yaml_has_a_versioned_schema_and_the_admittance_files_wi
     path = tmp_path / "synchronisation.yaml"
     sync = yaml.safe_load(path.read_text())["dual_arm_synchronisation"]["ros__parameters"]
     assert sync["schema_version"] == _export.SYNC_SCHEMA == 3
-    documented = open(os.path.join(os.path.dirname(__file__), "..", "docs", "export.md")).read()
+    documented = open(os.path.join(os.path.dirname(__file__), "..", "docs", "synchronisation.md")).read()
     for key in sync:
-        assert f"`{key}`" in documented, f"synchronisation.yaml key {key} is not documented in docs/export.md"
+        assert f"`{key}`" in documented, f"synchronisation.yaml key {key} is not documented in docs/synchronisation.md"
     assert sync["controllers"] == ["admittance_controller_right", "admittance_controller_left"]
     assert sync["update_rate"] == 500 and sync["ros_distro"] == "jazzy" and sync["alpha"] == 0.01
     right = tmp_path / "admittance_right.yaml"
