@@ -1,6 +1,6 @@
 """``synchronisation.yaml``: what a dual-arm controller runs beside the two
-admittance controllers of a ros2-admittance export (docs/synchronisation.md names every
-key, schema :data:`SCHEMA`).
+admittance controllers of a ros2-admittance export (docs/synchronisation.md
+names every key, schema :data:`SCHEMA`).
 
 The admittance files hold each arm's mass, damping ratio and stiffness; this
 file holds the rest of the update that jaxsync simulated: the controller it is
@@ -91,8 +91,8 @@ def text(g, phase, target, controller: str, meaning: dict, axes: dict, warnings=
     family = controller in FAMILY
     lines = [
         *(f"# {w}" for w in warnings),
-        f"# jaxsync synchronisation.yaml, schema {SCHEMA} (docs/synchronisation.md names every key): what the {controller}"
-        + (f" controller adds (task phase '{phase}')" if phase else " controller adds"),
+        f"# jaxsync synchronisation.yaml, schema {SCHEMA} (docs/synchronisation.md names every key): what "
+        + (f"{controller} adds (task phase '{phase}')" if phase else f"{controller} adds"),
         "# to the two admittance controllers of admittance_right.yaml and admittance_left.yaml, for a dual-arm",
         "# controller to read (docs/deploy.md gives its update"
         + ("; docs/coupling.md the coupling's): the coupling family's" if family else "): relative-error factors")
