@@ -32,7 +32,8 @@ to L-BFGS's convergence or the cap (``--iterations``, 300).
 Which channel does what: the coupled run's selected gains are scored again
 on the held-out set with each channel's gain (and block) set to 0 in turn,
 ``without_<channel>_over_rule`` (1 where the channel was left at 0).
-``--reuse`` reads both runs from ``--out`` instead of tuning them.
+``--reuse`` reads both runs from ``--out`` instead of tuning them;
+``--resume`` continues runs stopped there from their checkpoints.
 
     python experiments/coupling_on_the_rule.py --study results/study_coupling --out results/cor
 """
@@ -103,6 +104,7 @@ def main() -> None:
     )
     p.add_argument("--skip-rule", action="store_true", help="reuse the rule runs already in --out")
     p.add_argument("--reuse", action="store_true", help="reuse both runs already in --out (the channels scored anew)")
+    p.add_argument("--resume", action="store_true", help="continue runs stopped in --out from their checkpoints")
     p.add_argument("--out", default="results/coupling_on_the_rule")
     args = p.parse_args()
     jaxsync.set_xla_flags()
@@ -152,7 +154,14 @@ def main() -> None:
                         done[label] = json.load(f)
                     continue
                 done[label] = P.tune_and_evaluate(
-                    model, start, tcfg, out=out, restart=True, mujoco_check=False, log=lambda m: None
+                    model,
+                    start,
+                    tcfg,
+                    out=out,
+                    resume=args.resume,
+                    restart=not args.resume,
+                    mujoco_check=False,
+                    log=lambda m: None,
                 ).to_dict()
             r, lo, hi = _ratio(_peaks(done["coupled"]), _peaks(done["rule"]))
             coupled_out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", "coupled")

@@ -91,10 +91,10 @@ from jaxsync.control.controller import ControllerOptions
 from jaxsync.control.names import FAMILY, POSITION_ONLY
 from jaxsync.control.ros2_admittance import DEPLOY_MARGIN
 from jaxsync.physics import step as _physics
-from jaxsync.physics.sensing import sense
 from jaxsync.runtime import programs
 from jaxsync.sim import actuation as _actuation
 from jaxsync.sim import closed_loop as _closed_loop
+from jaxsync.sim import rollout as _rollout
 from jaxsync.sim import scenario as _scenario
 
 HOLD_S = 1.8
@@ -204,37 +204,21 @@ def _programs(model, placement: str, distro: str, substeps: int):
     sensor_adr = np.array([a for i in acc for a in range(m.sensor_adr[i], m.sensor_adr[i] + m.sensor_dim[i])], int)
     ee = np.array([a.ee_body for a in index.arms])
     dt = float(m.opt.timestep) * substeps
-    limit = jnp.asarray(consts.torque_limit)
 
     def physics_model(s):
-        mx = _scenario.apply_to_model(model.mjx_model, s, index)
-        for name, where, value in _actuation.model_updates(pc, s.servo_scale):
-            mx = mx.replace(**{name: getattr(mx, name).at[where].set(value)})
-        return mx
+        return _rollout.scenario_model(model, s, pc)
 
     def period(mx, gains, s, d, cstate, held, pad_start, k):
-        # jaxsync.sim.rollout's position stack, step for step (a test compares the two)
+        # jaxsync.sim.rollout's position stack, its own pieces (a test compares the two)
         t = k * dt
-        d = _physics.before_control(mx, d, PASSES)
-        pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
-        pad_start = jnp.where(k == 0, pads, pad_start)
-        noisy = d.replace(sensordata=d.sensordata + _closed_loop.noise(s, consts, k))
-        sensed = sense(mx, noisy, index, PASSES)
+        d, pad_start, _, sensed = _rollout.sense_period(mx, consts, index, s, d, pad_start, k, PASSES)
         arms = (sensed.right, sensed.left)
         command, buffer = held
         command, sent, cstate, _, _, _ = _closed_loop.control_position(
             options, gains, s, consts, cstate, arms, pad_start, t, dt, command
         )
-        buffer = _actuation.push(buffer, sent)
-        acting, acting_vel = _actuation.acting(buffer, _actuation.delay_steps(s), dt)
         aux = (jnp.stack([a.jac for a in arms]), jnp.stack([d._impl.contact.pos[a.contact_id] for a in index.arms]))
-        for sub in range(substeps):
-            if sub:
-                d = _physics.before_control(mx, d, PASSES)
-            _, motor = _actuation.servo_torque(
-                pc, d.qpos, d.qvel, d.qfrc_bias, acting, acting_vel, s.servo_scale, limit
-            )
-            d = _physics.after_control(mx, d, motor[consts.act_order], unroll)
+        d, buffer, _ = _rollout.servo_period(mx, pc, consts, s, d, buffer, sent, dt, substeps, PASSES, unroll)
         return (d, cstate, (command, buffer), pad_start), aux
 
     def settle(gains, s, n):

@@ -99,6 +99,42 @@ def make_rollout(
     return fn
 
 
+def scenario_model(model: DualArmModel, s: Scenario, pc=None):
+    """The MJX model scenario ``s`` runs: its object and contacts, and on position-controlled arms
+    (``pc``, ``jaxsync.sim.actuation.position_consts``) the servo's damping as MuJoCo's joint damping."""
+    mx = _scenario.apply_to_model(model.mjx_model, s, model.index)
+    if pc is not None:
+        for name, where, value in _actuation.model_updates(pc, s.servo_scale):
+            mx = mx.replace(**{name: getattr(mx, name).at[where].set(value)})
+    return mx
+
+
+def sense_period(mx, consts, index, s: Scenario, d, pad_start, k, passes):
+    """The start of control period ``k``: MJX's position stages, the pads where the task starts (read at the
+    first period: the program holds the position stages once, in the loop, not a second time for the initial
+    state), the sensors with their noise. Returns (d, pad_start, the noisy data, the sensed state)."""
+    d = _physics.before_control(mx, d, passes)
+    pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
+    pad_start = jnp.where(k == 0, pads, pad_start)
+    noisy = d.replace(sensordata=d.sensordata + _closed_loop.noise(s, consts, k))
+    return d, pad_start, noisy, sense(mx, noisy, index, passes)
+
+
+def servo_period(mx, pc, consts, s: Scenario, d, buffer, sent, dt, substeps, passes, unroll):
+    """The rest of a position-stack period: ``sent`` joins the commands on their way (``buffer``), the one
+    the delay lets act drives the joint servos on each physics substep. Returns (d, buffer, the last
+    substep's servo torque)."""
+    buffer = _actuation.push(buffer, sent)
+    acting, acting_vel = _actuation.acting(buffer, _actuation.delay_steps(s), dt)
+    limit = jnp.asarray(consts.torque_limit)
+    for sub in range(substeps):
+        if sub:
+            d = _physics.before_control(mx, d, passes)
+        tau, motor = _actuation.servo_torque(pc, d.qpos, d.qvel, d.qfrc_bias, acting, acting_vel, s.servo_scale, limit)
+        d = _physics.after_control(mx, d, motor[consts.act_order], unroll)
+    return d, buffer, tau
+
+
 def _controlled_rollout(
     model, duration, control_substeps, remat, truncate_every, start, passes="mjx", actuation="torque"
 ):
@@ -128,12 +164,8 @@ def _controlled_rollout(
     d_template = _physics.put_data(model.mj_model, mujoco.MjData(model.mj_model))
 
     def fn(gains: Gains, s: Scenario, options) -> Trajectory:
-        mx = _scenario.apply_to_model(model.mjx_model, s, index)
-        if position:  # the servo's damping, MuJoCo's joint damping
-            for name, where, value in _actuation.model_updates(pc, s.servo_scale):
-                mx = mx.replace(**{name: getattr(mx, name).at[where].set(value)})
+        mx = scenario_model(model, s, pc)
         d0 = d_template.replace(qpos=_closed_loop.initial_qpos(model, consts, s))
-        limit = jnp.asarray(consts.torque_limit)
 
         def body(carry, k):
             state, pad_start = carry
@@ -147,30 +179,15 @@ def _controlled_rollout(
                 )
             d, cstate, held = state
             t = k * dt
-            d = _physics.before_control(mx, d, passes)
-            # the pads where the task starts, read at the first step: the
-            # program holds MJX's position stages once (in the loop), not a
-            # second time for the initial state (a third less to compile)
-            pads = jnp.stack([d.site_xpos[a.pad_site] for a in index.arms])
-            pad_start = jnp.where(k == 0, pads, pad_start)
-            noisy = d.replace(sensordata=d.sensordata + _closed_loop.noise(s, consts, k))
-            sensed = sense(mx, noisy, index, passes)
+            d, pad_start, noisy, sensed = sense_period(mx, consts, index, s, d, pad_start, k, passes)
             arms = (sensed.right, sensed.left)
             if position:
                 command, buffer = held
                 command, sent, cstate, info, pl, _ = _closed_loop.control_position(
                     options, gains, s, consts, cstate, arms, pad_start, t, dt, command
                 )
-                buffer = _actuation.push(buffer, sent)
-                acting, acting_vel = _actuation.acting(buffer, _actuation.delay_steps(s), dt)
+                d, buffer, tau = servo_period(mx, pc, consts, s, d, buffer, sent, dt, control_substeps, passes, unroll)
                 held = (command, buffer)
-                for sub in range(control_substeps):
-                    if sub:
-                        d = _physics.before_control(mx, d, passes)
-                    tau, motor = _actuation.servo_torque(
-                        pc, d.qpos, d.qvel, d.qfrc_bias, acting, acting_vel, s.servo_scale, limit
-                    )
-                    d = _physics.after_control(mx, d, motor[consts.act_order], unroll)
             else:
                 tau, cstate, info, pl = _closed_loop.control(options, gains, s, consts, cstate, arms, pad_start, t, dt)
                 ctrl = tau[consts.act_order]
