@@ -66,16 +66,12 @@ def gains_of(meta):
     return {k: np.asarray(v["value"], dtype=float) for k, v in meta["jaxsync_gains"]["gains"].items()}
 
 
-def step(inputs, k: int, meta) -> dict:
-    """Row k's outputs from row k's inputs: {column: value} for command, sent and the state."""
-    g = gains_of(meta)
-    dt, a, alpha = meta["dt_s"], meta["ft_filter"], meta["alpha"]
+def sensed(inputs, k: int, meta) -> dict:
+    """Row k's sensed arms and reference, per arm: q, the pad's pose, Jacobian and wrench, and the planned
+    pad pose, twist, acceleration, wrench and rest posture."""
     n = len(meta["joints"]["right"])
-    lam = 2.0 * g["kp_pos"] / g["kd_pos"]
-    mu = g["kp_null"] / g["kd_null"]
-    x = {}
-    for i, arm in enumerate(ARMS):
-        x[arm] = {
+    return {
+        arm: {
             "q": _vec(inputs, f"{arm}.q", k, n),
             "p": _vec(inputs, f"{arm}.pad_pos", k, 3),
             "R": _mat(inputs, f"{arm}.pad_rot", k, 3, 3),
@@ -87,11 +83,28 @@ def step(inputs, k: int, meta) -> dict:
             "a_d": _vec(inputs, f"ref.{arm}.pad_acc", k, 6),
             "f_d": _vec(inputs, f"ref.{arm}.wrench", k, 6),
             "q_rest": _vec(inputs, f"ref.{arm}.q_rest", k, n),
-            "q_cmd": np.array([inputs[f"command_in[{i * n + j}]"][k] for j in range(n)]),
-            "h": _vec(inputs, f"state_in.wrench_filter[{i}]", k, 6),
-            "e": _vec(inputs, f"state_in.impedance.offset[{i}]", k, 6),
-            "de": _vec(inputs, f"state_in.impedance.rate[{i}]", k, 6),
         }
+        for arm in ARMS
+    }
+
+
+def step(inputs, k: int, meta) -> dict:
+    """Row k's outputs from row k's inputs: {column: value} for command, sent and the state."""
+    g = gains_of(meta)
+    dt, a, alpha = meta["dt_s"], meta["ft_filter"], meta["alpha"]
+    n = len(meta["joints"]["right"])
+    lam = 2.0 * g["kp_pos"] / g["kd_pos"]
+    mu = g["kp_null"] / g["kd_null"]
+    x = sensed(inputs, k, meta)
+    for i, arm in enumerate(ARMS):
+        x[arm].update(
+            {
+                "q_cmd": np.array([inputs[f"command_in[{i * n + j}]"][k] for j in range(n)]),
+                "h": _vec(inputs, f"state_in.wrench_filter[{i}]", k, 6),
+                "e": _vec(inputs, f"state_in.impedance.offset[{i}]", k, 6),
+                "de": _vec(inputs, f"state_in.impedance.rate[{i}]", k, 6),
+            }
+        )
     out = {}
     # 1. the force error through the F/T filter (world frame)
     for arm in ARMS:

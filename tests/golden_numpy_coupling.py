@@ -12,7 +12,7 @@ is not recomputed: its new offset is read from the row's outputs.
 from __future__ import annotations
 
 import numpy as np
-from golden_numpy import _mat, _vec, gains_of, so3_exp, so3_log
+from golden_numpy import _vec, gains_of, sensed, so3_exp, so3_log
 
 ARMS = ("right", "left")
 CHANNELS = ("rel", "own", "other", "force")
@@ -31,25 +31,17 @@ def _world(R, v):
 
 def _row(inputs, k, meta):
     n = len(meta["joints"]["right"])
-    x = {}
+    x = sensed(inputs, k, meta)
     for i, arm in enumerate(ARMS):
-        x[arm] = {
-            "q": _vec(inputs, f"{arm}.q", k, n),
-            "p": _vec(inputs, f"{arm}.pad_pos", k, 3),
-            "R": _mat(inputs, f"{arm}.pad_rot", k, 3, 3),
-            "J": _mat(inputs, f"{arm}.jac", k, 6, n),
-            "f": _vec(inputs, f"{arm}.wrench", k, 6),
-            "p_d": _vec(inputs, f"ref.{arm}.pad_pos", k, 3),
-            "R_d": _mat(inputs, f"ref.{arm}.pad_rot", k, 3, 3),
-            "v_d": _vec(inputs, f"ref.{arm}.pad_vel", k, 6),
-            "f_d": _vec(inputs, f"ref.{arm}.wrench", k, 6),
-            "q_rest": _vec(inputs, f"ref.{arm}.q_rest", k, n),
-            "q_ref": _vec(inputs, f"state_in.ros2.q_ref[{i}]", k, n),
-            "dq": _vec(inputs, f"state_in.ros2.rule.joint_pos[{i}]", k, n),
-            "dq_dot": _vec(inputs, f"state_in.ros2.rule.joint_vel[{i}]", k, n),
-            "y": np.array([_vec(inputs, f"state_in.coupling.value[{c}][{i}]", k, 6) for c in range(4)]),
-            "y_dot": np.array([_vec(inputs, f"state_in.coupling.rate[{c}][{i}]", k, 6) for c in range(4)]),
-        }
+        x[arm].update(
+            {
+                "q_ref": _vec(inputs, f"state_in.ros2.q_ref[{i}]", k, n),
+                "dq": _vec(inputs, f"state_in.ros2.rule.joint_pos[{i}]", k, n),
+                "dq_dot": _vec(inputs, f"state_in.ros2.rule.joint_vel[{i}]", k, n),
+                "y": np.array([_vec(inputs, f"state_in.coupling.value[{c}][{i}]", k, 6) for c in range(4)]),
+                "y_dot": np.array([_vec(inputs, f"state_in.coupling.rate[{c}][{i}]", k, 6) for c in range(4)]),
+            }
+        )
     return x
 
 
