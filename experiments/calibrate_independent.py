@@ -13,6 +13,11 @@ the fit's warnings and the seconds, and the servo structure it chose
 with its margin on held-out windows.
 
     python experiments/calibrate_independent.py --structures feedforward --delays 0,2 --duration 20
+
+``--efforts-only --seeds 0,1,2`` reads each recording's joint efforts alone
+(``jaxsync.calibrate.efforts.fit_efforts``, seconds a case) and counts the
+gains they call fixed, those of them off the truth by more than 10 % / 20 %,
+and how often their 95 % half-widths hold the truth.
 """
 
 from __future__ import annotations
@@ -151,6 +156,44 @@ PARTS = ("jacobian", "windows", "halves", "open_step", "step")
 RULES = {"stated": "{field}_half", "largest of the parts": "largest_{field}", **{p: p + "_{field}" for p in PARTS}}
 
 
+def efforts_only(model, figures: str, structures, delays, seeds, duration: float, noise) -> dict:
+    """The joint efforts' reading alone on each case (``--efforts-only``): per case and in total, the
+    gains it calls fixed (``efforts.determined``), those wrongly, and its half-widths holding the truth."""
+    from jaxsync.calibrate import efforts  # noqa: PLC0415 -- this mode only
+
+    nominal = Replay(model).nominal()
+    n = len(nominal.stiffness)
+    ex = excite.excitation(model, duration=duration)
+    q0 = np.asarray(model.keyframe_qpos("grasp"))
+    total = {"gains": 0, "held": 0, "fixed": 0, "fixed_wrongly": 0, "decided_wrongly": 0}
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        kp = nominal.stiffness * rng.uniform(0.75, 1.25, n)
+        kv = nominal.damping * rng.uniform(0.75, 1.25, n)
+        for structure in structures:
+            for delay in delays:
+                t, q, dq, tau = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, delay,
+                                                     structure=structure, efforts=True)  # fmt: skip
+                q, dq = ind.noisy(q, dq, noise[0], noise[1], seed + 1)
+                tau = tau + noise[2] * np.random.default_rng(seed + 2).standard_normal(tau.shape)
+                rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, effort=tau)
+                ef = efforts.fit_efforts(model, rec)
+                fixed = efforts.determined(ef, {"stiffness": 0.10, "damping": 0.20})
+                ek, eb = np.abs(ef.stiffness - kp), np.abs(ef.damping - kv)
+                wrong = fixed & ((ek > 0.10 * kp) | (eb > 0.20 * kv))
+                held = int((ek <= ef.intervals["stiffness"]).sum() + (eb <= ef.intervals["damping"]).sum())
+                decided_wrongly = ef.decisive() and (ef.structure, ef.delay) != (structure, delay)
+                counts = {"gains": 2 * n, "held": held, "fixed": int(fixed.sum()), "fixed_wrongly": int(wrong.sum()),
+                          "decided_wrongly": int(decided_wrongly)}  # fmt: skip
+                for key, v in counts.items():
+                    total[key] += v
+                print(f"{figures} {structure} delay {delay} seed {seed}: efforts' {ef.structure} at delay {ef.delay}"
+                      f"{' (decisive)' if ef.decisive() else ''}, {int(fixed.sum())} joints fixed, "
+                      f"{int(wrong.sum())} wrongly, half-widths hold {held}/{2 * n}", flush=True)  # fmt: skip
+    print(f"{figures}: {total}")
+    return total
+
+
 def coverage(path: str) -> None:
     """How often each 95 % half-width held the truth, over every stiffness and damping of every case in
     ``path`` (the motion's fit; gains taken from the efforts are the efforts' own), and over those within
@@ -252,6 +295,8 @@ def main() -> None:
         default="actuators",
         help="the robot: MuJoCo's actuators under implicitfast, or the servo law as a force under RK4",
     )
+    p.add_argument("--efforts-only", action="store_true", help="the joint efforts' reading alone on every case")
+    p.add_argument("--seeds", default=None, help="--efforts-only: the gain draws, comma-separated (default --seed)")
     p.add_argument("--coverage", action="store_true", help="read --jsonl and print each interval's coverage")
     p.add_argument("--table", action="store_true", help="read --jsonl (comma-separated) and print every case")
     args = p.parse_args()
@@ -260,6 +305,13 @@ def main() -> None:
         return
     if args.table:
         table(args.jsonl.split(","))
+        return
+    if args.efforts_only:
+        seeds = [int(x) for x in (args.seeds or str(args.seed)).split(",")]
+        for figures in args.figures.split(","):
+            model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()), figures)), visual=False)
+            efforts_only(model, figures, args.structures.split(","), [int(d) for d in args.delays.split(",")], seeds,
+                         args.duration, (args.noise_q, args.noise_dq, args.noise_tau or 0.05))  # fmt: skip
         return
     for figures in args.figures.split(","):
         run_figures(args, figures)

@@ -34,6 +34,8 @@ from jaxsync.physics.servo import STRUCTURES
 DECISIVE = 0.3  # the runner-up delay and structure this much worse: the efforts decide them (else the motion)
 SATURATED = 0.98  # a sample with |tau| at this share of the joint's limit or above: at the limit
 MIN_SAMPLES = 50  # unsaturated samples a joint needs for its two gains
+GROUPS = 4  # interleaved sets of 0.5 s blocks whose gains' spread gives the half-widths
+_T975 = {1: 12.706, 3: 3.182, 5: 2.571, 7: 2.365, 9: 2.262}  # Student's 97.5 % quantile by degrees of freedom
 SMOOTH_S = 0.05  # s: both sides of the regression averaged over this window (the servo's law is linear and
 # time-invariant, so averaging keeps it) before the fit: the velocity's noise, in a regressor, would pull the
 # damping low by its variance over the tracking error's (tens of per cent at 500 Hz, measured)
@@ -119,8 +121,9 @@ def bias_forces(replay: Replay, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
 def fit_efforts(model, rec, delays=range(0, 5), structures=None) -> EffortFit:
     """Each structure and delay fitted to ``rec.effort`` (a ``jaxsync.io.bags.Recording`` with efforts)
     joint by joint; the one whose least-squares residual is least chosen, its gains by instrumental
-    variables (:func:`_instrumented`) with half-widths: the larger of the gap between alternate 0.5 s
-    blocks of the recording and the gap to least squares (their coverage is not measured)."""
+    variables (:func:`_instrumented`) with 95 % half-widths: the largest of the batch-means spread over
+    ``GROUPS`` interleaved sets of 0.5 s blocks (their median absolute deviation, a Student quantile), the gap
+    to least squares, and the move to every other delay and structure the efforts do not exclude."""
     if rec.effort is None:
         raise ValueError("the recording carries no joint efforts")
     replay = Replay(model)
@@ -158,22 +161,40 @@ def fit_efforts(model, rec, delays=range(0, 5), structures=None) -> EffortFit:
             costs[key], rms[key], ols[key] = float(np.sum(ms)), np.sqrt(ms), sols
     best = min(costs, key=costs.get)
     x1, x2, y = regressors(best[1], best[0])
-    gains, halves = np.full((2, n), np.nan), np.full((2, 2, n), np.nan)
+    gains, groups = np.full((2, n), np.nan), np.full((GROUPS, 2, n), np.nan)
     for j in range(n):
         args = (x1[:, j], x2[:, j], y[:, j], inside[:, j], 2 * width)
         gains[:, j] = _instrumented(*args)
-        for h in (0, 1):
-            halves[h, :, j] = _instrumented(*args, half=h)
-    # the halves' gap, or where larger the gap to least squares: its attenuation is the noise's share of
-    # the regressors, so a wide gap says the joint barely moved above its noise (both halves then agree
-    # too easily: an FR3 wrist at +97 % gave halves 15 % apart and least squares -37 %)
-    half_width = np.fmax(np.abs(halves[0] - halves[1]), np.abs(gains - ols[best]))
+        for h in range(GROUPS):
+            groups[h, :, j] = _instrumented(*args, group=(h, GROUPS))
+    # the spread of the gains fitted on each of GROUPS interleaved sets of blocks (batch means: a Student
+    # quantile on GROUPS - 1 degrees of freedom; the median absolute deviation, since a set the excitation
+    # barely moves a joint in gives wild instrumental gains), or where larger the gap to least squares: its attenuation
+    # is the noise's share of the regressors, so a wide gap says the joint barely moved above its noise
+    # (an FR3 wrist at +97 % gave halves 15 % apart and least squares -37 %)
+    mad = np.median(np.abs(groups - np.median(groups, axis=0)), axis=0)
+    spread = _T975[GROUPS - 1] * 1.4826 * mad / np.sqrt(GROUPS)  # 1.4826 MAD: a normal's standard deviation
+    half_width = np.fmax(spread, np.abs(gains - ols[best]))
+    # and the move to every other delay and structure the efforts do not exclude (within DECISIVE of the best
+    # cost): on a joint whose command error follows its velocity (an overdamped, weight-compensated servo) a
+    # period of delay trades for damping, least squares' cost favours the delay whose gains it pulls lowest,
+    # and the gains at the delay chosen can sit 30-45 % off with halves that agree (measured: FR3 figures)
+    for key in _near(costs, best):
+        x1n, x2n, yn = regressors(key[1], key[0])
+        other = np.array([_instrumented(x1n[:, j], x2n[:, j], yn[:, j], inside[:, j], 2 * width) for j in range(n)]).T
+        half_width = np.fmax(half_width, np.abs(other - gains))
     half_width = np.where(np.isfinite(half_width), half_width, np.inf)
     return EffortFit(best[0], best[1], gains[0], gains[1], rms[best], at_limit.mean(axis=0), costs,
                      {"stiffness": half_width[0], "damping": half_width[1]})  # fmt: skip
 
 
-def _instrumented(x1, x2, y, rows, lag: int, half: int | None = None):
+def _near(costs: dict, best: tuple, margin: float = DECISIVE) -> list[tuple]:
+    """The other (structure, delay) candidates whose cost is within ``margin`` of ``best``'s: the efforts do not
+    exclude them."""
+    return [k for k, c in costs.items() if k != best and c <= (1.0 + margin) * costs[best]]
+
+
+def _instrumented(x1, x2, y, rows, lag: int, group: tuple[int, int] | None = None):
     """(k, b) of y = k x1 + b x2 by instrumental variables: each regressor instrumented by itself ``lag``
     samples earlier. The samples' noise (in q and dq, so in both regressors) is white, or differenced white,
     and averaged over fewer than ``lag`` samples, so uncorrelated with its value ``lag`` earlier, while the
@@ -183,8 +204,8 @@ def _instrumented(x1, x2, y, rows, lag: int, half: int | None = None):
     use[:lag] = False
     use[lag:] &= rows[:-lag]
     idx = np.flatnonzero(use)
-    if half is not None:  # every other block of 5 lags (so each half holds every part of the motion)
-        idx = idx[(idx // (5 * lag)) % 2 == half]
+    if group is not None:  # (g, G): every G-th block of 5 lags from the g-th (each holds every part of the motion)
+        idx = idx[(idx // (5 * lag)) % group[1] == group[0]]
     if len(idx) < MIN_SAMPLES:
         return np.nan, np.nan
     X = np.column_stack([x1[idx], x2[idx]])
