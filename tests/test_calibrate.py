@@ -573,3 +573,38 @@ def test_unknown_servo_structures_are_one_line(bag, tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "structures must be one or more of ['as_written', 'weight_compensated', 'feedforward']" in err
     assert "Traceback" not in err and not out.exists()
+
+
+def test_a_joint_whose_fastest_mode_the_samples_cannot_resolve_is_not_stood_behind_on_its_motion():
+    """An overdamped joint's fast pole (an FR3-like wrist: I 0.1, k 2000, b 200: 0.50 ms) quicker than the
+    2 ms samples: its motion sets k / b, not each, and without efforts that fix it calibrate refuses; an
+    underdamped joint (k 3000, b 15: 1 / w = 5.8 ms) is resolved and its motion stands."""
+    tau = fit.fastest_mode([0.1, 0.1], [2000.0, 3000.0], [200.0, 15.0])
+    np.testing.assert_allclose(tau, [0.2 / (200.0 + np.sqrt(200.0**2 - 4 * 0.1 * 2000.0)), np.sqrt(0.1 / 3000.0)])
+    joints = Joints(np.array([2000.0, 3000.0]), np.array([200.0, 15.0]), np.zeros(2), np.zeros(2), np.zeros(2))
+    pd = {"a stiffness": _Param(1.0), "a damping": _Param(1.0), "b stiffness": _Param(1.0), "b damping": _Param(1.0)}
+    intervals = {"stiffness": np.array([20.0, 30.0]), "damping": np.array([2.0, 0.3])}  # both claim to fix
+    cal = _calibration(fitted=joints, nominal=joints, intervals=intervals, inertia=np.array([0.1, 0.1]),
+                       sample_period=0.002)  # fmt: skip
+    assert cal.unresolved.tolist() == [True, False]
+    (said,) = fit.problems(cal, [0, 1, 2, 3, 4], pd)
+    assert "fastest mode of 1 joint(s) (a; 0.5 ms) is quicker than the recording's samples (2 ms)" in said
+    assert fit.problems(dataclasses.replace(cal, sample_period=0.0004), [0, 1, 2, 3, 4], pd) == []
+    # with efforts: those that fix the quick joint's gains stand in for its motion, those that do not refuse it
+    costs = {("feedforward", d): c for d, c in ((1, 3.0), (2, 1.0), (3, 2.0))}
+    fixing = efforts.EffortFit("feedforward", 2, joints.stiffness, joints.damping, np.ones(2), np.zeros(2), costs,
+                               {"stiffness": np.array([20.0, 3000.0]), "damping": np.array([2.0, 15.0])})  # fmt: skip
+    assert fit.problems(dataclasses.replace(cal, efforts=fixing), [0, 1, 2, 3, 4], pd) == []
+    loose = dataclasses.replace(
+        fixing, intervals={"stiffness": np.array([2000.0, 3.0]), "damping": np.array([200.0, 0.1])}
+    )
+    (said,) = fit.problems(dataclasses.replace(cal, efforts=loose), [0, 1, 2, 3, 4], pd)
+    assert "do not fix the gains of 1 joint(s) (a) whose fastest mode is quicker" in said
+    # and the efforts' gains are taken for a quick joint even where its motion claims to fix them
+    nominal = Joints(np.array([1000.0, 3000.0]), np.array([100.0, 15.0]), np.zeros(2), np.zeros(2), np.zeros(2))
+    mine = {k: _Param(v.value[0]) for k, v in pd.items()}
+    taken = efforts.take_open_gains(fixing, mine, ("a", "b"), nominal, {k: v.copy() for k, v in intervals.items()},
+                                    fit.DETERMINED, fit.FACTOR_BOUNDS, unresolved=cal.unresolved)  # fmt: skip
+    assert taken == ("a",) and mine["a stiffness"].value[0] == pytest.approx(2.0)
+    assert efforts.take_open_gains(fixing, dict(pd), ("a", "b"), nominal, intervals, fit.DETERMINED,
+                                   fit.FACTOR_BOUNDS) == ()  # fmt: skip

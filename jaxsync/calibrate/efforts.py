@@ -236,12 +236,15 @@ def determined(ef: EffortFit, shares: dict) -> np.ndarray:
     return ok
 
 
-def take_open_gains(ef: EffortFit, pd, names, nominal, intervals: dict, shares: dict, bounds) -> tuple:
+def take_open_gains(ef: EffortFit, pd, names, nominal, intervals: dict, shares: dict, bounds, unresolved=None) -> tuple:
     """Where the motion's fit leaves a joint's stiffness or damping open (its half-width in ``intervals``
-    over its share) and the efforts fix both, the efforts' gains into ``pd`` (the toolbox's parameters,
-    factors on ``nominal`` within ``bounds``) and their half-widths into ``intervals``, in place. Returns
-    the names of those joints."""
+    over its share) or cannot resolve them (``unresolved``, (2 n,) bool: ``fit.Calibration.unresolved``)
+    and the efforts fix both, the efforts' gains into ``pd`` (the toolbox's parameters, factors on
+    ``nominal`` within ``bounds``) and their half-widths into ``intervals``, in place. Returns the names of
+    those joints."""
     motion = np.ones(len(names), bool)  # the joints whose stiffness and damping the motion fixes
+    if unresolved is not None:
+        motion &= ~np.asarray(unresolved, bool)
     for field, share in shares.items():
         value = np.asarray([float(pd[f"{nm} {field}"].value[0]) for nm in names]) * getattr(nominal, field)
         motion &= intervals[field] <= share * value
@@ -270,15 +273,17 @@ def problems(ef: EffortFit, cal, shares: dict, delays) -> list[str]:
             f"one at delay {cal.delay}"
         )
     both = determined(ef, shares)
-    if not both.all():
-        # where the torques do not fix a joint's gains the motion alone is not stood behind: on a joint the
-        # recording barely moves, a fit to its motion can sit far along the valley of gains with one ratio
-        # and claim a few per cent (measured: +125 % claiming +-2 % on an as-written FR3 wrist)
-        loose = [j for j, ok in zip(cal.joints, both, strict=True) if not ok]
+    # where the torques do not fix the gains of a joint whose fastest mode the samples cannot resolve, its
+    # motion alone is not stood behind: it sets the stiffness over the damping, and a fit to it can sit far
+    # along that valley claiming a few per cent (measured: +125 % claiming +-2 % on an as-written FR3 wrist)
+    quick = np.asarray(getattr(cal, "unresolved", np.ones(len(both), bool)), bool)
+    if (quick & ~both).any():
+        loose = [j for j, ok, q in zip(cal.joints, both, quick, strict=True) if q and not ok]
         out.append(
             f"the joint efforts do not fix the gains of {len(loose)} joint(s) ({', '.join(loose[:3])}"
-            f"{' ...' if len(loose) > 3 else ''}), and the motion alone is not stood behind there: move those "
-            "joints more (a larger --amplitude or --speed in jaxsync excite)"
+            f"{' ...' if len(loose) > 3 else ''}) whose fastest mode is quicker than the recording's samples, "
+            "and their motion alone is not stood behind: record faster, or move those joints more (a larger "
+            "--amplitude or --speed in jaxsync excite) for efforts that fix them"
         )
     for field, share in shares.items():
         mine, theirs = getattr(ef, field), getattr(cal.fitted, field)

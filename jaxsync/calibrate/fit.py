@@ -37,7 +37,7 @@ from jaxsync.calibrate.uncertainty import clustered_intervals, noise_floor
 from jaxsync.calibrate.windows import halved as _halved
 from jaxsync.calibrate.windows import split as _split
 from jaxsync.calibrate.windows import subset as _subset
-from jaxsync.physics.servo import STRUCTURES
+from jaxsync.physics.servo import STRUCTURES, joint_inertia
 
 SIGMA_Q = 1e-3  # rad: a position residual of one
 SIGMA_DQ = 2e-2  # rad/s: a velocity residual of one
@@ -90,6 +90,28 @@ class Calibration:
     from_efforts: tuple = ()  # the joints whose gains come from the efforts (the motion leaves them open)
     # the half-widths' parts, name -> field -> (2 n,): the stated is the largest (calibrate); "windows_se" too
     interval_parts: dict = dataclasses.field(default_factory=dict)
+    inertia: np.ndarray | None = None  # kg m^2, each joint's own inertia at the grasp (armature included)
+    sample_period: float | None = None  # s, the recording's joint states
+
+    @property
+    def fastest_mode(self) -> np.ndarray:
+        """(2 n,) s: the time constant of each joint's fastest mode, I s^2 + (b + joint damping) s + k at the
+        fitted gains (1 / the larger pole's magnitude; an underdamped joint's 1 / its natural frequency);
+        NaN without the inertia."""
+        if self.inertia is None:
+            return np.full(len(self.joints), np.nan)
+        fitted = self.fitted
+        return fastest_mode(self.inertia, fitted.stiffness, np.asarray(fitted.damping) + fitted.joint_damping)
+
+    @property
+    def unresolved(self) -> np.ndarray:
+        """(2 n,) bool: the joints whose fastest mode is quicker than the recording's sample period. Their
+        motion sets the stiffness over the damping (the slow pole) and hardly each: that the fit claims
+        each anyway comes from what the samples cannot show (an FR3-like wrist, 0.4 ms against 2 ms
+        samples: 62 % off claiming +-1.9 %)."""
+        if self.sample_period is None:
+            return np.zeros(len(self.joints), bool)
+        return self.fastest_mode < self.sample_period
 
     @property
     def structure_margin(self) -> float | None:
@@ -103,6 +125,16 @@ class Calibration:
     def poor(self) -> list[str]:
         """The joints whose motion the fitted model does not explain (RMS error over ``POOR_FIT`` of it)."""
         return [j for j, e, s in zip(self.joints, self.rms_after, self.motion, strict=True) if e > POOR_FIT * s]
+
+
+def fastest_mode(inertia, stiffness, damping) -> np.ndarray:
+    """s: the time constant of the fastest mode of I s^2 + b s + k = 0, per joint (1 / the larger pole's
+    magnitude: an overdamped joint's fast pole, an underdamped one's natural frequency)."""
+    inertia, k, b = (np.asarray(x, float) for x in (inertia, stiffness, damping))
+    root = np.sqrt(np.maximum(b * b - 4.0 * inertia * k, 0.0))
+    fast = np.where(root > 0.0, (b + root) / (2.0 * inertia), np.sqrt(np.maximum(k, 0.0) / inertia))
+    with np.errstate(divide="ignore"):
+        return 1.0 / fast
 
 
 def _spec(model):
@@ -406,8 +438,14 @@ def calibrate(
     parts = {k: prob.intervals_of(pd, v) for k, v in (*parts.items(), ("windows_se", windows[1]))}
     intervals = prob.intervals_of(pd, np.asarray(half))
     from_efforts = ()
-    if ef is not None:  # where the motion leaves a joint's gains open and the efforts fix them: theirs
-        from_efforts = _efforts.take_open_gains(ef, pd, prob.names, nominal, intervals, DETERMINED, FACTOR_BOUNDS)
+    inertia = joint_inertia(model).reshape(-1)
+    sample_period = float(np.median(np.diff(rec.state_times)))
+    if ef is not None:  # where the motion leaves a joint's gains open, or cannot resolve them, and the efforts fix
+        # them: theirs
+        fitted = prob.joints_of(pd)
+        quick = fastest_mode(inertia, fitted.stiffness, fitted.damping + fitted.joint_damping) < sample_period
+        from_efforts = _efforts.take_open_gains(ef, pd, prob.names, nominal, intervals, DETERMINED, FACTOR_BOUNDS,
+                                                unresolved=quick)  # fmt: skip
         if from_efforts:
             say(f"gains of {len(from_efforts)} joint(s) the motion leaves open taken from the efforts")
     before = prob.tracking(pd0)[0]
@@ -419,6 +457,7 @@ def calibrate(
         delay_costs=costs, fields=tuple(fields), seconds=time.perf_counter() - start,
         windows=len(prob.sequences.sequence_name), noise=noise_floor(rec.q), structure=chosen,
         structure_costs=held_costs, efforts=ef, from_efforts=from_efforts, interval_parts=parts,
+        inertia=inertia, sample_period=sample_period,
     )  # fmt: skip
     cal.problems = tuple(problems(cal, scanned, pd))
     return cal, prob, pd0, pd, result
@@ -432,6 +471,14 @@ def problems(cal: Calibration, delays: list[int], pd) -> list[str]:
     ef = getattr(cal, "efforts", None)
     if ef is not None:  # where the efforts chose the delay and the structure: their checks, and agreement
         out.extend(_efforts.problems(ef, cal, DETERMINED, delays))
+    elif cal.unresolved.any():
+        quick = [j for j, q in zip(cal.joints, cal.unresolved, strict=True) if q]
+        out.append(
+            f"the fastest mode of {len(quick)} joint(s) ({', '.join(quick[:3])}{' ...' if len(quick) > 3 else ''}; "
+            f"{1e3 * np.nanmin(cal.fastest_mode):.2g} ms) is quicker than the recording's samples "
+            f"({1e3 * cal.sample_period:.2g} ms): their motion sets the stiffness over the damping, not each "
+            "(record faster, or with the joints' efforts)"
+        )
     if (
         (ef is None or not ef.decisive())
         and len(delays) > 1

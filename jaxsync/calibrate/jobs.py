@@ -202,6 +202,9 @@ def calibrate_job(
                     "rms_before_rad": float(cal.rms_before[k]),
                     "rms_after_rad": float(cal.rms_after[k]),
                     "motion_rms_rad": float(cal.motion[k]),
+                    # the joint's fastest mode at the fitted gains; quicker than the samples: not resolved
+                    "fastest_mode_s": float(cal.fastest_mode[k]),
+                    "resolved": not bool(cal.unresolved[k]),
                 }
                 for k, name in enumerate(cal.joints)
             },
