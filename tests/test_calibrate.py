@@ -579,9 +579,10 @@ def test_a_joint_whose_fastest_mode_the_samples_cannot_resolve_is_not_stood_behi
     """An overdamped joint's fast pole (an FR3-like wrist: I 0.1, k 2000, b 200: 0.50 ms) quicker than the
     2 ms samples: its motion sets k / b, not each, and without efforts that fix it calibrate refuses; an
     underdamped joint (k 3000, b 15: 1 / w = 5.8 ms) is resolved and its motion stands."""
-    tau = fit.fastest_mode([0.1, 0.1], [2000.0, 3000.0], [200.0, 15.0])
+    joints = Joints(np.array([2000.0, 3000.0]), np.array([150.0, 15.0]), np.array([50.0, 0.0]), np.zeros(2),
+                    np.zeros(2))  # fmt: skip
+    tau = fit.fastest_mode([0.1, 0.1], joints)  # the servo's damping and the joint's own add
     np.testing.assert_allclose(tau, [0.2 / (200.0 + np.sqrt(200.0**2 - 4 * 0.1 * 2000.0)), np.sqrt(0.1 / 3000.0)])
-    joints = Joints(np.array([2000.0, 3000.0]), np.array([200.0, 15.0]), np.zeros(2), np.zeros(2), np.zeros(2))
     pd = {"a stiffness": _Param(1.0), "a damping": _Param(1.0), "b stiffness": _Param(1.0), "b damping": _Param(1.0)}
     intervals = {"stiffness": np.array([20.0, 30.0]), "damping": np.array([2.0, 0.3])}  # both claim to fix
     cal = _calibration(fitted=joints, nominal=joints, intervals=intervals, inertia=np.array([0.1, 0.1]),

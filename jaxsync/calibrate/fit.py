@@ -100,8 +100,7 @@ class Calibration:
         NaN without the inertia."""
         if self.inertia is None:
             return np.full(len(self.joints), np.nan)
-        fitted = self.fitted
-        return fastest_mode(self.inertia, fitted.stiffness, np.asarray(fitted.damping) + fitted.joint_damping)
+        return fastest_mode(self.inertia, self.fitted)
 
     @property
     def unresolved(self) -> np.ndarray:
@@ -127,10 +126,12 @@ class Calibration:
         return [j for j, e, s in zip(self.joints, self.rms_after, self.motion, strict=True) if e > POOR_FIT * s]
 
 
-def fastest_mode(inertia, stiffness, damping) -> np.ndarray:
-    """s: the time constant of the fastest mode of I s^2 + b s + k = 0, per joint (1 / the larger pole's
-    magnitude: an overdamped joint's fast pole, an underdamped one's natural frequency)."""
-    inertia, k, b = (np.asarray(x, float) for x in (inertia, stiffness, damping))
+def fastest_mode(inertia, joints: Joints) -> np.ndarray:
+    """s: the time constant of each joint's fastest mode, I s^2 + b s + k = 0 with ``joints``' servo gains
+    (b: the servo's damping and the joint's own) and ``inertia`` (1 / the larger pole's magnitude: an
+    overdamped joint's fast pole, an underdamped one's natural frequency)."""
+    inertia, k = np.asarray(inertia, float), np.asarray(joints.stiffness, float)
+    b = np.asarray(joints.damping, float) + np.asarray(joints.joint_damping, float)
     root = np.sqrt(np.maximum(b * b - 4.0 * inertia * k, 0.0))
     fast = np.where(root > 0.0, (b + root) / (2.0 * inertia), np.sqrt(np.maximum(k, 0.0) / inertia))
     with np.errstate(divide="ignore"):
@@ -442,8 +443,7 @@ def calibrate(
     sample_period = float(np.median(np.diff(rec.state_times)))
     if ef is not None:  # where the motion leaves a joint's gains open, or cannot resolve them, and the efforts fix
         # them: theirs
-        fitted = prob.joints_of(pd)
-        quick = fastest_mode(inertia, fitted.stiffness, fitted.damping + fitted.joint_damping) < sample_period
+        quick = fastest_mode(inertia, prob.joints_of(pd)) < sample_period
         from_efforts = _efforts.take_open_gains(ef, pd, prob.names, nominal, intervals, DETERMINED, FACTOR_BOUNDS,
                                                 unresolved=quick)  # fmt: skip
         if from_efforts:
