@@ -179,7 +179,7 @@ def test_the_efforts_gains_fill_what_the_motion_leaves_open():
 def test_a_delay_the_efforts_cannot_tell_leaves_its_gains_open(limited):
     """An overdamped, weight-compensated servo (the FR3's kv = kp / 10) whose command error follows its
     velocity: a period of delay trades for damping, and noise in the regressors pulls least squares' cost
-    lowest at a delay shorter than the truth, where the gains sit 30-45 % off with halves that agree.
+    lowest at a delay shorter than the truth, where the gains sit 30-45 % off.
     Recorded by MuJoCo's own actuators on excite's trajectory (20 s): the efforts do not decide the delay,
     and every gain they still call fixed is right."""
     from jaxsync.calibrate import excite
@@ -200,7 +200,7 @@ def test_a_delay_the_efforts_cannot_tell_leaves_its_gains_open(limited):
     fixed = efforts.determined(ef, {"stiffness": 0.10, "damping": 0.20})
     k_err, b_err = np.abs(ef.stiffness / kp - 1), np.abs(ef.damping / kv - 1)
     assert (k_err[fixed] < 0.10).all() and (b_err[fixed] < 0.20).all(), (fixed, np.round(k_err, 3))
-    # the claimed half-widths hold most errors (22 of 28; 8 without the delays and groups counted)
+    # the claimed half-widths hold most errors (22 of 28 here)
     held = (np.abs(ef.stiffness - kp) <= ef.intervals["stiffness"]).sum()
     held += (np.abs(ef.damping - kv) <= ef.intervals["damping"]).sum()
     assert held >= 20, held

@@ -35,7 +35,6 @@ DECISIVE = 0.3  # the runner-up delay and structure this much worse: the efforts
 SATURATED = 0.98  # a sample with |tau| at this share of the joint's limit or above: at the limit
 MIN_SAMPLES = 50  # unsaturated samples a joint needs for its two gains
 GROUPS = 4  # interleaved sets of 0.5 s blocks whose gains' spread gives the half-widths
-_T975 = {1: 12.706, 3: 3.182, 5: 2.571, 7: 2.365, 9: 2.262}  # Student's 97.5 % quantile by degrees of freedom
 SMOOTH_S = 0.05  # s: both sides of the regression averaged over this window (the servo's law is linear and
 # time-invariant, so averaging keeps it) before the fit: the velocity's noise, in a regressor, would pull the
 # damping low by its variance over the tracking error's (tens of per cent at 500 Hz, measured)
@@ -126,6 +125,8 @@ def fit_efforts(model, rec, delays=range(0, 5), structures=None) -> EffortFit:
     to least squares, and the move to every other delay and structure the efforts do not exclude."""
     if rec.effort is None:
         raise ValueError("the recording carries no joint efforts")
+    import scipy.special  # noqa: PLC0415 -- with the toolbox, only calibration needs it
+
     replay = Replay(model)
     q, tau = np.asarray(rec.q, float), np.asarray(rec.effort, float)
     dq = np.asarray(rec.dq, float) if rec.dq is not None else np.gradient(q, rec.state_times, axis=0)
@@ -171,14 +172,15 @@ def fit_efforts(model, rec, delays=range(0, 5), structures=None) -> EffortFit:
     # quantile on GROUPS - 1 degrees of freedom; the median absolute deviation, since a set the excitation
     # barely moves a joint in gives wild instrumental gains), or where larger the gap to least squares: its attenuation
     # is the noise's share of the regressors, so a wide gap says the joint barely moved above its noise
-    # (an FR3 wrist at +97 % gave halves 15 % apart and least squares -37 %)
+    # (an FR3 wrist at +97 % had least squares at -37 %)
     mad = np.median(np.abs(groups - np.median(groups, axis=0)), axis=0)
-    spread = _T975[GROUPS - 1] * 1.4826 * mad / np.sqrt(GROUPS)  # 1.4826 MAD: a normal's standard deviation
+    # 1.4826 MAD: a normal's standard deviation; Student's 97.5 % quantile on GROUPS - 1 degrees of freedom
+    spread = scipy.special.stdtrit(GROUPS - 1, 0.975) * 1.4826 * mad / np.sqrt(GROUPS)
     half_width = np.fmax(spread, np.abs(gains - ols[best]))
     # and the move to every other delay and structure the efforts do not exclude (within DECISIVE of the best
     # cost): on a joint whose command error follows its velocity (an overdamped, weight-compensated servo) a
     # period of delay trades for damping, least squares' cost favours the delay whose gains it pulls lowest,
-    # and the gains at the delay chosen can sit 30-45 % off with halves that agree (measured: FR3 figures)
+    # and the gains at the delay chosen can sit 30-45 % off with a narrow spread (measured: FR3 figures)
     for key in _near(costs, best):
         x1n, x2n, yn = regressors(key[1], key[0])
         other = np.array([_instrumented(x1n[:, j], x2n[:, j], yn[:, j], inside[:, j], 2 * width) for j in range(n)]).T
