@@ -17,6 +17,11 @@ so that neither replays the batches it was tuned on):
 its own (the defaults, the study's seed) and compares it with the study's
 rule run: e.g. the family less a channel, ``--tune``.
 
+Both runs start from the rule's optimum with each impedance mass raised to
+the deployed rule's stability margin (``jaxsync.control.gains.deployable_gains``),
+and the tuner holds them there (``TuneSpec.deploy_dt``): every gain compared
+is one ``jaxsync export --format ros2-admittance`` writes.
+
 The family contains the rule and both start at the same point with the same
 added budget, so a ratio coupled / rule below 1 is what the coupling adds.
 Prints and writes per seed and bound the held-out settled peak of both, the
@@ -50,6 +55,7 @@ import numpy as np
 
 import jaxsync
 from jaxsync.control import coupling as C
+from jaxsync.control import gains as _gains
 from jaxsync.io import gains_file
 from jaxsync.optimize.studies import study as S
 from jaxsync.optimize.tuning import loss as L
@@ -134,6 +140,8 @@ def main() -> None:
         raise SystemExit(f"{args.study}: the study did not tune ros2_admittance")
     model_path = stored["model"].split("(")[1].split(",")[0]
     model = jaxsync.load_model(model_path, visual=False)
+    rate = cfg.tuning.training.control_rate
+    dt = 1.0 / rate if rate else float(model.mj_model.opt.timestep)  # the rule's period
     with open(os.path.join(args.study, "reference.json")) as f:
         reference = json.load(f)
     rows = []
@@ -151,8 +159,8 @@ def main() -> None:
                 with open(os.path.join(rule_run, "summary.json")) as f:
                     done["rule"] = json.load(f)
                 jobs = [("coupled", args.family, jaxsync.default_gains(model, "position", args.family), seed)]
-            else:
-                start = gains_file.load(os.path.join(rule_run, "gains.json"))
+            else:  # the rule's optimum as it deploys (both runs are held there: TuneSpec.deploy_dt)
+                start = _gains.deployable_gains(gains_file.load(os.path.join(rule_run, "gains.json")), dt)
                 jobs = [("rule", "ros2_admittance", start, seed + 100), ("coupled", args.family, start, seed + 100)]
             for label, controller, start, train_seed in jobs:
                 out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", label)

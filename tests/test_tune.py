@@ -6,6 +6,7 @@ plumbing and errors."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import json
 import os
@@ -71,6 +72,51 @@ def test_parametrisation_is_constrained_and_round_trips():
         assert np.all(np.asarray(g.imp_mass) > 0) and np.all(np.asarray(g.imp_stiffness) > 0)
         z = np.asarray(damping_ratio(g))
         assert np.all(z >= ZETA_MIN - 1e-9) and np.all(z <= ZETA_MAX + 1e-9)
+
+
+def test_the_rules_impedance_is_tuned_within_the_exported_rules_stability_margin():
+    """Where the gains deploy as ros2_controllers' rule (deploy_dt), every theta
+    gives gains the export writes without a warning: each mass raised to
+    DEPLOY_MARGIN (2 dt D + dt^2 K) / 4 with D and K kept, gains already within
+    left as they are (the rule's defaults round-trip), masses within the
+    controller's bounds, and the raised mass
+    still moves with the damping ratio. Without it, the same thetas leave the
+    margin (so this can fail)."""
+    from jaxsync.control import ros2_admittance as ra  # noqa: PLC0415
+    from jaxsync.io.export_gains import deployed_stability  # noqa: PLC0415
+
+    dt = 0.002
+    base = _gains.default_gains(paper_model(), "position")
+    free = TuneSpec(tuned=_params.IMPEDANCE, per_arm=True)
+    held = dataclasses.replace(free, deploy_dt=dt)
+    theta = held.init(base)
+    g = held.to_gains(theta, base)
+    for k in ("imp_mass", "imp_stiffness", "imp_damping"):
+        np.testing.assert_allclose(np.asarray(getattr(g, k)), np.asarray(getattr(base, k)), rtol=1e-9)
+    rng = np.random.default_rng(1)
+    outside = 0
+    for _ in range(20):
+        wild = jax.tree_util.tree_map(lambda x: x + 3 * rng.standard_normal(np.shape(x)), theta)
+        g, f = held.to_gains(wild, base), free.to_gains(wild, base)
+        index = ra.stability_index(np.asarray(g.imp_mass), np.asarray(g.imp_damping), np.asarray(g.imp_stiffness), dt)
+        assert index.max() <= 1 / ra.DEPLOY_MARGIN * (1 + 1e-12) and deployed_stability(g, dt) == []
+        np.testing.assert_array_equal(np.asarray(g.imp_damping), np.asarray(f.imp_damping))
+        np.testing.assert_array_equal(np.asarray(g.imp_stiffness), np.asarray(f.imp_stiffness))
+        free_index = ra.stability_index(
+            np.asarray(f.imp_mass), np.asarray(f.imp_damping), np.asarray(f.imp_stiffness), dt
+        )
+        kept = (free_index <= 1 / ra.DEPLOY_MARGIN) & (np.asarray(f.imp_mass) >= ra.MASS_BOUNDS[0])
+        assert np.asarray(g.imp_mass).min() >= ra.MASS_BOUNDS[0]  # and the controller's own bounds
+        np.testing.assert_array_equal(np.asarray(g.imp_mass)[kept], np.asarray(f.imp_mass)[kept])
+        outside += int((~kept).sum())
+    assert outside > 0
+    # the paper model's normal axis, its damping ratio raised past the margin: the mass follows it
+    past = {**theta, "imp_damping_ratio": theta["imp_damping_ratio"].at[0, 2].add(0.5)}
+    assert float(held.to_gains(past, base).imp_mass[0, 2]) > float(free.to_gains(past, base).imp_mass[0, 2])
+    grad = jax.grad(lambda t: held.to_gains(t, base).imp_mass[0, 2])(past)
+    assert float(grad["imp_damping_ratio"][0, 2]) > 0 and float(grad["imp_stiffness"][0, 2]) != 0
+    with pytest.raises(jaxsync.ConfigError, match="deploy_dt must be a positive control period"):
+        dataclasses.replace(free, deploy_dt=0.0)
 
 
 def test_spec_sharing_and_errors():
@@ -497,7 +543,9 @@ def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tunin
     )  # the release chosen runs in every evaluation
     assert fake_tuning["mujoco_stack"].distro == "humble"
     assert fake_tuning["cfg"].problem.tuned.tuned == ("imp_mass", "imp_stiffness", "imp_damping_ratio")
+    assert fake_tuning["cfg"].problem.tuned.deploy_dt == float(model.mj_model.opt.timestep)  # held deployable
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["config"]["problem"]["spec"]["deployed_rule"] == {"control_period_s": 0.002, "margin": 1.5}
     g = _gains.default_gains(model, "position")
     classical = loss_mod.compliance_fn(model, "classical")(g)
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] == pytest.approx(float(classical))
@@ -549,7 +597,8 @@ def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_
     with pytest.raises(jaxsync.ConfigError, match="the ros2_admittance controller does not use ff_vel"):
         _params.check_tuned(("imp_mass", "ff_vel"), "ros2_admittance")
     rule = _params.spec_for("ros2_admittance")
-    assert rule.for_model("ros2_admittance", iiwa, "position") is rule
+    held = rule.for_model("ros2_admittance", iiwa, "position")  # held within the exported rule's margin only
+    assert held.tuned == rule.tuned and held.deploy_dt == float(iiwa.mj_model.opt.timestep) and rule.deploy_dt is None
     monkeypatch.setattr(_params, "servo_limits_loop", lambda m: True)
     said = []
     cfg = TuneConfig(iterations=1, actuation="position", delay=(0, 3))

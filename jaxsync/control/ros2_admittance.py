@@ -393,6 +393,10 @@ def _one_axis_checked(mass, damping, stiffness, dt, joint_damping) -> tuple[floa
     return dt * (damping / mass + joint_damping), dt * dt * stiffness / mass
 
 
+# admittance_controller_parameters.yaml's element_bounds on admittance.mass and admittance.stiffness
+MASS_BOUNDS = (1e-4, 1e6)
+STIFFNESS_BOUNDS = (0.0, 1e8)
+
 DEPLOY_MARGIN = 1.5
 """The margin an export asks of the deployed rule on every axis: stable with
 D/M and K/M raised this much (:func:`stability_index` <= 1 / DEPLOY_MARGIN).
@@ -418,8 +422,14 @@ def stability_index(mass, damping, stiffness, dt: float, joint_damping=0.0):
 def deployable_mass(mass, damping, stiffness, dt: float, margin: float = DEPLOY_MARGIN):
     """The mass, elementwise, raised where needed so that
     ``stability_index`` <= 1 / ``margin``: M >= margin (2 dt D + dt^2 K) / 4."""
-    need = margin * (2.0 * dt * np.asarray(damping, dtype=float) + dt * dt * np.asarray(stiffness, dtype=float)) / 4.0
+    need = mass_needed(np.asarray(damping, dtype=float), np.asarray(stiffness, dtype=float), dt, margin)
     return np.maximum(np.asarray(mass, dtype=float), need)
+
+
+def mass_needed(damping, stiffness, dt: float, margin: float = DEPLOY_MARGIN):
+    """margin (2 dt D + dt^2 K) / 4, elementwise (NumPy or JAX arrays): the
+    least mass at which ``stability_index`` is 1 / ``margin``."""
+    return margin * (2.0 * dt * damping + dt * dt * stiffness) / 4.0
 
 
 def one_axis_roots(mass: float, damping: float, stiffness: float, dt: float, joint_damping: float = 0.0) -> np.ndarray:

@@ -31,6 +31,7 @@ import yaml
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
+from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import Gains
 from jaxsync.control.joint_space import COMMAND_ALPHA
@@ -143,9 +144,8 @@ def _yaml_list(v) -> str:
     return "[" + ", ".join(repr(bool(x)).lower() if isinstance(x, bool) else repr(float(x)) for x in v) + "]"
 
 
-# admittance_controller_parameters.yaml's element_bounds
-MASS_BOUNDS = (1e-4, 1e6)
-STIFFNESS_BOUNDS = (0.0, 1e8)
+MASS_BOUNDS = _ra.MASS_BOUNDS  # admittance_controller_parameters.yaml's element_bounds
+STIFFNESS_BOUNDS = _ra.STIFFNESS_BOUNDS
 
 
 def check_admittance(g: Gains, phase: str | None = None) -> None:

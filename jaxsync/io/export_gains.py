@@ -146,8 +146,9 @@ def export_gains(
                 "ros2-admittance: the admittance rule (explicit in D and K) would run "
                 + "; ".join(problems[:2])
                 + more
-                + ". Tune on position-controlled arms (jaxsync tune --actuation position), export a stack's "
-                "defaults (actuation='position'), or force it (docs/deploy.md)",
+                + ". Tune through the rule (jaxsync tune --actuation position --controller ros2_admittance, "
+                "or another of the rule's controllers: their masses are held within this margin), export a "
+                "stack's defaults (actuation='position'), or force it (docs/deploy.md)",
                 inputs=("gains", "force"),
             )
         warnings = [f"WARNING: the admittance rule runs {p}" for p in problems]
@@ -324,7 +325,7 @@ def deployed_stability(gains, dt: float) -> list[str]:
         when = f", phase {phase}" if phase else ""
         m, d, k = (np.asarray(v, dtype=float) for v in (g.imp_mass, g.imp_damping, g.imp_stiffness))
         index = _ra.stability_index(m, d, k, dt)
-        for arm, axis in zip(*np.nonzero(index * _ra.DEPLOY_MARGIN > 1.0), strict=True):
+        for arm, axis in zip(*np.nonzero(index * _ra.DEPLOY_MARGIN > 1.0 + 1e-12), strict=True):
             state = "unstable" if index[arm, axis] >= 1.0 else "within its margin"
             found.append(
                 (

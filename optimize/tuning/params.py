@@ -9,7 +9,16 @@ parameters); :meth:`TuneSpec.to_gains` maps it to valid gains:
   command's feed-forward of the plan, within its validation bounds; 0 at theta 0);
 - B_d = 2 zeta sqrt(M_d K_d) with the damping ratio
   zeta = ZETA_MIN + (ZETA_MAX - ZETA_MIN) sigmoid(theta): inside the band, so
-  every tuned admittance filter is a stable, passive mass-spring-damper.
+  every tuned admittance filter is a stable, passive mass-spring-damper;
+- where the gains deploy as ros2_controllers' admittance rule (``deploy_dt``,
+  its control period: the rule's controllers on position-controlled arms),
+  each M_d is then raised to max(M_d, DEPLOY_MARGIN (2 dt B_d + dt^2 K_d) / 4)
+  with B_d and K_d kept, the rule defaults' own step
+  (``jaxsync.control.gains.deployable_gains``): every iterate is one the
+  export runs, stable with D/M and K/M 1.5 times larger, and the raised mass
+  still depends on every tuned parameter through B_d and K_d; M_d and K_d are
+  held within the controller's own bounds (``MASS_BOUNDS``,
+  ``STIFFNESS_BOUNDS`` in ``jaxsync.control.ros2_admittance``).
 
 - the coupling family's gains (ros2_coupled: cpl_rel, cpl_own, cpl_other,
   cpl_force) = GAIN_MAX tanh(theta), 0 at theta 0; its filters (cpl_*_a) =
@@ -42,9 +51,10 @@ import numpy as np
 
 from jaxsync._errors import ConfigError
 from jaxsync.control import coupling as _coupling
+from jaxsync.control import ros2_admittance as _ra
 from jaxsync.control import schedule as _schedule
 from jaxsync.control.gains import FF_ACC_MAX, FF_VEL_MAX, USED, Gains, servo_limits_loop
-from jaxsync.control.names import CONTROLLERS
+from jaxsync.control.names import CONTROLLERS, FAMILY
 
 ZETA_MIN, ZETA_MAX = 0.5, 150.0  # the default normal axis is an integrating force loop, zeta ~ 100
 SYNC = ("k_rk", "k_lk", "k_rl", "k_ll")
@@ -81,6 +91,9 @@ DEFAULT_TUNED_FOR = {
     "ros2_coupled": IMPEDANCE + FAMILY_GAINS,  # the rule's, and the family's channel gains (filters: by name)
     "ros2_coupled_direct": IMPEDANCE + FAMILY_GAINS,
 }
+# ros2_controllers' rule: tuned on position-controlled arms, its impedance is kept within the exported
+# rule's stability margin (TuneSpec.deploy_dt)
+DEPLOYED = ("ros2_admittance", "ros2_synchronous", *FAMILY)
 # the gain each tuned name sets
 GAIN_OF = {"imp_damping_ratio": "imp_damping", "obj_damping_ratio": "obj_damping"}
 
@@ -126,6 +139,9 @@ class TuneSpec:
     # joint-command loop's gain where the robot's servo limits that loop
     model_default: bool = False
     frozen: tuple[str, ...] = ()  # what :meth:`for_model` leaves out of the model's additions
+    # the control period, s, at which the gains deploy as ros2_controllers' admittance rule: each
+    # impedance mass raised to the rule's stability margin there (module docstring); None: not held
+    deploy_dt: float | None = None
 
     def __post_init__(self):
         unknown = sorted(set(self.tuned) - set(TUNABLE))
@@ -133,6 +149,10 @@ class TuneSpec:
             raise ConfigError(f"unknown parameter(s) to tune {unknown}; tunable: {list(TUNABLE)}", inputs=("spec",))
         if not self.tuned:
             raise ConfigError("nothing to tune: name at least one of " + ", ".join(TUNABLE), inputs=("spec", "frozen"))
+        if self.deploy_dt is not None and not (float(self.deploy_dt) > 0 and np.isfinite(self.deploy_dt)):
+            raise ConfigError(
+                f"deploy_dt must be a positive control period in s, got {self.deploy_dt}", inputs=("spec",)
+            )
         if FAMILY_BLOCK in self.tuned and self.isotropic:
             raise ConfigError(
                 f"{FAMILY_BLOCK} couples the pad frame's axes with each other: it has no isotropic form; tune it "
@@ -140,8 +160,12 @@ class TuneSpec:
                 inputs=("spec",),
             )
 
-    def for_model(self, controller: str, model, actuation: str) -> TuneSpec:
-        """This spec on ``model``'s ``actuation`` stack: a controller's
+    def for_model(self, controller: str, model, actuation: str, control_rate: float | None = None) -> TuneSpec:
+        """This spec on ``model``'s ``actuation`` stack: ros2_controllers'
+        rule (``DEPLOYED``) on position-controlled arms is held within the
+        exported rule's stability margin at its control period
+        (``deploy_dt``: 1 / ``control_rate``, or the model's step where the
+        controller runs every step), unless a period is already set. A controller's
         default set (``model_default``) gains kp_pos where jaxsync's own law
         runs on position-controlled arms whose slowest servo lowered its
         joint-command loop (``jaxsync.control.gains.servo_limits_loop``: the
@@ -164,6 +188,9 @@ class TuneSpec:
                 "(--actuation position)",
                 inputs=("spec",),
             )
+        if actuation == "position" and controller in DEPLOYED and self.deploy_dt is None:
+            dt = 1.0 / float(control_rate) if control_rate else float(model.mj_model.opt.timestep)
+            return dataclasses.replace(self, deploy_dt=dt)
         if (
             not self.model_default
             or actuation != "position"
@@ -305,10 +332,15 @@ class TuneSpec:
             g["imp_mass"] = self._expand(jnp.exp(theta["imp_mass"]))
         if "imp_stiffness" in theta:
             g["imp_stiffness"] = self._expand(jnp.exp(theta["imp_stiffness"]))
+            if self.deploy_dt is not None:  # within the deployed controller's bounds
+                g["imp_stiffness"] = jnp.minimum(g["imp_stiffness"], _ra.STIFFNESS_BOUNDS[1])
         if "imp_damping_ratio" in theta:
             zeta = self._expand(ZETA_MIN + (ZETA_MAX - ZETA_MIN) * jax.nn.sigmoid(theta["imp_damping_ratio"]))
         if any(n in theta for n in IMPEDANCE):
             g["imp_damping"] = 2.0 * zeta * jnp.sqrt(g["imp_mass"] * g["imp_stiffness"])
+            if self.deploy_dt is not None:  # B_d and K_d kept, M_d raised to the deployed rule's margin
+                need = _ra.mass_needed(g["imp_damping"], g["imp_stiffness"], self.deploy_dt)
+                g["imp_mass"] = jnp.clip(jnp.maximum(g["imp_mass"], need), *_ra.MASS_BOUNDS)
         for name in FAMILY_GAINS:
             if name in theta:
                 g[name] = self._expand(_coupling.GAIN_MAX * jnp.tanh(theta[name]))
@@ -375,6 +407,11 @@ class TuneSpec:
             "schedule": list(_schedule.PHASES) if self.schedule else None,
             "parameters": self.size(),
             "damping_ratio_band": [ZETA_MIN, ZETA_MAX],
+            **(
+                {"deployed_rule": {"control_period_s": self.deploy_dt, "margin": _ra.DEPLOY_MARGIN}}
+                if self.deploy_dt is not None
+                else {}
+            ),
             "k_range": [-1, 1],
             **(
                 {"coupling_gain_range": [-_coupling.GAIN_MAX, _coupling.GAIN_MAX], "coupling_filter_range": [A_MIN, 1]}

@@ -187,7 +187,7 @@ def job_config(model: DualArmModel, cfg: _tune.TuneConfig) -> tuple[_tune.TuneCo
         cfg = cfg.replace(scenario=_scenarios.model_overrides(model))
     cfg.validate()
     given = cfg.problem.tuned  # a new TuneSpec on each read where the problem names none: read once
-    spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation)
+    spec = given.for_model(cfg.problem.controller, model, cfg.training.actuation, cfg.training.control_rate)
     if spec is given:
         return cfg, []
     added = [n for n in spec.tuned if n not in given.tuned]
