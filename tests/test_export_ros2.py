@@ -251,6 +251,38 @@ def test_gains_not_tuned_through_the_rule_are_exported_with_a_warning(tmp_path, 
         assert ("--controllers ros2_admittance --gains " + str(tuned) in said) is warned
 
 
+def test_gains_tuned_through_the_rule_export_the_control_rate_they_were_tuned_at(tmp_path, capsys):
+    """A gains file that records the rule's control period (jaxsync tune through the rule) exports
+    that rate as update_rate and is checked at it (the position stack's defaults, within the margin
+    at 2 ms, are not at 4 ms); a period of no whole Hz is refused by name."""
+    from jaxsync.control import gains as _gains  # noqa: PLC0415
+    from jaxsync.control import schedule as _schedule  # noqa: PLC0415
+
+    defaults = jaxsync.default_gains(jaxsync.load_model(visual=False), "position")
+
+    def tuned_at(period, gains, name):
+        record = {"deployed_rule": {"control_period_s": period, "margin": 1.5}} if period else {}
+        doc = {"gains": _schedule.to_file_dict(gains), "controller": "ros2_admittance", "tune": record}
+        (tmp_path / name).write_text(json.dumps(doc))
+        return str(tmp_path / name)
+
+    def export(path, out):
+        return main(["export", path, "--format", "ros2-admittance", "--out", str(tmp_path / out)])
+
+    capsys.readouterr()
+    assert export(tuned_at(0.004, defaults, "slow.json"), "slow") == 2
+    assert "unstable" in (err := capsys.readouterr().err) and "at dt = 0.004 s" in err
+    for period, rate in ((0.004, 250), (None, 500)):
+        gains = _gains.deployable_gains(defaults, period) if period else defaults
+        assert export(tuned_at(period, gains, f"tuned_{rate}.json"), f"r{rate}") == 0
+        for side in ("left", "right"):
+            manager = yaml.safe_load(open(tmp_path / f"r{rate}" / f"admittance_{side}.yaml"))["controller_manager"]
+            assert manager["ros__parameters"]["update_rate"] == rate
+    capsys.readouterr()
+    assert export(tuned_at(0.003, defaults, "odd.json"), "odd") == 2
+    assert "control period of 0.003 s, which is no whole number of Hz" in capsys.readouterr().err
+
+
 def test_a_coupling_not_tuned_through_the_rule_is_exported_with_a_warning(tmp_path, capsys):
     """synchronisation.yaml couples the two rules: with nonzero factors not
     tuned through the coupled rule (ros2_synchronous), it and the notes say

@@ -122,6 +122,7 @@ def export_gains(
             inputs=("gains",),
         )
     target, loaded = None, None
+    period = gains_file.deployed_period_of(gains) if from_file else None  # tuned through the rule at it
     if model is not None or fmt == "ros2-admittance" or gains is None:
         loaded = as_model(model, visual=visual)
         if from_file:  # gains tuned on another robot would be written with this one's names
@@ -135,6 +136,8 @@ def export_gains(
                 compliance_at=compliance_at,
             )
             target = dataclasses.replace(target, filter_coefficient=_actuation.check_ft_filter(ft_filter, one=True)[0])
+            if period is not None:  # the rate the rule was tuned at, not the default
+                target = dataclasses.replace(target, update_rate=_update_rate(period, gains))
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     names = _sync.controller_for(g, tuned_for) if fmt == "ros2-admittance" else None
     warnings = []
@@ -178,7 +181,8 @@ def export_gains(
     if fmt == "ros2-admittance" and names in LOOP_CHECKED and tuned_for in LOOP_CHECKED:
         if log is not None:
             log(f"checking the {names} loop's stability about the hold (compiles on first use, about a minute)")
-        problems, fine = coupled_loop_stability(loaded, g, names, delay, distro)
+        rate = None if period is None else target.update_rate  # None: the physics rate
+        problems, fine = coupled_loop_stability(loaded, g, names, delay, distro, control_rate=rate)
         if problems and not force:
             raise ConfigError(
                 f"ros2-admittance: {problems[0]}"
@@ -275,14 +279,17 @@ def _phases(gains) -> list[tuple[str | None, Gains]]:
     return [(None, gains)]
 
 
-def coupled_loop_stability(model, gains, controller: str, delay=0, distro: str = "jazzy") -> tuple[list, list]:
+def coupled_loop_stability(
+    model, gains, controller: str, delay=0, distro: str = "jazzy", control_rate: float | None = None
+) -> tuple[list, list]:
     """(problems, the rest): :func:`jaxsync.sim.loop_stability.loop_margin`'s phrase for each phase of
-    ``gains`` and each ``delay`` (int or (lo, hi)), split by whether the loop is stable with its margin."""
+    ``gains`` and each ``delay`` (int or (lo, hi)) at ``control_rate`` (None: the physics rate), split by
+    whether the loop is stable with its margin."""
     lo, hi = _actuation.check_delay(delay)
     problems, fine = [], []
     for phase, g in _phases(gains):
         for d in range(lo, hi + 1):
-            r = _loop.loop_margin(model, g, controller, delay=d, distro=distro)
+            r = _loop.loop_margin(model, g, controller, delay=d, control_rate=control_rate, distro=distro)
             phrase = r.phrase + (f", phase {phase}" if phase else "")
             (fine if r.verdict == _loop.VERDICTS[0] else problems).append(phrase)
     return problems, fine
@@ -309,6 +316,18 @@ def _source_words(model) -> str:
     if isinstance(model, DualArmModel):
         return model.path
     return str(model) if model is not None else "the paper model"
+
+
+def _update_rate(period: float, gains) -> int:
+    """The controller's ``update_rate`` (an integer of Hz) for a tuned control period."""
+    rate = 1.0 / period if period > 0 else float("nan")
+    if not (np.isfinite(rate) and abs(rate - round(rate)) <= 1e-9 * rate and round(rate) >= 1):
+        raise ConfigError(
+            f"gains {gains} were tuned through the rule at a control period of {period} s, which is no whole "
+            "number of Hz: ros2_control's update_rate cannot run it",
+            inputs=("gains",),
+        )
+    return int(round(rate))
 
 
 def deployed_stability(gains, dt: float) -> list[str]:

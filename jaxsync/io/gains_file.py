@@ -72,6 +72,16 @@ def controller_of(path: str | os.PathLike) -> str | None:
     return _recorded(path, "controller")
 
 
+def deployed_period_of(path: str | os.PathLike) -> float | None:
+    """The control period, s, a gains file was tuned at through ros2_controllers'
+    rule (``jaxsync tune`` records it with the tuned set,
+    ``optimize.tuning.params.TuneSpec.describe``), None when the file does not say."""
+    tune = _recorded(path, "tune")
+    rule = tune.get("deployed_rule") if isinstance(tune, dict) else None
+    period = rule.get("control_period_s") if isinstance(rule, dict) else None
+    return float(period) if isinstance(period, int | float) else None
+
+
 def model_of(path: str | os.PathLike) -> dict | None:
     """The model a gains file was tuned on (``jaxsync tune`` records it beside the
     gains: ``jaxsync.physics.model.identity``), None when the file does not say."""
