@@ -10,6 +10,7 @@ import dataclasses
 import functools
 import json
 import os
+import re
 import time
 
 import jax
@@ -551,6 +552,13 @@ def test_ros2_admittance_tunes_on_position_arms_only(model, tmp_path, fake_tunin
     assert summary["heldout_before"]["apparent_stiffness_normal_N_per_m"] == pytest.approx(float(classical))
     assert json.loads((tmp_path / "run" / "gains.json").read_text())["controller"] == "ros2_admittance"
     assert summary["stack"]["ros_distro"] == "humble" and summary["config"]["training"]["distro"] == "humble"
+    # gains the exported rule would run unstably start raised to its margin, and the job says so
+    g = _gains.default_gains(model, "position")
+    soft = g._replace(imp_mass=g.imp_mass.at[:, 2].multiply(0.5))
+    said = []
+    _run_tune(model, tmp_path / "soft", cfg, gains=soft, log=said.append)
+    raised = r"imp_mass: 1\.5\d* -> 3\.0\d* \(masses raised to the exported rule's stability margin at 0\.002 s"
+    assert any(re.search(raised, line) for line in said), said
 
 
 def test_the_rule_plus_the_coupling_tunes_from_its_own_defaults(model, tmp_path, fake_tuning):

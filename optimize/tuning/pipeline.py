@@ -291,7 +291,17 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
         _results.write_json(before_path, before)
     moved = spec.moved(base)
     if moved:
-        say("the starting gains were moved into the tuning bands: " + "; ".join(moved))
+        raised = spec.deploy_dt is not None and any(m.startswith("imp_mass:") for m in moved)
+        say(
+            "the starting gains were moved into the tuning bands: "
+            + "; ".join(moved)
+            + (
+                f" (masses raised to the exported rule's stability margin at {spec.deploy_dt:g} s: "
+                "jaxsync export refuses the rule beyond it)"
+                if raised
+                else ""
+            )
+        )
 
     say(
         f"tuning {', '.join(spec.tuned)} ({spec.size()} parameters"
