@@ -709,6 +709,27 @@ def test_the_summary_is_said_in_lines(model, tmp_path, fake_tuning):
     assert "WARNING: MuJoCo C and MJX disagree" in lines[2] and lines[-1].startswith(f"results in {out}: gains.json")
 
 
+def test_a_position_stack_tune_says_whether_its_gains_export(model, tmp_path, fake_tuning):
+    """On position-controlled arms the summary records whether jaxsync export --format ros2-admittance
+    writes the kept gains, and the lines warn where it refuses them (jaxsync's own law, tuned with a
+    mass the stock rule runs unstably), not where it writes them."""
+    g = _gains.default_gains(model, "position")
+    soft = g._replace(imp_mass=g.imp_mass.at[:, 2].multiply(0.5))  # dt D/M past the rule's margin
+    cfg = TuneConfig(problem=Problem(controller="classical"), iterations=1, actuation="position")
+    summary = _run_tune(model, tmp_path / "classical", cfg, gains=soft)  # the stand-in loop keeps its start
+    d = json.loads((tmp_path / "classical" / "summary.json").read_text())["deployment"]
+    assert d["format"] == "ros2-admittance" and d["update_rate_hz"] == 500 and not d["exports"]
+    assert "pad axis z unstable" in d["problems"][0]
+    warned = [line for line in summary_lines(summary, "x") if line.startswith("WARNING: jaxsync export")]
+    assert len(warned) == 1 and "refuses these gains at 500 Hz" in warned[0] and "(and 1 more)" in warned[0]
+    rule = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position")
+    summary = _run_tune(model, tmp_path / "rule", rule)
+    assert summary.deployment["exports"] and summary.deployment["problems"] == []
+    assert not any(line.startswith("WARNING: jaxsync export") for line in summary_lines(summary, "x"))
+    torque = _run_tune(model, tmp_path / "torque", TuneConfig(problem=Problem(controller="classical"), iterations=1))
+    assert torque.deployment is None
+
+
 def test_the_kept_start_is_the_best_qualifying_one_on_validation():
     v0 = {"iteration": 0, "settled_peak_resultant_N": 0.02, "grip_force_error_rel": 0.01, "dropped": 0, "nonfinite": 0}
     a = dict(v0, iteration=40, settled_peak_resultant_N=0.004)

@@ -330,6 +330,23 @@ def _update_rate(period: float, gains) -> int:
     return int(round(rate))
 
 
+def export_check(gains, controller: str, period: float | None = None) -> dict | None:
+    """Whether ``jaxsync export --format ros2-admittance`` writes ``gains``
+    tuned for ``controller`` without ``--force`` on the per-axis checks
+    (:func:`deployed_stability` and the controller's bounds) at ``period``
+    (None: the default ``update_rate``): {"format", "update_rate_hz",
+    "exports", "problems"}; None for a controller that format cannot run.
+    A coupled loop's check (``--delay``) is the export's own."""
+    if controller not in ROS2_CONTROLLERS:
+        return None
+    rate = _update_rate(period, controller) if period is not None else _export.Ros2Target.update_rate
+    try:
+        problems = deployed_stability(gains, 1.0 / rate)
+    except ConfigError as err:  # outside what the controller can hold at all
+        problems = [str(err)]
+    return {"format": "ros2-admittance", "update_rate_hz": rate, "exports": not problems, "problems": problems}
+
+
 def deployed_stability(gains, dt: float) -> list[str]:
     """Each axis, arm and phase of ``gains`` that ros2_controllers' admittance
     rule would run at control period ``dt`` unstable or within its margin

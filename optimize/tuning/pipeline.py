@@ -25,6 +25,7 @@ from jaxsync.control import gains as _gains
 from jaxsync.control import schedule as _schedule
 from jaxsync.io import gains_file
 from jaxsync.io import results as _results
+from jaxsync.io.export_gains import export_check
 from jaxsync.optimize.tuning import loss as _loss
 from jaxsync.optimize.tuning import scenarios as _scenarios
 from jaxsync.optimize.tuning import tune as _tune
@@ -150,6 +151,7 @@ class TuneSummary:
     stack: dict  # the arms' stack the job ran (jaxsync.sim.actuation.Stack.to_dict, with the servo)
     starts: list = dataclasses.field(default_factory=list)  # a multi-start run's starts (optimize.tuning.starts)
     convergence: dict | None = None  # converged or not, why, at what cost (tune_state.convergence_record)
+    deployment: dict | None = None  # position stack: whether the kept gains export (export_gains.export_check)
 
     @property
     def peak_before(self) -> float | None:
@@ -353,6 +355,9 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
         which.update(stiffness_figures(stiffness(g)))
         which["within_bounds"] = within_bounds(which, cfg)
     worse = worse_than_start(before, after)
+    deployment = (  # what jaxsync export --format ros2-admittance would say of the kept gains
+        export_check(gains, controller, spec.deploy_dt) if cfg.training.actuation == "position" else None
+    )
     described = spec.describe()
     for name, g in (("gains.json", gains), ("gains_last.json", result.last_gains)):
         doc = {"gains": _schedule.to_file_dict(g), "controller": controller, "model": identity(model)}
@@ -410,6 +415,7 @@ def _run(model, base, cfg, out, resume, mujoco_check, options, fingerprint, say,
         mujoco_check=check,
         stack=stack.to_dict(model),
         convergence=result.convergence,
+        deployment=deployment,
     )
     _results.write_json(os.path.join(out, "summary.json"), summary.to_dict())
     _distributed.barrier("tune: results written")

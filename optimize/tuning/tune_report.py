@@ -60,6 +60,13 @@ def summary_lines(summary, out: str) -> list[str]:
         lines.append(worse_text(summary))
     if summary.mujoco_check is not None:
         lines.append(mujoco_text(summary.mujoco_check))
+    d = getattr(summary, "deployment", None)
+    if d is not None and not d["exports"]:
+        more = f" (and {len(d['problems']) - 1} more)" if len(d["problems"]) > 1 else ""
+        lines.append(
+            f"WARNING: jaxsync export --format ros2-admittance refuses these gains at {d['update_rate_hz']} Hz: "
+            f"{d['problems'][0]}{more}; tune through the rule (--controller ros2_admittance) for gains it runs"
+        )
     kept = [s for s in getattr(summary, "starts", ()) if s["kept"]]
     if kept:
         lines.append(f"kept the start on seed {kept[0]['seed']} of {len(summary.starts)} (the lowest validation "
