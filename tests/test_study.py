@@ -316,9 +316,9 @@ def test_the_table_shows_chattering_runs_beside_dropped_ones():
     report = report_mod.build(cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, {})
     lines = report_mod.table(report)
     head = lines[1].split()
-    assert head[-5:] == ["dropped", "chattering", "in", "bounds", "converged"]
+    assert head[-6:] == ["dropped", "chattering", "in", "bounds", "converged", "exports"]
     (row,) = [x for x in lines if x.startswith("synchronous")]
-    assert row.split()[-4:] == ["0/3", "2/3", "-", "-"]
+    assert row.split()[-5:] == ["0/3", "2/3", "-", "-", "-"]
 
 
 def _converged_run(peaks, converged):
@@ -345,9 +345,28 @@ def test_a_verdict_is_drawn_from_converged_runs_only(classical_converged, verdic
     assert q["ci95"][1] < 1 and q["verdict"] == verdict
     rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
     assert rows[("classical", 1.0)]["converged"] == (2 if classical_converged else 0)
+    assert rows[("classical", 1.0)]["exports"] is None  # no run says (the torque stack)
     assert rows[("classical", 1.0)]["iterations"] == [40, 40]
     (line,) = [x for x in report_mod.table(report) if "(bound x1)" in x]
     assert line.endswith(f"verdict: {verdict}"), line
+
+
+def test_a_row_counts_the_runs_whose_gains_export():
+    """On the position stack each run's summary says whether jaxsync export writes its gains; a
+    row counts them, and the table shows it beside convergence."""
+    cfg = study_mod.StudyConfig(controllers=("classical", "synchronous"), bounds=(1.0,), seeds=(0, 1), bootstrap=100)
+    defaults = {"classical": _evaluation([0.06, 0.05, 0.07]), "synchronous": _evaluation([0.01, 0.012, 0.009])}
+    runs = {}
+    for c, exports in (("classical", (True, False)), ("synchronous", (True, True))):
+        for s, ok in zip((0, 1), exports, strict=True):
+            runs[(c, 1.0, s)] = _converged_run([0.01, 0.011, 0.009], True) | {"deployment": {"exports": ok}}
+    report = report_mod.build(
+        cfg, {"first_impact_peak_N": 6.0, "apparent_stiffness_normal_N_per_m": 2e4}, defaults, runs
+    )
+    rows = {(r["controller"], r["bound"]): r for r in report["rows"]}
+    assert rows[("classical", 1.0)]["exports"] == 1 and rows[("synchronous", 1.0)]["exports"] == 2
+    (line,) = [x for x in report_mod.table(report) if x.startswith("classical") and "x1" in x]
+    assert line.split()[-2:] == ["2/2", "1/2"]
 
 
 def test_the_reference_gains_count_as_within_their_own_bound():

@@ -169,6 +169,8 @@ def build(cfg, reference: dict, defaults: dict, runs: dict) -> dict:
             evals = [r["heldout_after"] for r in done]
             row = {"controller": c, "bound": b, **summarise(evals, [run_within_bounds(r) for r in done])}
             row["converged"] = int(sum(run_converged(r) for r in done))
+            deployed = [r.get("deployment") for r in done]  # position stack: whether jaxsync export writes them
+            row["exports"] = None if None in deployed else int(sum(d["exports"] for d in deployed))
             row["iterations"] = [run_iterations(r) for r in done]
             row["bounds"] = done[0].get("bounds")
             report["rows"].append(row)
@@ -202,12 +204,13 @@ def table(report: dict) -> list[str]:
         "controller's first-impact peak and apparent normal stiffness ('default': untuned); " + BOUND_RULE
     ]
     head = f"{'controller':<18}{'bound':>8}{'settled peak, N':>30}{'internal err, N':>28}{'impact, N':>26}"
-    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'chattering':>12}{'in bounds':>11}{'converged':>11}"
+    head += f"{'stiffness, N/m':>16}{'dropped':>10}{'chattering':>12}{'in bounds':>11}{'converged':>11}{'exports':>9}"
     lines.append(head)
     for r in report["rows"]:
         bound = "default" if r["bound"] is None else f"x{r['bound']:g}"
         inb = f"{r['within_bounds']}/{r['runs']}" if "runs" in r else "-"
         conv = f"{r['converged']}/{r['runs']}" if "converged" in r else "-"
+        exports = f"{r['exports']}/{r['runs']}" if r.get("exports") is not None else "-"
         stiff = r["apparent_stiffness_normal_N_per_m"]["median"]
         stiff = f"{stiff:.4g}" if stiff is not None else "n/a"
         dropped = f"{r['dropped']}/{r['scenarios']}"
@@ -215,7 +218,7 @@ def table(report: dict) -> list[str]:
         lines.append(
             f"{r['controller']:<18}{bound:>8}{_fmt(r['settled_peak_resultant_N']):>30}"
             f"{_fmt(r['internal_force_error_rms_N']):>28}{_fmt(r['first_impact_peak_N']):>26}"
-            f"{stiff:>16}{dropped:>10}{chattering:>12}{inb:>11}{conv:>11}"
+            f"{stiff:>16}{dropped:>10}{chattering:>12}{inb:>11}{conv:>11}{exports:>9}"
         )
     for q in report["ratios"]:
         bound = "default gains" if q["bound"] is None else f"bound x{q['bound']:g}"
@@ -248,6 +251,7 @@ def write(out: str, report: dict) -> None:
             cols.setdefault(k, []).append(r[k])
         cols.setdefault("within_bounds", []).append(r.get("within_bounds"))
         cols.setdefault("converged", []).append(r.get("converged"))
+        cols.setdefault("exports", []).append(r.get("exports"))
     _results.write_csv(os.path.join(out, "study.csv"), cols)
     pareto_plot(report, os.path.join(out, "pareto.png"))
 
