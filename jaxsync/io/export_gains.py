@@ -137,7 +137,7 @@ def export_gains(
             )
             target = dataclasses.replace(target, filter_coefficient=_actuation.check_ft_filter(ft_filter, one=True)[0])
             if period is not None:  # the rate the rule was tuned at, not the default
-                target = dataclasses.replace(target, update_rate=_update_rate(period, gains))
+                target = dataclasses.replace(target, update_rate=_update_rate(period, f"gains {gains}"))
     g = gains_file.load(gains) if from_file else gains_file.load_or_default(gains, loaded, actuation=actuation)
     names = _sync.controller_for(g, tuned_for) if fmt == "ros2-admittance" else None
     warnings = []
@@ -318,12 +318,12 @@ def _source_words(model) -> str:
     return str(model) if model is not None else "the paper model"
 
 
-def _update_rate(period: float, gains) -> int:
-    """The controller's ``update_rate`` (an integer of Hz) for a tuned control period."""
+def _update_rate(period: float, what: str) -> int:
+    """The controller's ``update_rate`` (an integer of Hz) for the control period ``what`` was tuned at."""
     rate = 1.0 / period if period > 0 else float("nan")
     if not (np.isfinite(rate) and abs(rate - round(rate)) <= 1e-9 * rate and round(rate) >= 1):
         raise ConfigError(
-            f"gains {gains} were tuned through the rule at a control period of {period} s, which is no whole "
+            f"{what} was tuned through the rule at a control period of {period} s, which is no whole "
             "number of Hz: ros2_control's update_rate cannot run it",
             inputs=("gains",),
         )
@@ -339,7 +339,7 @@ def export_check(gains, controller: str, period: float | None = None) -> dict | 
     A coupled loop's check (``--delay``) is the export's own."""
     if controller not in ROS2_CONTROLLERS:
         return None
-    rate = _update_rate(period, controller) if period is not None else _export.Ros2Target.update_rate
+    rate = _update_rate(period, f"a {controller} run") if period is not None else _export.Ros2Target.update_rate
     try:
         problems = deployed_stability(gains, 1.0 / rate)
     except ConfigError as err:  # outside what the controller can hold at all
