@@ -573,6 +573,24 @@ def test_the_rule_plus_the_coupling_tunes_from_its_own_defaults(model, tmp_path,
     assert float(_gains.default_gains(model, "position").k_rk) == 0.5
 
 
+def test_the_rules_tuned_gains_export_as_the_rule_alone(model, tmp_path, fake_tuning, capsys):
+    """tune --controller ros2_admittance starts from the rule's own defaults, none of the paper's
+    coupling (the rule never reads it), so its gains export as the rule alone: synchronisation.yaml
+    configures ros2_admittance, not a coupling the run never tuned, and says nothing of one."""
+    import yaml  # noqa: PLC0415 -- this test alone reads exported files
+
+    cfg = TuneConfig(problem=Problem(controller="ros2_admittance"), iterations=1, actuation="position")
+    _run_tune(model, tmp_path / "run", cfg)
+    argv = ["export", str(tmp_path / "run" / "gains.json"), "--format", "ros2-admittance"]
+    capsys.readouterr()
+    assert main([*argv, "--out", str(tmp_path / "ros2")]) == 0
+    sync = yaml.safe_load(open(tmp_path / "ros2" / "synchronisation.yaml"))
+    params = sync["dual_arm_synchronisation"]["ros__parameters"]
+    assert params["controller"] == "ros2_admittance"
+    assert [params[k] for k in ("k_rk", "k_lk", "k_rl", "k_ll")] == [0.0] * 4
+    assert "not tuned through the admittance rule it couples" not in capsys.readouterr().out
+
+
 def test_the_loop_gain_is_tuned_by_default_where_the_servo_limits_it(model, tmp_path, fake_tuning, monkeypatch):
     """A controller's default set gains kp_pos and the command's feed-forward
     of the plan's acceleration (ff_acc) on position-controlled arms whose servo lowered the

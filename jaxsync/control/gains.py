@@ -123,13 +123,19 @@ def default_gains(model=None, actuation: str = "torque", controller: str | None 
     are raised where ros2_controllers' admittance rule would run them near its
     stability bound (:func:`deployable_gains`). ``controller``
     "ros2_synchronous" takes its own relative-error factor
-    (``RULE_RELATIVE_FACTOR``); any other or None, the gains every controller
-    shares. Every command and library job takes a model's defaults from here.
+    (``RULE_RELATIVE_FACTOR``); "ros2_admittance", the rule alone, none of the
+    paper's coupling (factors 0: the rule never reads them, and an export
+    configures the coupling its gains set); any other or None, the gains every
+    controller shares. Every command and library job takes a model's defaults from here.
 
     Example:
       >>> float(default_gains().imp_mass[0, 2])
       2.0
     """
+    if controller == "ros2_admittance":
+        g = default_gains(model, actuation)
+        zero = jnp.zeros_like(g.k_rk)
+        return g._replace(k_rk=zero, k_lk=zero, k_rl=zero, k_ll=zero)
     if controller == "ros2_synchronous":
         g = default_gains(model, actuation)
         k = jnp.full_like(g.k_rk, RULE_RELATIVE_FACTOR)  # full_like keeps the (strong) dtype
