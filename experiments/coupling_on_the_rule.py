@@ -109,6 +109,11 @@ def main() -> None:
         "optimum finds gains that drop the object in scenarios it did not train on",
     )
     p.add_argument("--skip-rule", action="store_true", help="reuse the rule runs already in --out")
+    p.add_argument(
+        "--only",
+        choices=["rule", "coupled"],
+        help="tune that run alone and stop (one process each on two cores); then --reuse compares them",
+    )
     p.add_argument("--reuse", action="store_true", help="reuse both runs already in --out (the channels scored anew)")
     p.add_argument("--resume", action="store_true", help="continue runs stopped in --out from their checkpoints")
     p.add_argument(
@@ -163,6 +168,8 @@ def main() -> None:
                 start = _gains.deployable_gains(gains_file.load(os.path.join(rule_run, "gains.json")), dt)
                 jobs = [("rule", "ros2_admittance", start, seed + 100), ("coupled", args.family, start, seed + 100)]
             for label, controller, start, train_seed in jobs:
+                if args.only and label != args.only:
+                    continue
                 out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", label)
                 tcfg = cfg.tune_config(controller, train_seed, bounds).replace(grip_floor=args.grip_floor)
                 tuned = args.tune.split(",") if args.tune else FAMILY_GAINS if args.family_only else None
@@ -182,6 +189,8 @@ def main() -> None:
                     mujoco_check=False,
                     log=lambda m: None,
                 ).to_dict()
+            if args.only:
+                continue
             r, lo, hi = _ratio(_peaks(done["coupled"]), _peaks(done["rule"]))
             coupled_out = os.path.join(args.out, f"bound_{factor:g}", f"seed_{seed}", "coupled")
             without = _without_each_channel(model, cfg.tune_config(args.family, seed, bounds), coupled_out)
@@ -229,6 +238,8 @@ def main() -> None:
             }
             rows.append(row)
             print(json.dumps(row), flush=True)
+    if args.only:  # the other run, and the comparison, come from --reuse
+        return
     a = np.concatenate([_peaks_of(args.out, r, "coupled") for r in rows])
     b = np.concatenate(
         [
