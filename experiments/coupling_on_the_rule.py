@@ -30,8 +30,10 @@ drops, whether each run converged, and the lowest validation figure each
 run reached without a drop. Selection asks for a grip error no worse than
 the start's or at most ``--grip-floor`` (0.1 %: a tuned start's is 0.02-0.07
 %, which a continued run rarely keeps exactly), the same for both runs.
-Where the study also tuned ``ros2_synchronous`` (the paper's coupling on the
-rule), each row also gives coupled / synchronous with its interval. Runs go
+With ``--synchronous`` a third run, the paper's coupling on the rule
+(``ros2_synchronous``, its factors from 0), goes on from the same start;
+else where the study tuned it, its run is taken. Each row then also gives
+coupled / synchronous with its interval. Runs go
 to L-BFGS's convergence or the cap (``--iterations``, 300).
 
 Which channel does what: the coupled run's selected gains are scored again
@@ -111,8 +113,14 @@ def main() -> None:
     p.add_argument("--skip-rule", action="store_true", help="reuse the rule runs already in --out")
     p.add_argument(
         "--only",
-        choices=["rule", "coupled"],
+        choices=["rule", "coupled", "synchronous"],
         help="tune that run alone and stop (one process each on two cores); then --reuse compares them",
+    )
+    p.add_argument(
+        "--synchronous",
+        action="store_true",
+        help="a third run from the same start: the paper's coupling on the rule (ros2_synchronous, its "
+        "factors from 0) tuned with the impedance, which coupled / synchronous is then taken against",
     )
     p.add_argument("--reuse", action="store_true", help="reuse both runs already in --out (the channels scored anew)")
     p.add_argument("--resume", action="store_true", help="continue runs stopped in --out from their checkpoints")
@@ -167,6 +175,9 @@ def main() -> None:
             else:  # the rule's optimum as it deploys (both runs are held there: TuneSpec.deploy_dt)
                 start = _gains.deployable_gains(gains_file.load(os.path.join(rule_run, "gains.json")), dt)
                 jobs = [("rule", "ros2_admittance", start, seed + 100), ("coupled", args.family, start, seed + 100)]
+                if args.synchronous:  # the paper's coupling from 0: the rule's optimum exactly
+                    zero = {k: 0.0 * getattr(start, k) for k in ("k_rk", "k_lk", "k_rl", "k_ll")}
+                    jobs.append(("synchronous", "ros2_synchronous", start._replace(**zero), seed + 100))
             for label, controller, start, train_seed in jobs:
                 if args.only and label != args.only:
                     continue
@@ -197,8 +208,8 @@ def main() -> None:
             rule_mean = float(np.nanmean(_peaks(done["rule"])))
             sync_run = os.path.join(S.run_dir(args.study, "ros2_synchronous", factor, seed), "summary.json")
             sync = {}
-            if os.path.exists(sync_run):
-                done_sync = _load(sync_run)
+            if "synchronous" in done or os.path.exists(sync_run):
+                done_sync = done["synchronous"] if "synchronous" in done else _load(sync_run)
                 rs, ls, hs = _ratio(_peaks(done["coupled"]), _peaks(done_sync))
                 sync = {
                     "synchronous_N": done_sync["heldout_settled_peak_resultant_N_after"],
