@@ -31,7 +31,8 @@ run reached without a drop. Selection asks for a grip error no worse than
 the start's or at most ``--grip-floor`` (0.1 %: a tuned start's is 0.02-0.07
 %, which a continued run rarely keeps exactly), the same for both runs.
 With ``--synchronous`` a third run, the paper's coupling on the rule
-(``ros2_synchronous``, its factors from 0), goes on from the same start;
+(``ros2_synchronous`` from k_ik = 0, k_il = 1/2: in the squeeze, the rule's
+own offset), goes on from the same start;
 else where the study tuned it, its run is taken. Each row then also gives
 coupled / synchronous with its interval. Runs go
 to L-BFGS's convergence or the cap (``--iterations``, 300).
@@ -119,8 +120,8 @@ def main() -> None:
     p.add_argument(
         "--synchronous",
         action="store_true",
-        help="a third run from the same start: the paper's coupling on the rule (ros2_synchronous, its "
-        "factors from 0) tuned with the impedance, which coupled / synchronous is then taken against",
+        help="a third run from the same start: the paper's coupling on the rule (ros2_synchronous from "
+        "k_ik = 0, k_il = 1/2) tuned with the impedance, which coupled / synchronous is then taken against",
     )
     p.add_argument("--reuse", action="store_true", help="reuse both runs already in --out (the channels scored anew)")
     p.add_argument("--resume", action="store_true", help="continue runs stopped in --out from their checkpoints")
@@ -175,9 +176,9 @@ def main() -> None:
             else:  # the rule's optimum as it deploys (both runs are held there: TuneSpec.deploy_dt)
                 start = _gains.deployable_gains(gains_file.load(os.path.join(rule_run, "gains.json")), dt)
                 jobs = [("rule", "ros2_admittance", start, seed + 100), ("coupled", args.family, start, seed + 100)]
-                if args.synchronous:  # the paper's coupling from 0: the rule's optimum exactly
-                    zero = {k: 0.0 * getattr(start, k) for k in ("k_rk", "k_lk", "k_rl", "k_ll")}
-                    jobs.append(("synchronous", "ros2_synchronous", start._replace(**zero), seed + 100))
+                if args.synchronous:  # k_ik = 0, k_il = 1/2: the rule's own offset in the squeeze (ros2_loop)
+                    k = {n: 0.0 * start.k_rk + v for n, v in (("k_rk", 0), ("k_lk", 0), ("k_rl", 0.5), ("k_ll", 0.5))}
+                    jobs.append(("synchronous", "ros2_synchronous", start._replace(**k), seed + 100))
             for label, controller, start, train_seed in jobs:
                 if args.only and label != args.only:
                     continue
