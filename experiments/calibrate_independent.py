@@ -79,7 +79,8 @@ def case(
     rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}",
                     effort=tau)  # fmt: skip
     start = time.perf_counter()
-    cal = calibrate(model, rec, timestep=timestep)[0]
+    say = (lambda text: print(f"  {text}", file=sys.stderr, flush=True)) if verbose else None
+    cal = calibrate(model, rec, timestep=timestep, progress=say)[0]
     seconds = time.perf_counter() - start
     err_k = np.abs(cal.fitted.stiffness / kp - 1)
     err_b = np.abs(cal.fitted.damping / kv - 1)

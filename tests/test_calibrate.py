@@ -555,6 +555,31 @@ def test_calibrate_names_every_reason_it_cannot_stand_behind_a_result():
     assert fit.problems(apart, [0, 1, 2, 3, 4], pd) == [] and apart.structure_margin == pytest.approx(0.1)
 
 
+def test_the_fits_residual_is_the_toolboxs_number_for_number(ur5e, recording):
+    """The fit's own road to the residual (each column's model once, every window in one rollout) gives
+    the toolbox's ``build_residual_fn`` with the same hooks exactly, for one point and for the columns of
+    a finite-difference Jacobian, in every structure; a changed gain changes it."""
+    from jaxsync.physics.servo import STRUCTURES
+
+    for name in STRUCTURES:
+        prob = fit.Problem(ur5e, recording, 0.5, structure=STRUCTURES[name])
+        pd = prob.parameters(prob.replay.nominal(), fit.FACTORS)
+        prob.delay = TRUE_DELAY
+        m = prob.replay.m
+        toolbox = prob.sysid.build_residual_fn(models_sequences=[prob.sequences], build_model=lambda p, s, m=m: m,
+                                               custom_rollout=prob._rollout, modify_residual=prob._residual,
+                                               resample_true=False, n_threads=1)  # fmt: skip
+        x = pd.as_vector() * np.random.default_rng(1).uniform(0.9, 1.1, pd.size)
+        cols = np.column_stack([x, x + 1e-3 * np.eye(pd.size)[:, 0], x - 1e-3 * np.eye(pd.size)[:, -1]])
+        for point in (x, cols):
+            want, got = toolbox(point, pd.copy())[0], prob.residual_fn(point, pd.copy())[0]
+            assert len(got) == len(want) == len(prob.sequences.measured_rollout)
+            for a, b in zip(want, got, strict=True):
+                assert a.shape == b.shape and np.array_equal(a, b), name
+        moved = prob.residual_fn(cols, pd.copy())[0]
+        assert not np.array_equal(moved[0][:, 0], moved[0][:, 1])
+
+
 def test_a_structure_far_behind_stops_its_delay_scan(ur5e, recording):
     """The recording's own structure scanned first; as written, 50 times its cost at the first delay,
     is scanned no further, and the result is the same."""
