@@ -233,6 +233,7 @@ class NativeReplay:
                                 for n in joint_names])  # fmt: skip
         self.dofs, self.qadr = pc.dof_adr, pc.qpos_adr
         self.datas = [mujoco.MjData(m) for _ in range(threads or min(2, os.cpu_count() or 1))]
+        self._schedules: dict = {}  # each window's controls per delay (_controls)
 
     @property
     def timestep(self) -> float:
@@ -274,8 +275,6 @@ class NativeReplay:
         """(times after each step, the actuators' controls) of one window: they depend on the window and
         the delay alone, not on the gains, so each is computed once (the command times kept with it, so
         that their identity stays theirs)."""
-        if not hasattr(self, "_schedules"):
-            self._schedules = {}
         key = (id(ct), float(state[0]), int(delay), int(n_steps), float(period))
         hit = self._schedules.get(key)
         if hit is not None and hit[0] is ct:
