@@ -1085,6 +1085,32 @@ def test_lbfgs_renews_its_batch_after_converging_and_resumes_on_it():
     np.testing.assert_allclose(m2.incumbent(state2), centres[0], atol=1e-6)
 
 
+def test_lbfgs_leaves_a_batch_it_lowers_by_ever_smaller_steps():
+    """A batch whose cost holds a large constant without gradient (a dropped scenario's) and whose
+    other part falls toward an asymptote: every step lowers it a little less. Counting a step that
+    lowers it by at most ftol of the cost as none, L-BFGS converges there in a fraction of the steps
+    it crawls without; on the same cost without the constant the test changes nothing."""
+
+    def run(constant, ftol):
+        def vg(x):
+            return float(constant + np.exp(-x[0]) + x[1] ** 2), np.array([-np.exp(-x[0]), 2 * x[1]])
+
+        m = LBFGS(ftol=ftol) if ftol is not None else LBFGS()
+        oracle, state = Oracle(value_and_grad=vg), m.init(np.array([0.0, 0.5]))
+        for i in range(200):
+            state, row = m.step(state, oracle)
+            if row.get("converged"):
+                return i, m.incumbent(state)
+        raise AssertionError("did not converge")
+
+    steps, x = run(2e5, None)
+    crawled, _ = run(2e5, 0.0)
+    assert steps < 25 < 35 < crawled, (steps, crawled)
+    assert np.exp(-x[0]) < 1e-3 and abs(x[1]) < 1e-2  # what is left is below the cost's resolution
+    plain, plain0 = run(0.0, None), run(0.0, 0.0)
+    assert plain[0] == plain0[0] and np.array_equal(plain[1], plain0[1])
+
+
 def test_lbfgs_carries_its_curvature_to_a_fresh_batch():
     """On an ill-conditioned quadratic whose centre moves with the batch, the next batch starts
     from the last batch's curvature pairs (kept through a checkpoint) and converges there in
@@ -1102,7 +1128,7 @@ def test_lbfgs_carries_its_curvature_to_a_fresh_batch():
         current["c"] = centres[k]
 
     def steps_on_second_batch(memory: bool) -> tuple[int, dict]:
-        m = LBFGS(renewals=1, renewal_memory=memory)
+        m = LBFGS(renewals=1, renewal_memory=memory, ftol=0.0)  # converged: no lower float, twice
         current["c"] = centres[0]
         oracle, state, after, first = Oracle(value_and_grad=vg, renew=renew), m.init(np.ones(3)), None, None
         for i in range(200):

@@ -123,12 +123,8 @@ def add_parser(subparsers):
         help="ros2-admittance: ft_sensor.filter_coefficient, the F/T filter the gains were tuned with; golden: the "
         "one the recorded scenario runs (1: unfiltered)",
     )
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="ros2-admittance: write gains the admittance rule would run unstably or within its margin, with a "
-        "WARNING in each file (refused otherwise)",
-    )
+    force_help = "ros2-admittance: write gains the rule would run unstably or within its margin, with a WARNING"
+    p.add_argument("--force", action="store_true", help=force_help + " in each file (refused otherwise)")
     g = p.add_argument_group("golden", "the rollout --format golden records (MuJoCo C, the comparison scenario)")
     g.add_argument("--steps", type=positive(int), default=None, help="control periods recorded (1000)")
     g.add_argument(

@@ -28,7 +28,8 @@ Methods (:data:`METHODS`):
   trial; where the oracle has ``value``, the trials after a rejected one (and
   every trial of the step after a backtracking one) take the value alone and
   the gradient only at the accepted point: the same iterates, fewer reverse
-  passes. Converged on its batch (no step lowers the cost twice in a row), it goes on
+  passes. Converged on its batch (twice in a row no step lowers the cost, or by at most
+  ``ftol`` of it: scipy's L-BFGS-B test), it goes on
   from where it stands on a fresh training batch, up to ``renewals`` times,
   where the oracle can renew; then it reports convergence;
 - ``cmaes``: CMA-ES (the maintained ``cma`` package), its population
@@ -164,6 +165,10 @@ class LBFGS:
     # a fresh batch starts from the curvature pairs of the last (the same cost on other scenarios: a
     # close Hessian); without them each batch starts over from a short steepest-descent step
     renewal_memory: bool = True
+    # a step that lowers the cost by at most ftol * max(|f|, |f_new|, 1) counts as none (it is taken):
+    # scipy's L-BFGS-B criterion at its default (factr 1e7 times float64's epsilon). Without it a batch
+    # whose cost holds a large constant (a dropped scenario's) is lowered by ever smaller accepted steps
+    ftol: float = 2.220446049250313e-09
     needs = ("value_and_grad",)
 
     def init(self, x0, seed: int = 0) -> dict:
@@ -187,6 +192,10 @@ class LBFGS:
 
     def step(self, state, oracle: Oracle):
         batch = int(state.get("batch", 0))
+        if state.get("converged", False):  # nothing left to do: no step, no evaluation
+            g = state["g"]
+            return state, {"train_cost": state["f"], "grad_norm": float(np.linalg.norm(g)), "accepted": 0,
+                           "batch": batch, "trials": 0, "converged": 1}  # fmt: skip
         if oracle.renew is not None:
             oracle.use(batch)  # a resumed run's oracle starts on batch 0
         x, f, g = state["x"], state["f"], state["g"]
@@ -223,7 +232,14 @@ class LBFGS:
                     s_hist, y_hist = (s_hist + [s])[-self.memory :], (y_hist + [y])[-self.memory :]
                 row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1, "batch": batch}
                 row["trials"] = trial + 1
+                small = f - f_new <= self.ftol * max(abs(f), abs(f_new), 1.0)
+                if small and state.get("stalled", False):  # the second step in a row that lowers it by nothing
+                    return self._leave_batch(x_new, f_new, g_new, s_hist, y_hist, batch, oracle, row)
                 new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist, "backtracked": trial > 0}
+                if small:  # taken, but counted as no lower cost (the curvature holds: kept for a fresh batch)
+                    row["small"] = 1
+                    kept = {"kept_s": list(s_hist), "kept_y": list(y_hist)} if self.renewal_memory else {}
+                    return {**new, "batch": batch, "stalled": True, **kept}, row
                 return {**new, "batch": batch, "stalled": False}, row
             alpha *= self.shrink
         row = {"train_cost": f, "grad_norm": float(np.linalg.norm(g)), "accepted": 0, "batch": batch}
@@ -235,10 +251,15 @@ class LBFGS:
             return {"x": x, "f": f, "g": g, "s": [], "y": [], "batch": batch, "stalled": True, "backtracked": True,
                     **kept}, row  # fmt: skip
         # the second time in a row: converged on this batch
+        return self._leave_batch(x, f, g, state.get("kept_s", []), state.get("kept_y", []), batch, oracle, row)
+
+    def _leave_batch(self, x, f, g, s_hist, y_hist, batch, oracle, row):
+        """Converged on batch ``batch``: on to the next, from ``x`` and the curvature pairs given
+        (where the oracle can renew and renewals are left), else converged."""
         if oracle.renew is not None and batch < self.renewals:
             oracle.use(batch + 1)
             row["renewed"] = batch + 1
-            s_hist, y_hist = state.get("kept_s", []), state.get("kept_y", [])
+            s_hist, y_hist = (s_hist, y_hist) if self.renewal_memory else ([], [])
             return {"x": x, "f": None, "g": None, "s": list(s_hist), "y": list(y_hist), "batch": batch + 1,
                     "stalled": False}, row  # fmt: skip
         row["converged"] = 1

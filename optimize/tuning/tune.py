@@ -142,8 +142,9 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
                 f"{cfg.method.name}: {bad} non-finite iterations in a row, the last at iteration {i}; stopping. "
                 f"Gains at that point: {g}"
             )
-    # the method says when it has converged (L-BFGS: no lower cost twice in a
-    # row on its last batch; before that it goes on with a fresh one, "renewed")
+    # the method says when it has converged (L-BFGS: twice in a row no step lowers
+    # the cost by more than ftol of it on its last batch; before that it goes on
+    # with a fresh one, "renewed")
     stalled = finite and not accepted
     converged = bool(r.get("converged"))
     if stalled:
