@@ -233,11 +233,11 @@ class LBFGS:
                 row = {"train_cost": f_new, "grad_norm": float(np.linalg.norm(g_new)), "accepted": 1, "batch": batch}
                 row["trials"] = trial + 1
                 small = f - f_new <= self.ftol * max(abs(f), abs(f_new), 1.0)
+                row = {**row, "small": self.ftol} if small else row  # the tolerance it met
                 if small and state.get("stalled", False):  # the second step in a row that lowers it by nothing
                     return self._leave_batch(x_new, f_new, g_new, s_hist, y_hist, batch, oracle, row)
                 new = {"x": x_new, "f": f_new, "g": g_new, "s": s_hist, "y": y_hist, "backtracked": trial > 0}
                 if small:  # taken, but counted as no lower cost (the curvature holds: kept for a fresh batch)
-                    row["small"] = 1
                     kept = {"kept_s": list(s_hist), "kept_y": list(y_hist)} if self.renewal_memory else {}
                     return {**new, "batch": batch, "stalled": True, **kept}, row
                 return {**new, "batch": batch, "stalled": False}, row

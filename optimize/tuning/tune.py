@@ -146,13 +146,18 @@ def _method_step(state: TuneState, method, oracle: _MethodOracle, cfg: TuneConfi
     # the cost by more than ftol of it on its last batch; before that it goes on
     # with a fresh one, "renewed")
     stalled = finite and not accepted
+    small = finite and accepted and bool(r.get("small"))  # taken, counted as no lower cost
     converged = bool(r.get("converged"))
-    if stalled:
+    if stalled or small:
         if r.get("renewed"):
             then = f"; converged on its training batch, going on with a fresh one ({r['renewed']})"
+        elif converged:
+            then = "; converged, stopping"
         else:
-            then = "; converged, stopping" if converged else "; curvature memory reset"
-        log(f"iteration {i}: no step lowered the training cost" + then)
+            then = "; counted as none" if small else "; curvature memory reset"
+        what = "no step lowered the training cost"
+        what = f"the step lowered the training cost by at most {r['small']:.2g} of it" if small else what
+        log(f"iteration {i}: {what}" + then)
     row = {
         "iteration": i,
         "cost": float(r["train_cost"]),
