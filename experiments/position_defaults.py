@@ -12,7 +12,8 @@ files out beside the defaults; ``--delays 0,1,2,3`` runs every scenario
 again at each of those delays instead of its own draw. Prints per
 controller, gains, coefficient (and delay) the settled peak resultant over
 the scenarios kept, the grip error, drops, non-finite runs, chatter and
-the first impact. Deterministic: no timing.
+the first impact, and the largest share of control steps in any
+scenario with a joint at its torque limit. Deterministic: no timing.
 
     python experiments/position_defaults.py --robot mjcf/dual_arm.xml --filters 1,0.2,0.05
     python experiments/position_defaults.py --robot mjcf/robots/ur5e_twice.yaml --filters 1 --delays 0,1,2,3
@@ -79,6 +80,8 @@ def main() -> None:
                     scenarios = scenarios._replace(delay=np.full_like(np.asarray(held.delay), float(d)))
                 summary = L.eval_summary(evaluate(g, scenarios))
                 row = {k: summary[k] for k in KEYS}
+                share = [summary["metrics"][f"torque_limit_share_{arm}"] for arm in ("right", "left")]
+                row["torque_limit_share_max"] = max(x for xs in share for x in xs if x is not None)
                 at = "" if d is None else f" delay={d}"
                 print(f"{controller} {label} a={a:g}{at} {args.set}", json.dumps(row), flush=True)
 
