@@ -15,6 +15,7 @@ from jax.flatten_util import ravel_pytree
 from jaxsync._errors import ConfigError
 from jaxsync.control import gains as _gains
 from jaxsync.optimize.tuning import checkpoint
+from jaxsync.optimize.tuning.methods import LBFGS
 from jaxsync.optimize.tuning.params import TuneSpec
 
 
@@ -51,7 +52,8 @@ def select_iterate(validation: list[dict], grip_floor: float = 0.0) -> dict | No
 
 
 STOP_REASONS = {
-    "method": "the method converged on its training batches (no step lowered the cost)",
+    "method": "the method converged on its training batches (no step lowered the cost by more than "
+    f"{LBFGS.ftol:.2g} of it)",
     "plateau": "the validation figure moved by less than the tolerance over the last validations",
     "lost": "the iterates dropped the object in every validation scenario",
 }
