@@ -212,12 +212,15 @@ def main() -> None:
             if "synchronous" in done or os.path.exists(sync_run):
                 done_sync = done["synchronous"] if "synchronous" in done else _load(sync_run)
                 rs, ls, hs = _ratio(_peaks(done["coupled"]), _peaks(done_sync))
+                rr, lr, hr = _ratio(_peaks(done_sync), _peaks(done["rule"]))
                 sync = {
                     "synchronous_N": done_sync["heldout_settled_peak_resultant_N_after"],
                     "synchronous_converged": done_sync["convergence"]["converged"],
                     "synchronous_iterations": done_sync["convergence"]["iterations"],
                     "coupled_over_synchronous": rs,
                     "ci95_synchronous": [ls, hs],
+                    "synchronous_over_rule": rr,
+                    "ci95_synchronous_over_rule": [lr, hr],
                 }
             row = {
                 "bound": factor,
