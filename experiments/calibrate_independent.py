@@ -41,22 +41,13 @@ from jaxsync.io.bags import Recording  # noqa: E402
 from jaxsync.physics.model import load_model  # noqa: E402
 
 
-def case(
-    model,
-    structure: str,
-    delay: int,
-    duration: float,
-    seed: int,
-    noise_q: float,
-    noise_dq: float,
-    verbose: bool = False,
-    timestep: float | None = None,
-    generator: str = "actuators",
-    noise_tau: float | None = None,
-    amplitude: float | None = None,
-    speed: float | None = None,
-    figures: str = "fr3",
-):
+def recording(model, structure: str, delay: int, duration: float, seed: int, noise_q: float, noise_dq: float,
+              generator: str = "actuators", noise_tau: float | None = None, amplitude: float | None = None,
+              speed: float | None = None, figures: str = "fr3"):  # fmt: skip
+    """One case's recording by the independent generator and its true stiffness and damping: the
+    gains drawn within +-25 % of the robot file's (``seed``), ``jaxsync excite``'s trajectory played
+    with ``delay`` periods through a servo of ``structure``, sensor noise (efforts where ``noise_tau``
+    is given)."""
     nominal = Replay(model).nominal()
     rng = np.random.default_rng(seed)
     n = len(nominal.stiffness)
@@ -78,6 +69,28 @@ def case(
     tau = out[3] + noise_tau * np.random.default_rng(seed + 2).standard_normal(out[3].shape) if eff else None
     rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source=f"{structure}, delay {delay}",
                     effort=tau)  # fmt: skip
+    return rec, kp, kv
+
+
+def case(
+    model,
+    structure: str,
+    delay: int,
+    duration: float,
+    seed: int,
+    noise_q: float,
+    noise_dq: float,
+    verbose: bool = False,
+    timestep: float | None = None,
+    generator: str = "actuators",
+    noise_tau: float | None = None,
+    amplitude: float | None = None,
+    speed: float | None = None,
+    figures: str = "fr3",
+):
+    rec, kp, kv = recording(model, structure, delay, duration, seed, noise_q, noise_dq, generator, noise_tau,
+                            amplitude, speed, figures)  # fmt: skip
+    n = len(kp)
     start = time.perf_counter()
     say = (lambda text: print(f"  {text}", file=sys.stderr, flush=True)) if verbose else None
     cal = calibrate(model, rec, timestep=timestep, progress=say)[0]

@@ -1,6 +1,6 @@
 """The calibrate fit's residual against ``mujoco.sysid``'s, timed interleaved in one run.
 
-One recording of the FR3-figures test robot (``tests/independent_servo.py``:
+One recording of the FR3-figures test robot (``calibrate_independent.recording``:
 MuJoCo's own actuators, gains moved within +-25 %, sensor noise), cut into
 the fit's windows; then, round after round, the toolbox's
 ``build_residual_fn`` (the same rollout and residual hooks: a model and a
@@ -26,10 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "tests"))
 import independent_servo as ind  # noqa: E402  (the tests' independent generator)
+from calibrate_independent import recording  # noqa: E402  (its cases' recording)
 
-from jaxsync.calibrate import excite, fit  # noqa: E402
-from jaxsync.calibrate.replay import Replay  # noqa: E402
-from jaxsync.io.bags import Recording  # noqa: E402
+from jaxsync.calibrate import fit  # noqa: E402
 from jaxsync.physics.model import load_model  # noqa: E402
 from jaxsync.physics.servo import STRUCTURES  # noqa: E402
 
@@ -44,16 +43,7 @@ def main() -> None:
     args = p.parse_args()
 
     model = load_model(str(ind.limited_robot(pathlib.Path(tempfile.mkdtemp()), args.figures)), visual=False)
-    nominal = Replay(model).nominal()
-    rng = np.random.default_rng(0)
-    n = len(nominal.stiffness)
-    kp, kv = nominal.stiffness * rng.uniform(0.75, 1.25, n), nominal.damping * rng.uniform(0.75, 1.25, n)
-    ex = excite.excitation(model, duration=args.duration)
-    q0 = np.asarray(model.keyframe_qpos("grasp"))
-    t, q, dq = ind.record_actuators(model.robot.spec, q0, kp, kv, ex.times, ex.commands, args.delay,
-                                    structure=args.structure)[:3]  # fmt: skip
-    q, dq = ind.noisy(q, dq, 1e-4, 5e-3, 1)
-    rec = Recording(tuple(ex.joints), t, q, dq, ex.times, ex.commands, source="timing")
+    rec = recording(model, args.structure, args.delay, args.duration, 0, 1e-4, 5e-3, figures=args.figures)[0]
 
     prob = fit.Problem(model, rec, 0.5, structure=STRUCTURES[args.structure])
     pd = prob.parameters(prob.replay.nominal(), fit.FACTORS)
@@ -86,6 +76,7 @@ def timed(point, fns, pd, rounds):
         if not same:
             raise SystemExit("the two residuals differ")
     return statistics.median(seconds["toolbox"]), statistics.median(seconds["fit"])
+
 
 if __name__ == "__main__":
     main()
